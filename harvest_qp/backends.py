@@ -1,0 +1,200 @@
+"""QP backends behind :class:`harvest_qp.solver.Solver`.
+
+* ``daqp`` (default): a persistent ``daqp.Model`` set up once and updated each step;
+  dimensions are fixed after ``setup``, so equality rows are padded to ``n`` and
+  the model is set up again only when the number of inequality rows changes.
+* ``proxsuite``: a kept ``proxqp.dense.QP`` with tight absolute tolerances, the
+  duality-gap check and ``eps_primal_inf = 1e-12``; its defaults declare feasible
+  QPs with near-duplicate collision rows infeasible and return wrong solutions.
+* ``qpsolvers:<name>``: any backend of :mod:`qpsolvers` (e.g. ``qpsolvers:quadprog``).
+
+Every backend failure becomes a :class:`~harvest_qp.exceptions.SolverError` that
+carries the QP, and every returned solution is checked (finite, feasible).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from harvest_qp.exceptions import InfeasibleProblemError, SolverError, SolverNotAvailableError
+
+if TYPE_CHECKING:
+    from harvest_qp.solver import QPProblem
+
+_INF = 1e30
+#: Largest constraint violation accepted in a returned solution.
+FEASIBILITY_TOLERANCE = 1e-7
+
+
+class Backend(Protocol):
+    """Solves one :class:`~harvest_qp.solver.QPProblem`, raising :class:`SolverError` on failure."""
+
+    def solve(self, problem: QPProblem) -> np.ndarray: ...
+
+
+def _checked(x, problem: QPProblem, backend: str) -> np.ndarray:
+    if x is None or not np.all(np.isfinite(x)):
+        raise SolverError(f"{backend} returned a non-finite solution", problem=problem, backend=backend)
+    violation = problem.violation(x)
+    if violation > FEASIBILITY_TOLERANCE:
+        raise SolverError(
+            f"{backend} returned a solution violating the constraints by {violation:.3g}",
+            problem=problem,
+            backend=backend,
+        )
+    return np.asarray(x, dtype=float)
+
+
+class DaqpBackend:
+    """DAQP with a persistent workspace (fastest exact backend measured here)."""
+
+    name = "daqp"
+    _FLAGS = {-1: "infeasible", -2: "cycling", -3: "unbounded", -4: "iteration limit", -5: "nonconvex",
+              -6: "overdetermined initial active set"}
+
+    def __init__(self) -> None:
+        import daqp
+
+        self._daqp = daqp
+        self._model = None
+        self._shape: tuple[int, int] | None = None
+
+    def solve(self, problem: QPProblem) -> np.ndarray:
+        n, n_eq, n_in = problem.n, problem.A.shape[0], problem.G.shape[0]
+        A = np.zeros((n + n_in, n))
+        A[:n_eq] = problem.A
+        A[n:] = problem.G
+        upper = np.full(2 * n + n_in, _INF)
+        lower = np.full(2 * n + n_in, -_INF)
+        upper[:n], lower[:n] = problem.upper, problem.lower
+        upper[n : n + n_eq] = problem.b
+        lower[n : n + n_eq] = problem.b
+        upper[2 * n :] = problem.h
+        sense = np.zeros(2 * n + n_in, dtype=np.int32)
+        sense[n : n + n_eq] = 5
+        if self._model is None or self._shape != (n, n_in):
+            self._model = self._daqp.Model()
+            flag, _ = self._model.setup(problem.H, problem.f, A, upper, lower, sense)
+            self._shape = (n, n_in)
+            if flag < 0:
+                self._model = None
+                raise SolverError(f"daqp setup failed (exitflag {flag})", problem=problem, backend=self.name, status=flag)
+        else:
+            self._model.update(H=problem.H, f=problem.f, A=A, bupper=upper, blower=lower, sense=sense)
+        x, _, flag, _ = self._model.solve()
+        if flag < 0:
+            self._model = None  # start from scratch next time: a bad active set is not reused
+            kind = InfeasibleProblemError if flag == -1 else SolverError
+            raise kind(
+                f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
+                problem=problem,
+                backend=self.name,
+                status=flag,
+            )
+        return _checked(x, problem, self.name)
+
+
+class ProxsuiteBackend:
+    """proxsuite dense QP kept between steps, with settings that stay exact on collision rows."""
+
+    name = "proxsuite"
+
+    def __init__(self, *, eps_abs: float = 1e-9) -> None:
+        import proxsuite
+
+        self._proxsuite = proxsuite
+        self._qp = None
+        self._shape: tuple[int, int, int] | None = None
+        self.eps_abs = eps_abs
+
+    def solve(self, problem: QPProblem) -> np.ndarray:
+        px = self._proxsuite.proxqp
+        # Presolve: proxsuite mistakes trivially satisfied rows (padding, zero rows of
+        # pairs a joint axis cannot move) for infeasibility, so drop them.
+        keep = (problem.h < _INF / 2) & ~((np.abs(problem.G).max(axis=1, initial=0.0) < 1e-12) & (problem.h >= 0))
+        G, h = problem.G[keep], problem.h[keep]
+        n, n_eq, n_in = problem.n, problem.A.shape[0], G.shape[0]
+        inf = 1e20
+        l_box, u_box = np.maximum(problem.lower, -inf), np.minimum(problem.upper, inf)
+        C = G if n_in else None
+        u = h if n_in else None
+        l = np.full(n_in, -inf) if n_in else None
+        A = problem.A if n_eq else None
+        b = problem.b if n_eq else None
+        if self._qp is None or self._shape != (n, n_eq, n_in):
+            qp = px.dense.QP(n, n_eq, n_in, True)
+            s = qp.settings
+            s.eps_abs = self.eps_abs
+            s.eps_rel = 0.0
+            s.eps_primal_inf = 1e-12
+            s.eps_dual_inf = 1e-12
+            s.check_duality_gap = True
+            s.eps_duality_gap_abs = self.eps_abs
+            s.eps_duality_gap_rel = 0.0
+            s.max_iter = 10_000
+            s.verbose = False
+            s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
+            qp.init(problem.H, problem.f, A, b, C, l, u, l_box, u_box)
+            self._qp, self._shape = qp, (n, n_eq, n_in)
+        else:
+            self._qp.update(problem.H, problem.f, A, b, C, l, u, l_box, u_box)
+        self._qp.solve()
+        status = self._qp.results.info.status
+        if status != px.QPSolverOutput.PROXQP_SOLVED:
+            self._qp = None
+            kind = InfeasibleProblemError if "INFEASIBLE" in str(status) else SolverError
+            raise kind(f"proxsuite failed: {status}", problem=problem, backend=self.name, status=status)
+        return _checked(self._qp.results.x.copy(), problem, self.name)
+
+
+class QpsolversBackend:
+    """Any :mod:`qpsolvers` backend; infinite bounds and inactive rows are dropped first."""
+
+    def __init__(self, solver: str) -> None:
+        import qpsolvers
+
+        if solver not in qpsolvers.available_solvers:
+            raise SolverNotAvailableError(
+                f"qpsolvers backend {solver!r} is not installed; available: "
+                f"{', '.join(sorted(qpsolvers.available_solvers))}. Install it, e.g. pip install {solver}",
+                backend=solver,
+            )
+        self._qpsolvers = qpsolvers
+        self.solver = solver
+        self.name = f"qpsolvers:{solver}"
+
+    def solve(self, problem: QPProblem) -> np.ndarray:
+        n = problem.n
+        eye = np.eye(n)
+        G = np.vstack([problem.G, eye, -eye])
+        h = np.concatenate([problem.h, problem.upper, -problem.lower])
+        keep = h < _INF / 2
+        P = 0.5 * (problem.H + problem.H.T)
+        A = problem.A if problem.A.shape[0] else None
+        b = problem.b if problem.A.shape[0] else None
+        try:
+            x = self._qpsolvers.solve_qp(
+                P, problem.f, G[keep], h[keep], A, b, solver=self.solver
+            )
+        except Exception as err:  # every backend raises its own types
+            raise SolverError(f"{self.name} raised {type(err).__name__}: {err}", problem=problem, backend=self.name) from err
+        if x is None:
+            raise SolverError(f"{self.name} found no solution", problem=problem, backend=self.name)
+        return _checked(x, problem, self.name)
+
+
+def make_backend(name: str) -> Backend:
+    """Backend by name: ``daqp``, ``proxsuite`` or ``qpsolvers:<solver>``."""
+    if name == "daqp":
+        return DaqpBackend()
+    if name == "proxsuite":
+        return ProxsuiteBackend()
+    if name.startswith("qpsolvers:"):
+        return QpsolversBackend(name.split(":", 1)[1])
+    raise SolverNotAvailableError(
+        f"unknown QP backend {name!r}; use 'daqp', 'proxsuite' or 'qpsolvers:<name>' "
+        "(e.g. 'qpsolvers:quadprog')",
+        backend=name,
+    )

@@ -1,0 +1,1 @@
+"""Compiled geometry kernels for collision avoidance (capsule distances, damper rows)."""

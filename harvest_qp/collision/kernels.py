@@ -1,0 +1,261 @@
+"""Compiled (numba) kernels for collision avoidance: kinematics, distances, damper rows.
+
+Everything the collision constraint needs per control step runs in compiled code,
+because per-pair work from Python costs ~1 us a pair and the constraint must stay
+within a few tens of microseconds for ~200 candidate pairs. The kernels are written
+with scalars and explicit loops: small temporary arrays (and BLAS calls on 3x3
+matrices) cost more than the arithmetic itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+REVOLUTE = 0
+PRISMATIC = 1
+
+
+@njit(cache=True, fastmath=False)
+def forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, out_R, out_p):
+    """World rotation ``out_R[j]`` and position ``out_p[j]`` of every joint frame (joint 0 = world).
+
+    ``place_R/place_p`` is each joint's fixed placement in its parent joint frame;
+    the joint then turns about (or slides along) ``axis[j]`` in its own frame.
+    """
+    for i in range(3):
+        out_p[0, i] = 0.0
+        for k in range(3):
+            out_R[0, i, k] = 1.0 if i == k else 0.0
+    R = np.empty((3, 3))
+    M = np.empty((3, 3))
+    for j in range(1, parent.shape[0]):
+        pj = parent[j]
+        for i in range(3):
+            acc = out_p[pj, i]
+            for k in range(3):
+                acc += out_R[pj, i, k] * place_p[j, k]
+            out_p[j, i] = acc
+            for c in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += out_R[pj, i, k] * place_R[j, k, c]
+                R[i, c] = acc
+        x = q[idx_v[j]]
+        ax, ay, az = axis[j, 0], axis[j, 1], axis[j, 2]
+        if joint_type[j] == REVOLUTE:
+            c, s = np.cos(x), np.sin(x)
+            t = 1.0 - c
+            M[0, 0] = c + ax * ax * t
+            M[0, 1] = ax * ay * t - az * s
+            M[0, 2] = ax * az * t + ay * s
+            M[1, 0] = ay * ax * t + az * s
+            M[1, 1] = c + ay * ay * t
+            M[1, 2] = ay * az * t - ax * s
+            M[2, 0] = az * ax * t - ay * s
+            M[2, 1] = az * ay * t + ax * s
+            M[2, 2] = c + az * az * t
+            for i in range(3):
+                for cc in range(3):
+                    out_R[j, i, cc] = R[i, 0] * M[0, cc] + R[i, 1] * M[1, cc] + R[i, 2] * M[2, cc]
+        else:
+            for i in range(3):
+                for cc in range(3):
+                    out_R[j, i, cc] = R[i, cc]
+                out_p[j, i] += (R[i, 0] * ax + R[i, 1] * ay + R[i, 2] * az) * x
+
+
+@njit(cache=True)
+def capsule_world(cap_joint, cap_p0, cap_p1, joint_R, joint_p, out0, out1):
+    """World end points of every capsule from the joint placements."""
+    for c in range(cap_joint.shape[0]):
+        j = cap_joint[c]
+        for i in range(3):
+            a = joint_p[j, i]
+            b = joint_p[j, i]
+            for k in range(3):
+                a += joint_R[j, i, k] * cap_p0[c, k]
+                b += joint_R[j, i, k] * cap_p1[c, k]
+            out0[c, i] = a
+            out1[c, i] = b
+
+
+@njit(cache=True)
+def _clamp01(x):
+    return 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
+
+
+@njit(cache=True)
+def segment_distance(p0x, p0y, p0z, p1x, p1y, p1z, q0x, q0y, q0z, q1x, q1y, q1z):
+    """Closest points of segments p0-p1 and q0-q1 (either may be a point).
+
+    Returns ``(distance, s, t)`` with the witness points ``p0 + s (p1 - p0)`` and
+    ``q0 + t (q1 - q0)``, ``s, t`` in [0, 1] (Ericson, Real-Time Collision Detection 5.1.9).
+    """
+    d1x, d1y, d1z = p1x - p0x, p1y - p0y, p1z - p0z
+    d2x, d2y, d2z = q1x - q0x, q1y - q0y, q1z - q0z
+    rx, ry, rz = p0x - q0x, p0y - q0y, p0z - q0z
+    a = d1x * d1x + d1y * d1y + d1z * d1z
+    e = d2x * d2x + d2y * d2y + d2z * d2z
+    f = d2x * rx + d2y * ry + d2z * rz
+    eps = 1e-14
+    if a <= eps and e <= eps:
+        s = 0.0
+        t = 0.0
+    elif a <= eps:
+        s = 0.0
+        t = _clamp01(f / e)
+    else:
+        c = d1x * rx + d1y * ry + d1z * rz
+        if e <= eps:
+            t = 0.0
+            s = _clamp01(-c / a)
+        else:
+            b = d1x * d2x + d1y * d2y + d1z * d2z
+            denom = a * e - b * b
+            # Parallel segments (denom ~ 0): any s works, start from s = 0.
+            s = _clamp01((b * f - c * e) / denom) if denom > eps * a * e else 0.0
+            t = (b * s + f) / e
+            if t < 0.0:
+                t = 0.0
+                s = _clamp01(-c / a)
+            elif t > 1.0:
+                t = 1.0
+                s = _clamp01((b - c) / a)
+    wx = rx + s * d1x - t * d2x
+    wy = ry + s * d1y - t * d2y
+    wz = rz + s * d1z - t * d2z
+    return np.sqrt(wx * wx + wy * wy + wz * wz), s, t
+
+
+@njit(cache=True)
+def pair_distances(pair_a, pair_b, cap_radius, w0, w1, influence, out_d, out_s, out_t):
+    """Surface distance [m] of each candidate pair, skipping far pairs cheaply.
+
+    Pairs whose bounding spheres are farther apart than ``influence`` get
+    ``out_d = inf`` without the exact segment test (the broadphase).
+    """
+    for k in range(pair_a.shape[0]):
+        a = pair_a[k]
+        b = pair_b[k]
+        dax, day, daz = w1[a, 0] - w0[a, 0], w1[a, 1] - w0[a, 1], w1[a, 2] - w0[a, 2]
+        dbx, dby, dbz = w1[b, 0] - w0[b, 0], w1[b, 1] - w0[b, 1], w1[b, 2] - w0[b, 2]
+        cx = 0.5 * (w0[a, 0] + w1[a, 0] - w0[b, 0] - w1[b, 0])
+        cy = 0.5 * (w0[a, 1] + w1[a, 1] - w0[b, 1] - w1[b, 1])
+        cz = 0.5 * (w0[a, 2] + w1[a, 2] - w0[b, 2] - w1[b, 2])
+        ra = 0.5 * np.sqrt(dax * dax + day * day + daz * daz) + cap_radius[a]
+        rb = 0.5 * np.sqrt(dbx * dbx + dby * dby + dbz * dbz) + cap_radius[b]
+        if np.sqrt(cx * cx + cy * cy + cz * cz) - ra - rb > influence:
+            out_d[k] = np.inf
+            continue
+        dist, s, t = segment_distance(
+            w0[a, 0], w0[a, 1], w0[a, 2], w1[a, 0], w1[a, 1], w1[a, 2],
+            w0[b, 0], w0[b, 1], w0[b, 2], w1[b, 0], w1[b, 1], w1[b, 2],
+        )
+        out_d[k] = dist - cap_radius[a] - cap_radius[b]
+        out_s[k] = s
+        out_t[k] = t
+
+
+@njit(cache=True)
+def _add_point_row(px, py, pz, joint, support, joint_type, joint_R, joint_p, axis, idx_v, scale, nx, ny, nz, G, r):
+    """Add ``scale * n^T dv(p)/dqdot`` to row ``G[r]`` for a point fixed to ``joint``'s body."""
+    for k in range(1, support.shape[1]):
+        if not support[joint, k]:
+            continue
+        ax = joint_R[k, 0, 0] * axis[k, 0] + joint_R[k, 0, 1] * axis[k, 1] + joint_R[k, 0, 2] * axis[k, 2]
+        ay = joint_R[k, 1, 0] * axis[k, 0] + joint_R[k, 1, 1] * axis[k, 1] + joint_R[k, 1, 2] * axis[k, 2]
+        az = joint_R[k, 2, 0] * axis[k, 0] + joint_R[k, 2, 1] * axis[k, 1] + joint_R[k, 2, 2] * axis[k, 2]
+        if joint_type[k] == REVOLUTE:
+            rx, ry, rz = px - joint_p[k, 0], py - joint_p[k, 1], pz - joint_p[k, 2]
+            vx = ay * rz - az * ry
+            vy = az * rx - ax * rz
+            vz = ax * ry - ay * rx
+            G[r, idx_v[k]] += scale * (nx * vx + ny * vy + nz * vz)
+        else:
+            G[r, idx_v[k]] += scale * (nx * ax + ny * ay + nz * az)
+
+
+@njit(cache=True)
+def damper_rows(
+    selected, pair_a, pair_b, cap_joint, w0, w1, dist, s_arr, t_arr,
+    support, joint_type, joint_R, joint_p, axis, idx_v,
+    safety, influence, gain, G, h, normals,
+):
+    """Velocity-damper rows ``-n^T (J_a - J_b) qdot <= gain (d - d_s) / (d_i - d_s)``.
+
+    ``n`` is the unit vector from the witness point on ``b`` to the one on ``a``, so
+    ``n^T (J_a - J_b) qdot`` is the rate of change of the distance. Rows past
+    ``len(selected)`` are left inactive (zero, bound 1e30).
+    """
+    G[:] = 0.0
+    h[:] = 1e30
+    for r in range(selected.shape[0]):
+        k = selected[r]
+        a = pair_a[k]
+        b = pair_b[k]
+        s = s_arr[k]
+        t = t_arr[k]
+        pax = w0[a, 0] + s * (w1[a, 0] - w0[a, 0])
+        pay = w0[a, 1] + s * (w1[a, 1] - w0[a, 1])
+        paz = w0[a, 2] + s * (w1[a, 2] - w0[a, 2])
+        pbx = w0[b, 0] + t * (w1[b, 0] - w0[b, 0])
+        pby = w0[b, 1] + t * (w1[b, 1] - w0[b, 1])
+        pbz = w0[b, 2] + t * (w1[b, 2] - w0[b, 2])
+        nx, ny, nz = pax - pbx, pay - pby, paz - pbz
+        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if norm < 1e-9:
+            # Segments intersect: separate along the line between the capsule centres.
+            nx = 0.5 * (w0[a, 0] + w1[a, 0] - w0[b, 0] - w1[b, 0])
+            ny = 0.5 * (w0[a, 1] + w1[a, 1] - w0[b, 1] - w1[b, 1])
+            nz = 0.5 * (w0[a, 2] + w1[a, 2] - w0[b, 2] - w1[b, 2])
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if norm < 1e-12:
+                nx, ny, nz, norm = 0.0, 0.0, 1.0, 1.0
+        nx /= norm
+        ny /= norm
+        nz /= norm
+        normals[r, 0] = nx
+        normals[r, 1] = ny
+        normals[r, 2] = nz
+        _add_point_row(pax, pay, paz, cap_joint[a], support, joint_type, joint_R, joint_p, axis, idx_v,
+                       -1.0, nx, ny, nz, G, r)
+        _add_point_row(pbx, pby, pbz, cap_joint[b], support, joint_type, joint_R, joint_p, axis, idx_v,
+                       1.0, nx, ny, nz, G, r)
+        h[r] = gain * (dist[k] - safety) / (influence - safety)
+
+
+@njit(cache=True)
+def collision_step(
+    q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p,
+    cap_joint, cap_p0, cap_p1, cap_radius, w0, w1, pair_a, pair_b, dist, s_arr, t_arr,
+    support, safety, influence, gain, max_rows, G, h, normals, selected,
+):
+    """Kinematics, broadphase, distances, N-closest selection and damper rows in one call.
+
+    Returns the number of active rows; ``selected[:n]`` holds their pair indices.
+    """
+    forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
+    capsule_world(cap_joint, cap_p0, cap_p1, joint_R, joint_p, w0, w1)
+    pair_distances(pair_a, pair_b, cap_radius, w0, w1, influence, dist, s_arr, t_arr)
+    n = 0
+    for k in range(dist.shape[0]):
+        if dist[k] < influence:
+            n += 1
+    close = np.empty(n, dtype=np.int64)
+    n = 0
+    for k in range(dist.shape[0]):
+        if dist[k] < influence:
+            close[n] = k
+            n += 1
+    if n > max_rows:
+        order = np.argsort(dist[close], kind="mergesort")  # stable: ties keep pair order
+        close = close[order[:max_rows]]
+        n = max_rows
+    for r in range(n):
+        selected[r] = close[r]
+    damper_rows(
+        close, pair_a, pair_b, cap_joint, w0, w1, dist, s_arr, t_arr,
+        support, joint_type, joint_R, joint_p, axis, idx_v, safety, influence, gain, G, h, normals,
+    )
+    return n

@@ -1,0 +1,168 @@
+"""Robot model plus joint positions: frame poses and Jacobians.
+
+Frame convention: every Jacobian and twist in harvest_qp is *world-aligned at the
+frame origin* (pinocchio's ``LOCAL_WORLD_ALIGNED``): a twist ``[v; w]`` stacks the
+linear velocity [m/s] of the frame origin and the angular velocity [rad/s], both
+expressed in the world frame. This is the convention of the paper's reference
+velocities (``eq:control_signal_rr_world``, ``eq:superimp_g``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from harvest_qp.exceptions import InvalidInputError, ModelError, UnknownFrameError
+from harvest_qp.validation import as_vector
+
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+
+
+class Configuration:
+    """A pinocchio model with joint positions ``q`` [rad] and cached kinematics.
+
+    Args:
+        model: pinocchio model (revolute joints only: ``nq == nv``).
+        q: joint positions [rad]; the model's neutral configuration when omitted.
+    """
+
+    def __init__(self, model: pin.Model, q: np.ndarray | Sequence[float] | None = None) -> None:
+        if model.nq != model.nv:
+            raise ModelError(
+                f"harvest_qp needs a model with nq == nv (revolute/prismatic joints), got nq={model.nq}, "
+                f"nv={model.nv}"
+            )
+        self.model = model
+        self.data = model.createData()
+        self._frame_ids = {model.frames[i].name: i for i in range(model.nframes)}
+        self._joint_ids = {model.names[i]: i for i in range(1, model.njoints)}
+        self.q = np.array(pin.neutral(model) if q is None else q, dtype=float)
+        self.update(self.q)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_urdf(cls, path: str | Path, q: np.ndarray | None = None) -> Configuration:
+        """Load a URDF [file path] and return its configuration at ``q``."""
+        path = Path(path)
+        if not path.is_file():
+            raise ModelError(f"URDF file not found: {path}")
+        return cls(pin.buildModelFromUrdf(str(path)), q)
+
+    @classmethod
+    def dual_ur5e(cls, q: np.ndarray | None = None) -> Configuration:
+        """The shipped dual-UR5e harvester, at ``q`` or at the home configuration."""
+        from harvest_qp.robot.description import HOME_Q
+        from harvest_qp.robot.paths import urdf_path
+
+        return cls.from_urdf(urdf_path(), HOME_Q if q is None else q)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def nv(self) -> int:
+        """Number of joint velocities (12 for the dual UR5e)."""
+        return self.model.nv
+
+    @property
+    def joint_names(self) -> list[str]:
+        """Actuated joint names in the order of ``q``."""
+        return [self.model.names[i] for i in range(1, self.model.njoints)]
+
+    @property
+    def frame_names(self) -> list[str]:
+        """Every frame name of the model (links, joints and task frames)."""
+        return list(self._frame_ids)
+
+    @property
+    def lower_limits(self) -> np.ndarray:
+        """Joint position lower limits [rad]."""
+        return self.model.lowerPositionLimit
+
+    @property
+    def upper_limits(self) -> np.ndarray:
+        """Joint position upper limits [rad]."""
+        return self.model.upperPositionLimit
+
+    @property
+    def velocity_limits(self) -> np.ndarray:
+        """Joint speed limits [rad/s]."""
+        return self.model.velocityLimit
+
+    def update(self, q: np.ndarray | Sequence[float]) -> None:
+        """Set joint positions [rad] and recompute placements and joint Jacobians."""
+        q = as_vector(q, self.model.nq, "q")
+        self.q = q
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+
+    def integrate(self, qdot: np.ndarray, dt: float) -> np.ndarray:
+        """Joint positions after applying ``qdot`` [rad/s] for ``dt`` [s] (does not update)."""
+        return self.q + np.asarray(qdot, dtype=float) * dt
+
+    # ------------------------------------------------------------------ frames
+    def frame_id(self, name: str) -> int:
+        """Index of frame ``name``; raises :class:`UnknownFrameError` listing the valid names."""
+        try:
+            return self._frame_ids[name]
+        except (KeyError, TypeError):
+            raise UnknownFrameError(
+                f"unknown frame {name!r}; valid frames are: {', '.join(sorted(self._frame_ids))}"
+            ) from None
+
+    def joint_index(self, name: str) -> int:
+        """Index in ``q`` of the joint ``name``."""
+        if name not in self._joint_ids:
+            raise UnknownFrameError(
+                f"unknown joint {name!r}; valid joints are: {', '.join(self.joint_names)}"
+            )
+        return self.model.joints[self._joint_ids[name]].idx_q
+
+    def frame_pose(self, name: str) -> pin.SE3:
+        """World pose of frame ``name`` (position [m], rotation)."""
+        return self.data.oMf[self.frame_id(name)]
+
+    def frame_position(self, name: str) -> np.ndarray:
+        """World position [m] of frame ``name``."""
+        return self.data.oMf[self.frame_id(name)].translation.copy()
+
+    def frame_rotation(self, name: str) -> np.ndarray:
+        """World rotation matrix (3x3) of frame ``name``; its columns are the frame axes."""
+        return self.data.oMf[self.frame_id(name)].rotation.copy()
+
+    def frame_jacobian(self, name: str) -> np.ndarray:
+        """Jacobian (6 x nv) of frame ``name``: ``[v; w] = J qdot``, world-aligned at the frame origin."""
+        return pin.getFrameJacobian(self.model, self.data, self.frame_id(name), _LWA)
+
+    def frame_jacobian_by_id(self, frame_id: int) -> np.ndarray:
+        """Like :meth:`frame_jacobian` for a frame index (no name lookup, for hot loops)."""
+        return pin.getFrameJacobian(self.model, self.data, frame_id, _LWA)
+
+    def point_jacobian(self, name: str, point: np.ndarray) -> np.ndarray:
+        """Linear Jacobian (3 x nv) of the world point [m] rigidly attached to frame ``name``."""
+        J = self.frame_jacobian(name)
+        r = np.asarray(point, dtype=float) - self.frame_position(name)
+        return J[:3] - np.cross(r[:, None], J[3:], axis=0)
+
+    def world_joint_jacobians(self) -> np.ndarray:
+        """All joint twists (6 x nv) in the WORLD convention (velocity of the point at the world origin).
+
+        Column ``k`` moves every body supported by joint ``k``; the linear velocity of
+        a world point ``p`` on such a body is ``J[:3] - p x J[3:]`` over its support.
+        """
+        return self.data.J
+
+    def support_mask(self, frame_name: str) -> np.ndarray:
+        """Boolean mask (nv,) of the joints that move frame ``frame_name``."""
+        frame = self.model.frames[self.frame_id(frame_name)]
+        mask = np.zeros(self.nv, dtype=bool)
+        for j in self.model.supports[frame.parentJoint][1:]:
+            joint = self.model.joints[j]
+            mask[joint.idx_v : joint.idx_v + joint.nv] = True
+        return mask
+
+    def check_finite(self) -> None:
+        """Raise :class:`InvalidInputError` if ``q`` holds NaN or inf."""
+        if not np.all(np.isfinite(self.q)):
+            raise InvalidInputError(f"q must be finite, got {self.q}")

@@ -1,0 +1,57 @@
+"""Joint position limits as velocity bounds."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from harvest_qp.configuration import Configuration
+from harvest_qp.limits.limit import Limit, LimitRows
+from harvest_qp.validation import as_positive_scalar, as_vector
+
+
+class JointPositionLimit(Limit):
+    """Keep ``q + qdot dt`` inside ``[q_min, q_max]``.
+
+    ``gain * (q_min - q) / dt <= qdot <= gain * (q_max - q) / dt`` with ``gain`` in (0, 1]:
+    below 1 the joint slows down before the limit instead of stopping on it in one step.
+    With ``max_acceleration`` [rad/s^2] the bound is also capped at the braking speed
+    ``sqrt(2 a (q_max - q))``, so a joint can always stop within the acceleration limit.
+
+    Args:
+        configuration: the robot (its URDF position limits are used by default).
+        gain: fraction of the remaining range allowed per step, in (0, 1].
+        lower, upper: override limits [rad].
+        max_acceleration: braking deceleration [rad/s^2] (scalar or per joint), or None.
+    """
+
+    priority = 1
+
+    def __init__(
+        self,
+        configuration: Configuration,
+        *,
+        gain: float = 0.95,
+        lower: np.ndarray | None = None,
+        upper: np.ndarray | None = None,
+        max_acceleration: float | np.ndarray | None = None,
+    ) -> None:
+        n = configuration.nv
+        self.gain = as_positive_scalar(gain, "gain")
+        if self.gain > 1.0:
+            raise ValueError(f"gain must be in (0, 1], got {gain}")
+        self.lower = as_vector(configuration.lower_limits if lower is None else lower, n, "lower")
+        self.upper = as_vector(configuration.upper_limits if upper is None else upper, n, "upper")
+        self.max_acceleration = (
+            None if max_acceleration is None else as_vector(max_acceleration, n, "max_acceleration")
+        )
+
+    def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
+        below = self.lower - configuration.q  # <= 0 inside the range
+        above = self.upper - configuration.q  # >= 0 inside the range
+        lower = self.gain * below / dt
+        upper = self.gain * above / dt
+        if self.max_acceleration is not None:
+            # Braking speed; outside the range (negative margin) the plain bound applies.
+            upper = np.minimum(upper, np.sqrt(2.0 * self.max_acceleration * np.maximum(above, 0.0)))
+            lower = np.maximum(lower, -np.sqrt(2.0 * self.max_acceleration * np.maximum(-below, 0.0)))
+        return LimitRows(lower=lower, upper=upper)

@@ -1,0 +1,233 @@
+"""Build and solve the task-priority velocity QP.
+
+For each priority level ``k = 1, 2, ...`` (in increasing order) the solver computes
+
+    min_qdot  sum_{tasks at k} || W^1/2 (J qdot - v) ||^2 + eps ||qdot||^2
+    s.t.      lower <= qdot <= upper                    (joint limits)
+              G qdot <= h                               (collision dampers)
+              J_0 qdot = v_0                            (hard tasks, level 0)
+              W_j^1/2 J_j qdot = W_j^1/2 J_j qdot_j*    (every level j < k)
+
+so that a lower level only optimises within the optimal set of the levels above
+it: a cascade of QPs (strict priorities). With a single soft level it is one QP.
+The equality rows of earlier levels are compressed to an orthonormal basis (an SVD),
+so redundant rows never make the solver see dependent equalities.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from harvest_qp.configuration import Configuration
+from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError
+from harvest_qp.limits.limit import Limit
+from harvest_qp.backends import Backend, make_backend
+from harvest_qp.tasks.task import HARD, Task
+from harvest_qp.validation import as_positive_scalar
+
+#: Bound magnitude that stands for "no bound" in the QP data.
+INF = 1e30
+#: Box limits from this priority on (acceleration limits) yield to infeasibility.
+RELAXABLE_PRIORITY = 2
+
+
+@dataclass
+class QPProblem:
+    """One QP ``min 1/2 x^T H x + f^T x`` s.t. ``lower <= x <= upper``, ``A x = b``, ``G x <= h``.
+
+    Kept whole in :class:`~harvest_qp.exceptions.SolverError` so a failure can be replayed.
+    """
+
+    H: np.ndarray
+    f: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    A: np.ndarray
+    b: np.ndarray
+    G: np.ndarray
+    h: np.ndarray
+    level: int = 1
+
+    @property
+    def n(self) -> int:
+        return self.H.shape[0]
+
+    def violation(self, x: np.ndarray) -> float:
+        """Largest constraint violation of ``x`` (0 when feasible)."""
+        v = [np.max(self.lower - x, initial=0.0), np.max(x - self.upper, initial=0.0)]
+        if self.A.shape[0]:
+            v.append(np.max(np.abs(self.A @ x - self.b)))
+        if self.G.shape[0]:
+            v.append(np.max(self.G @ x - self.h, initial=0.0))
+        return float(max(v))
+
+
+@dataclass
+class BoxConflict:
+    """A joint whose limit boxes did not overlap; the earlier (higher-priority) limit won."""
+
+    joint: int
+    limit: str
+
+
+@dataclass
+class Solution:
+    """Result of :func:`solve_ik`: joint velocities [rad/s] and what the solver saw."""
+
+    qdot: np.ndarray
+    problems: list[QPProblem] = field(default_factory=list)
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+    conflicts: list[BoxConflict] = field(default_factory=list)
+    relaxed: list[str] = field(default_factory=list)
+    """Limits dropped because the QP was infeasible with them (acceleration limits)."""
+
+
+def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: int):
+    """Intersect velocity boxes in priority order; later boxes yield where they conflict."""
+    lower = np.full(n, -INF)
+    upper = np.full(n, INF)
+    conflicts: list[BoxConflict] = []
+    for limit, lo, hi in sorted(limits_rows, key=lambda item: item[0].priority):
+        new_lo = np.maximum(lower, lo)
+        new_hi = np.minimum(upper, hi)
+        bad = new_lo > new_hi
+        if np.any(bad):
+            for j in np.flatnonzero(bad):
+                conflicts.append(BoxConflict(int(j), type(limit).__name__))
+            # Keep the earlier box and put the later one's interval onto its nearest point.
+            target = np.clip(np.where(hi < lower, hi, lo), lower, upper)
+            new_lo = np.where(bad, target, new_lo)
+            new_hi = np.where(bad, target, new_hi)
+        lower, upper = new_lo, new_hi
+    return lower, upper, conflicts
+
+
+def _orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Equivalent equality rows with orthonormal, independent rows (for consistent ``A x = b``)."""
+    if A.shape[0] == 0:
+        return A, b
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    rank = int(np.sum(s > tol * max(1.0, s[0])))
+    return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
+
+
+class Solver:
+    """Reusable QP solver: keeps the backend's workspace between control steps.
+
+    Args:
+        backend: ``"daqp"`` (default, persistent model), ``"proxsuite"`` (dense, with
+            settings that stay exact on collision rows) or any :mod:`qpsolvers`
+            backend name prefixed by ``"qpsolvers:"`` (e.g. ``"qpsolvers:quadprog"``).
+        regularization: ``eps`` added to the Hessian diagonal (keeps it definite).
+    """
+
+    def __init__(self, backend: str = "daqp", *, regularization: float = 1e-10) -> None:
+        self.backend_name = backend
+        self._backends: dict[int, Backend] = {}
+        self.regularization = as_positive_scalar(regularization, "regularization", allow_zero=True)
+
+    def _backend(self, level: int) -> Backend:
+        if level not in self._backends:
+            self._backends[level] = make_backend(self.backend_name)
+        return self._backends[level]
+
+    def solve(
+        self,
+        configuration: Configuration,
+        tasks: Sequence[Task],
+        limits: Sequence[Limit] = (),
+        dt: float = 0.002,
+        *,
+        previous_qdot: np.ndarray | None = None,
+    ) -> Solution:
+        """Joint velocities [rad/s] for the tasks under the limits at the current state.
+
+        Acceleration limits (box priority >= 2) yield to the safety limits: when the
+        QP is infeasible with them (an arm too fast to brake before an obstacle) it is
+        solved again without them and ``Solution.relaxed`` names what was dropped.
+
+        Raises:
+            SolverError: the backend failed (the exception carries the QP).
+            InfeasibleProblemError: the safety constraints admit no solution.
+        """
+        dt = as_positive_scalar(dt, "dt")
+        n = configuration.nv
+        boxes, G_rows, h_rows = [], [], []
+        for limit in limits:
+            rows = limit.compute(configuration, dt, previous_qdot)
+            if rows.lower is not None:
+                boxes.append((limit, rows.lower, rows.upper))
+            if rows.G is not None:
+                G_rows.append(rows.G)
+                h_rows.append(rows.h)
+        G = np.vstack(G_rows) if G_rows else np.zeros((0, n))
+        h = np.concatenate(h_rows) if h_rows else np.zeros(0)
+
+        by_level: dict[int, list[tuple[Task, np.ndarray, np.ndarray]]] = {}
+        for task in tasks:
+            J, v = task.compute(configuration, dt)
+            by_level.setdefault(task.level, []).append((task, J, v))
+        hard = by_level.pop(HARD, [])
+        eq_A = [J[task.weight > 0] for task, J, _ in hard]
+        eq_b = [v[task.weight > 0] for task, _, v in hard]
+        A, b = _orthonormal_rows(
+            np.vstack(eq_A) if eq_A else np.zeros((0, n)), np.concatenate(eq_b) if eq_b else np.zeros(0)
+        )
+        try:
+            return self._cascade(n, by_level, boxes, A, b, G, h)
+        except InfeasibleProblemError:
+            relaxable = [box for box in boxes if box[0].priority >= RELAXABLE_PRIORITY]
+            if not relaxable:
+                raise
+            safe = [box for box in boxes if box[0].priority < RELAXABLE_PRIORITY]
+            solution = self._cascade(n, by_level, safe, A, b, G, h)
+            solution.relaxed = [type(box[0]).__name__ for box in relaxable]
+            return solution
+
+    def _cascade(self, n, by_level, boxes, A, b, G, h) -> Solution:
+        """Solve the levels in order, each within the optimal set of those before."""
+        lower, upper, conflicts = combine_boxes(boxes, n)
+        solution = Solution(qdot=np.zeros(n), lower=lower, upper=upper, conflicts=conflicts)
+        levels = sorted(by_level) or [1]
+        x = np.zeros(n)
+        for level in levels:
+            H = np.eye(n) * self.regularization
+            f = np.zeros(n)
+            entries = by_level.get(level, [])
+            for task, J, v in entries:
+                WJ = task.weight[:, None] * J
+                H += J.T @ WJ
+                f -= WJ.T @ v
+            problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
+            solution.problems.append(problem)
+            # Backends meet bounds to their tolerance; clip so joint limits hold exactly.
+            x = np.clip(self._backend(level).solve(problem), lower, upper)
+            if level != levels[-1] and entries:
+                # The optimal set of this level: its weighted task velocities stay as found.
+                rows = [(np.sqrt(task.weight)[:, None] * J)[task.weight > 0] for task, J, _ in entries]
+                A_lvl = np.vstack([A, *rows])
+                A, b = _orthonormal_rows(A_lvl, A_lvl @ x)
+        solution.qdot = x
+        return solution
+
+
+def solve_ik(
+    configuration: Configuration,
+    tasks: Sequence[Task],
+    limits: Sequence[Limit] = (),
+    dt: float = 0.002,
+    *,
+    solver: str = "daqp",
+    previous_qdot: np.ndarray | None = None,
+) -> np.ndarray:
+    """One-shot convenience: joint velocities [rad/s] solving the task QP (see :class:`Solver`)."""
+    if not tasks:
+        raise InvalidInputError("solve_ik needs at least one task")
+    return Solver(solver).solve(configuration, tasks, limits, dt, previous_qdot=previous_qdot).qdot
+
+
+__all__ = ["INF", "QPProblem", "Solution", "Solver", "solve_ik", "SolverError", "InfeasibleProblemError"]

@@ -1,0 +1,74 @@
+"""Pose of one frame relative to another (arm to arm)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from harvest_qp.configuration import Configuration
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.tasks.task import Task
+from harvest_qp.validation import as_matrix, as_vector
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix ``S(v)`` with ``S(v) x = v x x``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+class RelativeFrameTask(Task):
+    """Drive the pose of ``frame`` expressed in ``root`` to a target.
+
+    Rows are expressed in the ``root`` frame: linear rows are ``d/dt (R_r^T (p_f - p_r))``
+    and angular rows are ``R_r^T (w_f - w_r)``, so e.g. the cutter can keep a fixed
+    offset from the gripper while both arms move.
+
+    Args:
+        frame, root: frame names.
+        weight: scalar or 6 weights (root axes).
+        level: priority level.
+        gain: error feedback gain [1/s].
+    """
+
+    def __init__(
+        self, frame: str, root: str, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0
+    ):
+        super().__init__(6, weight=weight, level=level, gain=gain)
+        self.frame = frame
+        self.root = root
+        self.target_position: np.ndarray | None = None
+        self.target_rotation: np.ndarray | None = None
+
+    def set_target(self, position: np.ndarray, rotation: np.ndarray) -> None:
+        """Target position [m] and rotation of ``frame`` in ``root``."""
+        self.target_position = as_vector(position, 3, "target position")
+        self.target_rotation = as_matrix(rotation, (3, 3), "target rotation")
+
+    def relative_pose(self, configuration: Configuration) -> tuple[np.ndarray, np.ndarray]:
+        """Position [m] and rotation of ``frame`` in ``root``."""
+        root = configuration.frame_pose(self.root)
+        frame = configuration.frame_pose(self.frame)
+        Rt = root.rotation.T
+        return Rt @ (frame.translation - root.translation), Rt @ frame.rotation
+
+    def jacobian(self, configuration: Configuration) -> np.ndarray:
+        """Relative Jacobian (6 x nv) in root coordinates."""
+        root = configuration.frame_pose(self.root)
+        Jf = configuration.frame_jacobian(self.frame)
+        Jr = configuration.frame_jacobian(self.root)
+        r = configuration.frame_pose(self.frame).translation - root.translation
+        # Velocity of the frame origin relative to the point of the root body at the same place.
+        lin = Jf[:3] - Jr[:3] + skew(r) @ Jr[3:]
+        ang = Jf[3:] - Jr[3:]
+        Rt = root.rotation.T
+        return np.vstack([Rt @ lin, Rt @ ang])
+
+    def error(self, configuration: Configuration) -> np.ndarray:
+        """Relative pose error [m, rad] in root coordinates."""
+        if self.target_position is None:
+            raise InvalidInputError(f"RelativeFrameTask({self.frame!r}, {self.root!r}) has no target")
+        p, R = self.relative_pose(configuration)
+        return np.concatenate([self.target_position - p, pin.log3(self.target_rotation @ R.T)])
+
+    def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return self.jacobian(configuration), self.gain * self.error(configuration)

@@ -1,0 +1,156 @@
+"""Finite-difference checks of every task Jacobian and every collision row."""
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from harvest_qp import Configuration
+from harvest_qp.limits import CollisionAvoidance
+from harvest_qp.tasks import DampingTask, FramePoseTask, FrameTwistTask, PostureTask, RelativeFrameTask
+
+H = 1e-6
+
+
+def _states(rng, n=5):
+    from harvest_qp.robot.description import HOME_Q
+
+    return [HOME_Q + rng.normal(0.0, 0.4, 12) for _ in range(n)]
+
+
+def _frame_rate(config: Configuration, frame: str, q, qdot):
+    """World-aligned twist of ``frame`` by central differences of its pose."""
+    config.update(q - H * qdot)
+    a = config.frame_pose(frame).copy()
+    config.update(q + H * qdot)
+    b = config.frame_pose(frame).copy()
+    v = (b.translation - a.translation) / (2 * H)
+    w = pin.log3(b.rotation @ a.rotation.T) / (2 * H)
+    config.update(q)
+    return np.concatenate([v, w])
+
+
+@pytest.mark.parametrize("frame", ["camera", "gripper", "cutter_tip", "ft_sensor"])
+def test_frame_twist_task_jacobian_world(configuration, rng, frame):
+    task = FrameTwistTask(frame)
+    for q in _states(rng):
+        qdot = rng.standard_normal(12)
+        configuration.update(q)
+        J, _ = task.compute(configuration, 0.002)
+        np.testing.assert_allclose(J @ qdot, _frame_rate(configuration, frame, q, qdot), atol=1e-7)
+
+
+def test_frame_twist_task_local_rows_are_the_local_twist(configuration, rng):
+    task = FrameTwistTask("camera", weight_frame="local")
+    for q in _states(rng):
+        qdot = rng.standard_normal(12)
+        configuration.update(q)
+        J, v = task.compute(configuration, 0.002)
+        R = configuration.frame_rotation("camera")
+        twist = _frame_rate(configuration, "camera", q, qdot)
+        np.testing.assert_allclose(J @ qdot, np.concatenate([R.T @ twist[:3], R.T @ twist[3:]]), atol=1e-7)
+
+
+def test_frame_pose_task_error_decreases_along_jacobian(configuration, rng):
+    task = FramePoseTask("gripper", gain=2.0)
+    configuration.update(_states(rng, 1)[0])
+    target = configuration.frame_pose("gripper")
+    task.set_target(target.translation + [0.01, -0.02, 0.005], target.rotation @ pin.exp3(np.array([0.002, 0, 0.001])))
+    J, v = task.compute(configuration, 0.002)
+    e = task.error(configuration)
+    np.testing.assert_allclose(v, 2.0 * e)
+    # d e/dt = -J qdot to first order (small error: log3 Jacobian ~ identity).
+    qdot = rng.standard_normal(12)
+    q = configuration.q.copy()
+    configuration.update(q + H * qdot)
+    e_plus = task.error(configuration)
+    configuration.update(q - H * qdot)
+    e_minus = task.error(configuration)
+    np.testing.assert_allclose((e_plus - e_minus) / (2 * H), -(J @ qdot), atol=5e-3 * np.linalg.norm(J @ qdot))
+
+
+def test_relative_frame_task_jacobian(configuration, rng):
+    task = RelativeFrameTask("cutter_tip", "gripper")
+    task.set_target(np.zeros(3), np.eye(3))
+    for q in _states(rng):
+        qdot = rng.standard_normal(12)
+        configuration.update(q)
+        J, _ = task.compute(configuration, 0.002)
+        configuration.update(q - H * qdot)
+        p0, R0 = task.relative_pose(configuration)
+        configuration.update(q + H * qdot)
+        p1, R1 = task.relative_pose(configuration)
+        configuration.update(q)
+        _, R = task.relative_pose(configuration)
+        lin = (p1 - p0) / (2 * H)
+        # Angular rows are R_r^T (w_f - w_r): the rate of R_rel in root coordinates (left).
+        ang = pin.log3(R1 @ R0.T) / (2 * H)
+        np.testing.assert_allclose(J @ qdot, np.concatenate([lin, ang]), atol=1e-6)
+
+
+def test_posture_and_damping_task_jacobians(configuration, rng):
+    target = rng.uniform(-1, 1, 12)
+    posture = PostureTask(target, gain=3.0)
+    q = _states(rng, 1)[0]
+    configuration.update(q)
+    J, v = posture.compute(configuration, 0.002)
+    qdot = rng.standard_normal(12)
+    np.testing.assert_allclose(J @ qdot, ((q + H * qdot) - (q - H * qdot)) / (2 * H), atol=1e-9)
+    np.testing.assert_allclose(v, 3.0 * (target - q))
+    J, v = DampingTask(12).compute(configuration, 0.002)
+    np.testing.assert_allclose(J, np.eye(12))
+    np.testing.assert_allclose(v, 0.0)
+
+
+def test_point_jacobian(configuration, rng):
+    q = _states(rng, 1)[0]
+    configuration.update(q)
+    point = configuration.frame_position("gripper") + [0.05, -0.02, 0.1]
+    Jp = configuration.point_jacobian("gripper", point)
+    qdot = rng.standard_normal(12)
+    local = configuration.frame_pose("gripper").actInv(point)
+    configuration.update(q + H * qdot)
+    p1 = configuration.frame_pose("gripper").act(local)
+    configuration.update(q - H * qdot)
+    p0 = configuration.frame_pose("gripper").act(local)
+    np.testing.assert_allclose(Jp @ qdot, (p1 - p0) / (2 * H), atol=1e-7)
+
+
+def test_every_collision_row_matches_finite_differences(configuration, rng):
+    limit = CollisionAvoidance.dual_ur5e(configuration, influence_distance=0.3, max_pairs=60)
+    limit.set_obstacle_spheres(rng.uniform([0.3, -0.4, 0.9], [0.7, 0.6, 1.4], (8, 3)), 0.04)
+    checked = 0
+    kinds = set()
+    for q in _states(rng, 8):
+        qdot = rng.standard_normal(12)
+        configuration.update(q)
+        rows = limit.compute(configuration, 0.002)
+        active = limit.active_pairs.copy()
+        configuration.update(q + H * qdot)
+        d_plus = limit.distances(configuration)[active]
+        configuration.update(q - H * qdot)
+        d_minus = limit.distances(configuration)[active]
+        rate = (d_plus - d_minus) / (2 * H)
+        # Rows are -d_dot/dqdot: G qdot <= h  <=>  d_dot >= -h.
+        np.testing.assert_allclose(-rows.G[: len(active)] @ qdot, rate, atol=1e-6)
+        checked += len(active)
+        for k in active:
+            a, b = limit.pair_names()[k]
+            kinds.add("obstacle" if b.startswith("obstacle") else ("arm-arm" if a[:3] != b[:3] else "self"))
+    assert checked > 20
+    assert {"obstacle", "arm-arm"} <= kinds
+
+
+def test_collision_distance_matches_brute_force_sampling(configuration, rng):
+    """Capsule distances equal a dense sampling of both segments (exact kernel check)."""
+    limit = CollisionAvoidance.dual_ur5e(configuration)
+    configuration.update(_states(rng, 1)[0])
+    d = limit.distances(configuration)
+    w0, w1, r = limit._w0, limit._w1, limit.cap_radius
+    s = np.linspace(0, 1, 401)
+    for k in rng.choice(len(d), 25, replace=False):
+        a, b = limit.pair_a[k], limit.pair_b[k]
+        pa = w0[a] + s[:, None] * (w1[a] - w0[a])
+        pb = w0[b] + s[:, None] * (w1[b] - w0[b])
+        brute = np.min(np.linalg.norm(pa[:, None] - pb[None], axis=-1)) - r[a] - r[b]
+        assert d[k] <= brute + 1e-12
+        assert d[k] == pytest.approx(brute, abs=2e-3)
