@@ -120,8 +120,8 @@ class Configuration:
         return self.model.joints[self._joint_ids[name]].idx_q
 
     def frame_pose(self, name: str) -> pin.SE3:
-        """World pose of frame ``name`` (position [m], rotation)."""
-        return self.data.oMf[self.frame_id(name)]
+        """World pose of frame ``name`` (position [m], rotation); a copy, not a live view."""
+        return self.data.oMf[self.frame_id(name)].copy()
 
     def frame_position(self, name: str) -> np.ndarray:
         """World position [m] of frame ``name``."""

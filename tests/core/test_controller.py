@@ -1,0 +1,82 @@
+"""The control loop never raises, never emits NaN and stops safely when it cannot solve."""
+
+import numpy as np
+
+from harvest_qp import TaskController
+from harvest_qp.limits import CollisionAvoidance, JointVelocityLimit
+from harvest_qp.robot.description import HOME_Q
+from harvest_qp.tasks import HARD, DampingTask, FramePoseTask, FrameTwistTask, PostureTask
+
+DT = 0.002
+
+
+def test_infeasible_problem_decelerates_within_acceleration_limit(configuration):
+    # A hard task faster than the speed limit allows is infeasible.
+    hard = FrameTwistTask("gripper", level=HARD)
+    hard.set_reference([5.0, 0, 0, 0, 0, 0])
+    controller = TaskController(configuration, [hard, DampingTask(12)], dt=DT, max_acceleration=8.0)
+    controller.previous_qdot = np.full(12, 0.5)
+    q = HOME_Q.copy()
+    previous = controller.previous_qdot.copy()
+    for _ in range(100):
+        step = controller.step(q)
+        assert step.status.startswith("fallback")
+        assert np.all(np.isfinite(step.qdot))
+        assert np.all(np.abs(step.qdot - previous) <= 8.0 * DT + 1e-12)
+        assert np.all(np.abs(step.qdot) <= np.abs(previous) + 1e-12)
+        previous = step.qdot
+        q = q + step.qdot * DT
+    np.testing.assert_allclose(step.qdot, 0.0)
+    assert "InfeasibleProblemError" in step.status
+
+
+def test_nan_measurement_gives_a_finite_stop_command(configuration):
+    task = FrameTwistTask("camera")
+    task.set_reference([0.05, 0, 0, 0, 0, 0])
+    controller = TaskController(configuration, [task, DampingTask(12)], dt=DT)
+    assert controller.step(HOME_Q).ok
+    q = HOME_Q.copy()
+    q[3] = np.nan
+    step = controller.step(q)
+    assert step.status.startswith("fallback") and "finite" in step.status
+    assert np.all(np.isfinite(step.qdot))
+
+
+def test_joint_outside_its_range_returns_at_most_at_the_speed_limit(configuration):
+    q = HOME_Q.copy()
+    q[2] = np.pi + 0.2  # elbow beyond its +-pi limit (e.g. after a restart)
+    controller = TaskController(configuration, [PostureTask(HOME_Q), DampingTask(12)], dt=DT)
+    step = controller.step(q)
+    assert step.ok, step.status
+    assert step.qdot[2] < 0
+    assert np.all(np.abs(step.qdot) <= configuration.velocity_limits + 1e-12)
+
+
+def test_arms_driven_to_crossing_targets_never_closer_than_safety_distance(configuration):
+    """Closed loop: each gripper/camera is sent to the other arm's side; collisions stop them."""
+    collision = CollisionAvoidance.dual_ur5e(configuration, safety_distance=0.02, influence_distance=0.12)
+    cam = FramePoseTask("camera", gain=2.0, weight=[1, 1, 1, 0.1, 0.1, 0.1])
+    grasp = FramePoseTask("gripper", gain=2.0, weight=[1, 1, 1, 0.1, 0.1, 0.1])
+    p_cam = configuration.frame_pose("camera")
+    p_grasp = configuration.frame_pose("gripper")
+    # Swap sides: the camera goes where the gripper is and vice versa, so paths cross.
+    cam.set_target(p_grasp.translation + [0.0, 0.0, 0.05], p_cam.rotation)
+    grasp.set_target(p_cam.translation + [0.0, 0.0, -0.05], p_grasp.rotation)
+    tasks = [cam, grasp, PostureTask(HOME_Q, weight=1e-3), DampingTask(12, weight=1e-4)]
+    controller = TaskController(
+        configuration, tasks, [collision, JointVelocityLimit(configuration, max_velocity=1.5)], dt=DT
+    )
+    q = HOME_Q.copy()
+    min_distance = np.inf
+    moved = 0.0
+    for _ in range(2500):  # 5 s
+        step = controller.step(q)
+        assert np.all(np.isfinite(step.qdot))
+        q = q + step.qdot * DT
+        configuration.update(q)
+        min_distance = min(min_distance, collision.distances(configuration).min())
+        moved = max(moved, np.linalg.norm(configuration.frame_position("camera") - p_cam.translation))
+    assert moved > 0.2, "the arms must actually move towards each other"
+    assert min_distance >= collision.safety_distance - 1e-4
+    # The dampers were really active, not trivially satisfied.
+    assert min_distance < collision.influence_distance
