@@ -80,7 +80,9 @@ class DaqpBackend:
             self._shape = (n, n_in)
             if flag < 0:
                 self._model = None
-                raise SolverError(f"daqp setup failed (exitflag {flag})", problem=problem, backend=self.name, status=flag)
+                raise SolverError(
+                    f"daqp setup failed (exitflag {flag})", problem=problem, backend=self.name, status=flag
+                )
         else:
             self._model.update(H=problem.H, f=problem.f, A=A, bupper=upper, blower=lower, sense=sense)
         x, _, flag, _ = self._model.solve()
@@ -179,7 +181,9 @@ class QpsolversBackend:
                 P, problem.f, G[keep], h[keep], A, b, solver=self.solver
             )
         except Exception as err:  # every backend raises its own types
-            raise SolverError(f"{self.name} raised {type(err).__name__}: {err}", problem=problem, backend=self.name) from err
+            raise SolverError(
+                f"{self.name} raised {type(err).__name__}: {err}", problem=problem, backend=self.name
+            ) from err
         if x is None:
             raise SolverError(f"{self.name} found no solution", problem=problem, backend=self.name)
         return _checked(x, problem, self.name)

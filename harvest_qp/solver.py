@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harvest_qp.backends import Backend, make_backend
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError
 from harvest_qp.limits.limit import Limit
-from harvest_qp.backends import Backend, make_backend
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar
 

@@ -47,3 +47,11 @@ def mjcf_path() -> Path:
 def scene_path() -> Path:
     """Path of the bare MuJoCo scene (floor, light, robot)."""
     return robot_dir() / "scene.xml"
+
+
+def tasks_dir() -> Path:
+    """The ``tasks/`` folder of YAML task configurations (repository or installed copy)."""
+    for path in (_PACKAGE_DIR.parent / "tasks", _PACKAGE_DIR / "_data" / "tasks"):
+        if path.is_dir():
+            return path
+    raise ModelError("cannot find the tasks/ folder of YAML task configurations")

@@ -12,7 +12,7 @@ from harvest_qp import (
     TaskController,
     UnknownFrameError,
 )
-from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit, JointPositionLimit, JointVelocityLimit
+from harvest_qp.limits import CollisionAvoidance, JointPositionLimit, JointVelocityLimit
 from harvest_qp.robot.description import HOME_Q
 from harvest_qp.tasks import HARD, DampingTask, FramePoseTask, FrameTwistTask, PostureTask
 
