@@ -61,20 +61,36 @@ class DaqpBackend:
         self._model = None
         self._shape: tuple[int, int] | None = None
 
+    def _allocate(self, n: int, n_in: int) -> None:
+        # Fixed layout: n bounds, then n equality slots (padded), then the inequality rows.
+        self._A = np.zeros((n + n_in, n))
+        self._upper = np.full(2 * n + n_in, _INF)
+        self._lower = np.full(2 * n + n_in, -_INF)
+        self._sense = np.zeros(2 * n + n_in, dtype=np.int32)
+        self._n_eq = 0
+
     def solve(self, problem: QPProblem) -> np.ndarray:
         n, n_eq, n_in = problem.n, problem.A.shape[0], problem.G.shape[0]
-        A = np.zeros((n + n_in, n))
-        A[:n_eq] = problem.A
-        A[n:] = problem.G
-        upper = np.full(2 * n + n_in, _INF)
-        lower = np.full(2 * n + n_in, -_INF)
-        upper[:n], lower[:n] = problem.upper, problem.lower
-        upper[n : n + n_eq] = problem.b
-        lower[n : n + n_eq] = problem.b
-        upper[2 * n :] = problem.h
-        sense = np.zeros(2 * n + n_in, dtype=np.int32)
-        sense[n : n + n_eq] = 5
-        if self._model is None or self._shape != (n, n_in):
+        fresh = self._model is None or self._shape != (n, n_in)
+        if fresh:
+            self._allocate(n, n_in)
+        A, upper, lower, sense = self._A, self._upper, self._lower, self._sense
+        if n_eq or self._n_eq:
+            A[:n] = 0.0
+            A[:n_eq] = problem.A
+            upper[n : 2 * n] = _INF
+            lower[n : 2 * n] = -_INF
+            upper[n : n + n_eq] = problem.b
+            lower[n : n + n_eq] = problem.b
+            sense[n : 2 * n] = 0
+            sense[n : n + n_eq] = 5
+            self._n_eq = n_eq
+        if n_in:
+            A[n:] = problem.G
+            upper[2 * n :] = problem.h
+        upper[:n] = problem.upper
+        lower[:n] = problem.lower
+        if fresh:
             self._model = self._daqp.Model()
             flag, _ = self._model.setup(problem.H, problem.f, A, upper, lower, sense)
             self._shape = (n, n_in)

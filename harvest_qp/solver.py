@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from harvest_qp.backends import Backend, make_backend
+from harvest_qp.collision.kernels import max_violation
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError
 from harvest_qp.limits.limit import Limit
 from harvest_qp.tasks.task import HARD, Task
-from harvest_qp.validation import as_positive_scalar
+from harvest_qp.validation import as_positive_scalar, as_vector
 
 #: Bound magnitude that stands for "no bound" in the QP data.
 INF = 1e30
@@ -57,12 +58,7 @@ class QPProblem:
 
     def violation(self, x: np.ndarray) -> float:
         """Largest constraint violation of ``x`` (0 when feasible)."""
-        v = [np.max(self.lower - x, initial=0.0), np.max(x - self.upper, initial=0.0)]
-        if self.A.shape[0]:
-            v.append(np.max(np.abs(self.A @ x - self.b)))
-        if self.G.shape[0]:
-            v.append(np.max(self.G @ x - self.h, initial=0.0))
-        return float(max(v))
+        return max_violation(np.asarray(x, dtype=float), self.lower, self.upper, self.A, self.b, self.G, self.h)
 
 
 @dataclass
@@ -86,16 +82,20 @@ class Solution:
     """Limits dropped because the QP was infeasible with them (acceleration limits)."""
 
 
+def _priority(item) -> int:
+    return item[0].priority
+
+
 def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: int):
     """Intersect velocity boxes in priority order; later boxes yield where they conflict."""
     lower = np.full(n, -INF)
     upper = np.full(n, INF)
     conflicts: list[BoxConflict] = []
-    for limit, lo, hi in sorted(limits_rows, key=lambda item: item[0].priority):
+    for limit, lo, hi in sorted(limits_rows, key=_priority):
         new_lo = np.maximum(lower, lo)
         new_hi = np.minimum(upper, hi)
         bad = new_lo > new_hi
-        if np.any(bad):
+        if bad.any():
             for j in np.flatnonzero(bad):
                 conflicts.append(BoxConflict(int(j), type(limit).__name__))
             # Keep the earlier box and put the later one's interval onto its nearest point.
@@ -156,6 +156,8 @@ class Solver:
         """
         dt = as_positive_scalar(dt, "dt")
         n = configuration.nv
+        if previous_qdot is not None:
+            previous_qdot = as_vector(previous_qdot, n, "previous_qdot")
         boxes, G_rows, h_rows = [], [], []
         for limit in limits:
             rows = limit.compute(configuration, dt, previous_qdot)
@@ -164,8 +166,11 @@ class Solver:
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
-        G = np.vstack(G_rows) if G_rows else np.zeros((0, n))
-        h = np.concatenate(h_rows) if h_rows else np.zeros(0)
+        if len(G_rows) == 1:
+            G, h = G_rows[0], h_rows[0]
+        else:
+            G = np.vstack(G_rows) if G_rows else np.zeros((0, n))
+            h = np.concatenate(h_rows) if h_rows else np.zeros(0)
 
         by_level: dict[int, list[tuple[Task, np.ndarray, np.ndarray]]] = {}
         for task in tasks:
@@ -195,13 +200,17 @@ class Solver:
         levels = sorted(by_level) or [1]
         x = np.zeros(n)
         for level in levels:
-            H = np.eye(n) * self.regularization
-            f = np.zeros(n)
             entries = by_level.get(level, [])
-            for task, J, v in entries:
-                WJ = task.weight[:, None] * J
-                H += J.T @ WJ
-                f -= WJ.T @ v
+            if entries:
+                J = np.vstack([J for _, J, _ in entries]) if len(entries) > 1 else entries[0][1]
+                v = np.concatenate([v for _, _, v in entries]) if len(entries) > 1 else entries[0][2]
+                w = np.concatenate([t.weight for t, _, _ in entries]) if len(entries) > 1 else entries[0][0].weight
+                WJ = w[:, None] * J
+                H = J.T @ WJ
+                H.flat[:: n + 1] += self.regularization
+                f = -(WJ.T @ v)
+            else:
+                H, f = np.eye(n) * max(self.regularization, 1e-12), np.zeros(n)
             problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
             solution.problems.append(problem)
             # Backends meet bounds to their tolerance; clip so joint limits hold exactly.

@@ -6,7 +6,7 @@ import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.limits.limit import Limit, LimitRows
-from harvest_qp.validation import as_nonnegative_vector, as_vector
+from harvest_qp.validation import as_nonnegative_vector
 
 
 class JointAccelerationLimit(Limit):
@@ -21,7 +21,7 @@ class JointAccelerationLimit(Limit):
         self.max_acceleration = as_nonnegative_vector(max_acceleration, configuration.nv, "max_acceleration")
 
     def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
-        n = configuration.nv
-        prev = np.zeros(n) if previous_qdot is None else as_vector(previous_qdot, n, "previous_qdot")
+        # previous_qdot is validated once by the solver for all limits.
+        prev = np.zeros(configuration.nv) if previous_qdot is None else previous_qdot
         step = self.max_acceleration * dt
         return LimitRows(lower=prev - step, upper=prev + step)
