@@ -26,6 +26,7 @@ from harvest_qp.collision.kernels import max_violation
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError
 from harvest_qp.limits.limit import Limit
+from harvest_qp.qp_kernels import accumulate_diagonal, accumulate_task, clip_inplace, intersect_boxes
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
 
@@ -87,22 +88,22 @@ def _priority(item) -> int:
 
 
 def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: int):
-    """Intersect velocity boxes in priority order; later boxes yield where they conflict."""
+    """Intersect velocity boxes in priority order; later boxes yield where they conflict.
+
+    Returns ``(lower, upper, conflicts)``; a conflict names the joint and the limit that yielded.
+    """
     lower = np.full(n, -INF)
     upper = np.full(n, INF)
-    conflicts: list[BoxConflict] = []
-    for limit, lo, hi in sorted(limits_rows, key=_priority):
-        new_lo = np.maximum(lower, lo)
-        new_hi = np.minimum(upper, hi)
-        bad = new_lo > new_hi
-        if bad.any():
-            for j in np.flatnonzero(bad):
-                conflicts.append(BoxConflict(int(j), type(limit).__name__))
-            # Keep the earlier box and put the later one's interval onto its nearest point.
-            target = np.clip(np.where(hi < lower, hi, lo), lower, upper)
-            new_lo = np.where(bad, target, new_lo)
-            new_hi = np.where(bad, target, new_hi)
-        lower, upper = new_lo, new_hi
+    if not limits_rows:
+        return lower, upper, []
+    ordered = sorted(limits_rows, key=_priority)
+    lowers = np.vstack([lo for _, lo, _ in ordered])
+    uppers = np.vstack([hi for _, _, hi in ordered])
+    conflict = np.empty(n, dtype=np.int64)
+    intersect_boxes(lowers, uppers, lower, upper, conflict)
+    conflicts = []
+    if conflict.max() >= 0:
+        conflicts = [BoxConflict(int(j), type(ordered[conflict[j]][0]).__name__) for j in np.flatnonzero(conflict >= 0)]
     return lower, upper, conflicts
 
 
@@ -172,11 +173,11 @@ class Solver:
             G = np.vstack(G_rows) if G_rows else np.zeros((0, n))
             h = np.concatenate(h_rows) if h_rows else np.zeros(0)
 
-        by_level: dict[int, list[tuple[Task, np.ndarray, np.ndarray]]] = {}
+        by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
         for task in tasks:
-            J, v = task.compute(configuration, dt)
+            J, v = task.compute_rows(configuration, dt)
             by_level.setdefault(task.level, []).append((task, J, v))
-        hard = by_level.pop(HARD, [])
+        hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in by_level.pop(HARD, [])]
         eq_A = [J[task.weight > 0] for task, J, _ in hard]
         eq_b = [v[task.weight > 0] for task, _, v in hard]
         A, b = _orthonormal_rows(
@@ -201,23 +202,24 @@ class Solver:
         x = np.zeros(n)
         for level in levels:
             entries = by_level.get(level, [])
-            if entries:
-                J = np.vstack([J for _, J, _ in entries]) if len(entries) > 1 else entries[0][1]
-                v = np.concatenate([v for _, _, v in entries]) if len(entries) > 1 else entries[0][2]
-                w = np.concatenate([t.weight for t, _, _ in entries]) if len(entries) > 1 else entries[0][0].weight
-                WJ = w[:, None] * J
-                H = J.T @ WJ
-                H.flat[:: n + 1] += self.regularization
-                f = -(WJ.T @ v)
-            else:
-                H, f = np.eye(n) * max(self.regularization, 1e-12), np.zeros(n)
+            H = np.zeros((n, n))
+            H.flat[:: n + 1] = self.regularization if entries else max(self.regularization, 1e-12)
+            f = np.zeros(n)
+            for task, J, v in entries:
+                if J is None:  # joint-space task: J = I
+                    accumulate_diagonal(H, f, task.weight, v)
+                else:
+                    accumulate_task(H, f, J, task.weight, v)
             problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
             solution.problems.append(problem)
             # Backends meet bounds to their tolerance; clip so joint limits hold exactly.
-            x = np.clip(self._backend(level).solve(problem), lower, upper)
+            x = clip_inplace(self._backend(level).solve(problem), lower, upper)
             if level != levels[-1] and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
-                rows = [(np.sqrt(task.weight)[:, None] * J)[task.weight > 0] for task, J, _ in entries]
+                rows = [
+                    (np.sqrt(task.weight)[:, None] * (np.eye(n) if J is None else J))[task.weight > 0]
+                    for task, J, _ in entries
+                ]
                 A_lvl = np.vstack([A, *rows])
                 A, b = _orthonormal_rows(A_lvl, A_lvl @ x)
         solution.qdot = x

@@ -10,7 +10,12 @@ from harvest_qp.exceptions import InvalidInputError
 
 
 def as_vector(value: np.ndarray | Sequence[float] | float, size: int, name: str) -> np.ndarray:
-    """``value`` as a finite float vector of length ``size`` (a scalar is broadcast)."""
+    """``value`` as a finite float vector of length ``size`` (a scalar is broadcast); a copy."""
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (size,):
+        # Fast path for the control loop: already the right kind of array.
+        if not np.isfinite(value).all():
+            raise InvalidInputError(f"{name} must be finite (no NaN or inf), got {value}")
+        return value.copy()
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):

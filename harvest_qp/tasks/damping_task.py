@@ -17,6 +17,10 @@ class DampingTask(Task):
 
     def __init__(self, nv: int, *, weight: float | np.ndarray = 1e-4, level: int = 1):
         super().__init__(nv, weight=weight, level=level)
+        self._zeros = np.zeros(nv)
 
     def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
         return np.eye(self.dim), np.zeros(self.dim)
+
+    def compute_rows(self, configuration: Configuration, dt: float) -> tuple[None, np.ndarray]:
+        return None, self._zeros

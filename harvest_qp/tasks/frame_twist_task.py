@@ -6,6 +6,7 @@ import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.qp_kernels import rotate_twist_rows
 from harvest_qp.tasks.task import Task
 from harvest_qp.validation import as_vector
 
@@ -58,7 +59,7 @@ class FrameTwistTask(Task):
         v = self.gain * self.reference
         if self.weight_frame == "local":
             # Rotate rows into the frame's axes so that weights act on local axes.
-            Rt = configuration.data.oMf[self._frame_id].rotation.T
-            J = np.vstack([Rt @ J[:3], Rt @ J[3:]])
-            v = np.concatenate([Rt @ v[:3], Rt @ v[3:]])
+            J_local, v_local = np.empty_like(J), np.empty(6)
+            rotate_twist_rows(configuration.data.oMf[self._frame_id].rotation, J, v, J_local, v_local)
+            return J_local, v_local
         return J, v

@@ -33,3 +33,6 @@ class PostureTask(Task):
 
     def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
         return np.eye(self.dim), self.gain * (self.target - configuration.q)
+
+    def compute_rows(self, configuration: Configuration, dt: float) -> tuple[None, np.ndarray]:
+        return None, self.gain * (self.target - configuration.q)

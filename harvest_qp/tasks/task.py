@@ -45,6 +45,13 @@ class Task(ABC):
     def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Task Jacobian ``J`` (dim x nv) and desired task velocity ``v`` (dim,)."""
 
+    def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray | None, np.ndarray]:
+        """Like :meth:`compute`, but ``J`` may be ``None`` meaning the identity (joint-space tasks).
+
+        The solver calls this one so that joint-space tasks skip a dense ``I`` product.
+        """
+        return self.compute(configuration, dt)
+
     def residual(self, configuration: Configuration, qdot: np.ndarray, dt: float) -> np.ndarray:
         """Weighted residual ``diag(sqrt(w)) (J qdot - v)`` of a solution."""
         J, v = self.compute(configuration, dt)

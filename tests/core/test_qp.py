@@ -12,7 +12,7 @@ from harvest_qp import (
     TaskController,
     UnknownFrameError,
 )
-from harvest_qp.limits import CollisionAvoidance, JointPositionLimit, JointVelocityLimit
+from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit, JointPositionLimit, JointVelocityLimit
 from harvest_qp.robot.description import HOME_Q
 from harvest_qp.tasks import HARD, DampingTask, FramePoseTask, FrameTwistTask, PostureTask
 
@@ -219,3 +219,19 @@ def test_unknown_backend_names_the_choices(configuration):
 def test_configuration_rejects_nan_q():
     with pytest.raises(InvalidInputError, match="finite"):
         Configuration.dual_ur5e(q=np.full(12, np.nan))
+
+
+def test_box_conflicts_keep_the_higher_priority_box(configuration):
+    """Speed limit beats position limit beats acceleration limit, joint by joint."""
+    from harvest_qp.solver import combine_boxes
+
+    n = 3
+    vel = (JointVelocityLimit(configuration), -np.ones(n), np.ones(n))
+    pos = (JointPositionLimit(configuration), np.array([-5.0, -0.5, 2.0]), np.array([5.0, 0.5, 3.0]))
+    acc = (JointAccelerationLimit(configuration), np.array([0.8, -0.2, -1.0]), np.array([0.9, 0.1, 1.0]))
+    lower, upper, conflicts = combine_boxes([acc, pos, vel], n)
+    # joint 0: all overlap -> [0.8, 0.9]; joint 1: acc inside pos -> [-0.2, 0.1];
+    # joint 2: pos [2, 3] misses vel [-1, 1] -> pos yields onto 1, then acc contains 1.
+    np.testing.assert_allclose(lower, [0.8, -0.2, 1.0])
+    np.testing.assert_allclose(upper, [0.9, 0.1, 1.0])
+    assert [(c.joint, c.limit) for c in conflicts] == [(2, "JointPositionLimit")]

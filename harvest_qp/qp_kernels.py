@@ -1,0 +1,88 @@
+"""Compiled helpers for assembling the task QP (small dense loops beat numpy's per-call overhead)."""
+
+from __future__ import annotations
+
+from numba import njit
+
+
+@njit(cache=True)
+def accumulate_task(H, f, J, w, v):
+    """``H += J^T diag(w) J`` and ``f -= J^T diag(w) v`` for one task."""
+    m, n = J.shape
+    for r in range(m):
+        wr = w[r]
+        if wr == 0.0:
+            continue
+        wv = wr * v[r]
+        for i in range(n):
+            wji = wr * J[r, i]
+            if wji == 0.0:
+                continue
+            f[i] -= J[r, i] * wv
+            for k in range(n):
+                H[i, k] += wji * J[r, k]
+
+
+@njit(cache=True)
+def accumulate_diagonal(H, f, w, v):
+    """``H += diag(w)`` and ``f -= w * v`` for a joint-space task (``J = I``)."""
+    for i in range(w.shape[0]):
+        H[i, i] += w[i]
+        f[i] -= w[i] * v[i]
+
+
+@njit(cache=True)
+def rotate_twist_rows(R, J, v, J_out, v_out):
+    """Rows of a world-aligned twist task expressed in the frame's axes: ``blkdiag(R^T, R^T)``."""
+    n = J.shape[1]
+    for b in range(2):
+        o = 3 * b
+        for i in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += R[k, i] * v[o + k]
+            v_out[o + i] = acc
+            for c in range(n):
+                acc = 0.0
+                for k in range(3):
+                    acc += R[k, i] * J[o + k, c]
+                J_out[o + i, c] = acc
+
+
+@njit(cache=True)
+def clip_inplace(x, lower, upper):
+    """Clip ``x`` to ``[lower, upper]`` in place; returns ``x``."""
+    for i in range(x.shape[0]):
+        if x[i] < lower[i]:
+            x[i] = lower[i]
+        elif x[i] > upper[i]:
+            x[i] = upper[i]
+    return x
+
+
+@njit(cache=True)
+def intersect_boxes(lowers, uppers, lower, upper, conflict):
+    """Intersect boxes row by row (rows in priority order); a later row that does not
+    overlap the running box is moved onto the running box's nearest point.
+
+    ``conflict[j]`` is set to the index of the first yielding row for joint ``j`` (-1: none).
+    """
+    k, n = lowers.shape
+    for j in range(n):
+        lo = -1e30
+        hi = 1e30
+        conflict[j] = -1
+        for r in range(k):
+            new_lo = max(lo, lowers[r, j])
+            new_hi = min(hi, uppers[r, j])
+            if new_lo > new_hi:
+                if conflict[j] < 0:
+                    conflict[j] = r
+                # The yielding box lies entirely above or below: keep the nearest point.
+                target = hi if lowers[r, j] > hi else lo
+                new_lo = target
+                new_hi = target
+            lo = new_lo
+            hi = new_hi
+        lower[j] = lo
+        upper[j] = hi
