@@ -90,7 +90,9 @@ class CollisionAvoidance(Limit):
         configuration: the robot.
         capsules: robot capsules (attached to frames) and fixed world primitives.
         pairs: candidate pairs by capsule name; moving capsules are also paired with
-            every obstacle sphere set later.
+            every ``environment`` primitive and every obstacle sphere set later.
+        environment: primitives fixed in the world (``frame=None``), e.g. the vine's
+            branch and cane, paired with every moving capsule.
         safety_distance: ``d_s`` [m], never to be crossed.
         influence_distance: ``d_i`` [m], rows are active below it.
         gain: ``xi`` [m/s], approach speed allowed at ``d_i``.
@@ -105,6 +107,7 @@ class CollisionAvoidance(Limit):
         capsules: Sequence[CapsuleGeometry],
         pairs: Sequence[tuple[str, str]],
         *,
+        environment: Sequence[CapsuleGeometry] = (),
         safety_distance: float = 0.01,
         influence_distance: float = 0.10,
         gain: float = 0.5,
@@ -123,7 +126,10 @@ class CollisionAvoidance(Limit):
         self.tree = KinematicTree(configuration)
         model = configuration.model
         names, joints, p0, p1, radius = [], [], [], [], []
-        for cap in capsules:
+        for cap in environment:
+            if cap.frame is not None:
+                raise InvalidInputError(f"environment primitive {cap.name!r} must be fixed in the world (frame=None)")
+        for cap in list(capsules) + list(environment):
             if cap.radius < 0 or not np.isfinite(cap.radius):
                 raise InvalidInputError(f"capsule {cap.name!r} radius must be >= 0, got {cap.radius}")
             if cap.frame is None:
@@ -150,12 +156,18 @@ class CollisionAvoidance(Limit):
                 f"collision pair names unknown capsule {err.args[0]!r}; capsules are: {', '.join(names)}"
             ) from None
         self._moving = np.array([i for i, j in enumerate(joints) if j != 0], dtype=np.int64)
+        env_index = np.array([index[cap.name] for cap in environment], dtype=np.int64)
+        env_pairs = np.stack(np.meshgrid(self._moving, env_index, indexing="ij"), -1).reshape(-1, 2)
+        self._self_pairs = np.vstack([self._self_pairs, env_pairs])
         self.set_obstacle_spheres(np.zeros((0, 3)), np.zeros(0))
 
     # ------------------------------------------------------------------ set-up
     @classmethod
     def dual_ur5e(cls, configuration: Configuration, **kwargs) -> CollisionAvoidance:
-        """The shipped harvester's capsules and candidate pairs (same arm, arm to arm, stand)."""
+        """The shipped harvester's capsules and candidate pairs (same arm, arm to arm, stand).
+
+        Keyword arguments (``environment``, distances, gain, ``max_pairs``) go to the constructor.
+        """
         from harvest_qp.robot import description as desc
 
         capsules = [

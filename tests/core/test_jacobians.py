@@ -154,3 +154,26 @@ def test_collision_distance_matches_brute_force_sampling(configuration, rng):
         brute = np.min(np.linalg.norm(pa[:, None] - pb[None], axis=-1)) - r[a] - r[b]
         assert d[k] <= brute + 1e-12
         assert d[k] == pytest.approx(brute, abs=2e-3)
+
+
+def test_environment_primitives_pair_with_every_moving_capsule(configuration, rng):
+    from harvest_qp.limits import CapsuleGeometry
+
+    branch = CapsuleGeometry("branch", None, (0.55, -0.5, 1.35), (0.55, 0.6, 1.35), 0.02)
+    limit = CollisionAvoidance.dual_ur5e(configuration, environment=[branch], influence_distance=0.5, max_pairs=200)
+    names = limit.pair_names()
+    moving = {a for a, b in names if b == "branch"}
+    assert len(moving) == 15 and "stand" not in moving
+    # Branch rows are finite-difference exact too (the branch does not move).
+    q = configuration.q.copy()
+    qdot = rng.standard_normal(12)
+    rows = limit.compute(configuration, 0.002)
+    active = [k for k in limit.active_pairs if names[k][1] == "branch"]
+    assert active
+    configuration.update(q + H * qdot)
+    d1 = limit.distances(configuration)[active]
+    configuration.update(q - H * qdot)
+    d0 = limit.distances(configuration)[active]
+    row_of = {k: r for r, k in enumerate(limit.active_pairs)}
+    G = rows.G[[row_of[k] for k in active]]
+    np.testing.assert_allclose(-G @ qdot, (d1 - d0) / (2 * H), atol=1e-6)
