@@ -1,0 +1,392 @@
+"""Episode runner: a fixed-rate control loop around any :class:`~harvest_qp.interface.RobotInterface`.
+
+Every control period (2 ms on the paper's UR5e) the runner reads the robot, hands an
+:class:`Observation` to the controller, sends the returned joint velocities and steps the
+robot. Camera frames arrive at the camera's own rate (30 Hz); the observation carries the
+latest one. Everything is logged to arrays, optionally written to a compressed ``.npz``
+that is byte-identical for identical runs (fixed zip timestamps, no wall-clock data unless
+``log_timing``).
+
+The runner never crashes on a controller error: an exception in ``reset``/``step`` or an
+invalid command (wrong shape, NaN) stops the arms within their acceleration limits,
+records the status and the error message, and ends the episode.
+
+Controller protocol::
+
+    class MyController:
+        def reset(self, robot: RobotInterface) -> None: ...
+        def step(self, obs: Observation) -> Command | np.ndarray: ...
+
+Log keys (N control ticks, F camera frames):
+
+* ``t`` (N,) [s], ``q`` / ``qdot`` (N, 12) [rad, rad/s], ``qdot_cmd`` (N, 12) [rad/s],
+  ``force`` (N, 3) [N, world];
+* ``status`` (N,) str: the controller's status per tick (``"error"`` on a failing tick);
+* ``stem_points`` (N,) int32: STEM points in the latest cloud (-1 before the first frame),
+  ``cloud_time`` (N,) [s]: capture time of the latest cloud (NaN before the first);
+* ``task_error/<name>`` (N,): the controller's task errors (NaN on ticks without them);
+* ``truth/<name>``: the robot's ``ground_truth()`` per tick when it has one (simulation);
+* ``frame_time``, ``frame_n_points``, ``frame_stem_points`` (F,), ``frame_camera_pose`` (F, 4, 4);
+  with ``log_clouds``: ``cloud_points`` (P, 3) float32, ``cloud_labels`` (P,) int8,
+  ``cloud_offsets`` (F + 1,) int64 (frame i is rows offsets[i]:offsets[i+1]);
+* ``episode_status`` (``"completed"``, ``"controller_error"``, ``"invalid_command"`` or
+  ``"robot_error"``), ``error`` (message or ""), ``control_period``, ``duration``, ``n_ticks``,
+  ``seed`` (when the robot has one), ``meta/<key>`` from ``metadata``;
+* with ``log_timing``: ``controller_time`` (N,) [s] of wall-clock per controller step.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+import traceback
+import zipfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from harvest_qp.exceptions import HarvestQPError, InvalidInputError
+from harvest_qp.interface import N_JOINTS, STEM, PointCloud, RobotInterface
+
+__all__ = [
+    "Observation",
+    "Command",
+    "Controller",
+    "EpisodeResult",
+    "run_episode",
+    "write_npz",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """What the controller sees at one control tick.
+
+    Attributes:
+        time: robot clock [s].
+        q: joint positions (12,) [rad].
+        qdot: joint velocities (12,) [rad/s].
+        force: wrist force (3,) [N, world] (see :meth:`RobotInterface.wrist_force`).
+        cloud: the latest camera frame received so far (None before the first).
+        new_cloud: True when ``cloud`` arrived at this tick.
+    """
+
+    time: float
+    q: NDArray[np.float64]
+    qdot: NDArray[np.float64]
+    force: NDArray[np.float64]
+    cloud: PointCloud | None
+    new_cloud: bool
+
+
+@dataclass
+class Command:
+    """A controller's output for one tick.
+
+    Attributes:
+        qdot: joint velocities (12,) [rad/s].
+        status: solver/controller status, logged per tick (e.g. ``"ok"``, ``"infeasible"``).
+        task_errors: task name -> scalar error, logged per tick.
+    """
+
+    qdot: ArrayLike
+    status: str = "ok"
+    task_errors: Mapping[str, float] = field(default_factory=dict)
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """A controller the runner can drive."""
+
+    def reset(self, robot: RobotInterface) -> None:
+        """Prepare for an episode (read the initial state, tare the force sensor, ...)."""
+
+    def step(self, obs: Observation) -> Command | ArrayLike:
+        """Joint velocity command for this tick (a :class:`Command` or a (12,) array)."""
+
+
+@dataclass(eq=False)
+class EpisodeResult:
+    """Outcome of :func:`run_episode`.
+
+    Attributes:
+        status: ``"completed"``, ``"controller_error"``, ``"invalid_command"`` or ``"robot_error"``.
+        error: the error message with its traceback (None when completed).
+        n_ticks: control ticks run.
+        sim_time: robot time at the end [s].
+        wall_time: wall-clock duration [s].
+        log: the logged arrays (see the module docstring).
+        log_path: where the log was written, if anywhere.
+    """
+
+    status: str
+    error: str | None
+    n_ticks: int
+    sim_time: float
+    wall_time: float
+    log: dict[str, NDArray[Any]]
+    log_path: Path | None
+
+    @property
+    def ok(self) -> bool:
+        """True when the episode ran to the end without error."""
+        return self.status == "completed"
+
+    @property
+    def realtime_factor(self) -> float:
+        """Simulated time per wall-clock time."""
+        return self.sim_time / self.wall_time if self.wall_time > 0 else math.inf
+
+
+def write_npz(path: str | Path, arrays: Mapping[str, ArrayLike]) -> Path:
+    """Write ``arrays`` to a compressed ``.npz`` whose bytes only depend on the arrays.
+
+    ``numpy.savez_compressed`` stamps each member with the current time; this writer uses a
+    fixed timestamp so identical logs give identical files. Load with :func:`numpy.load`.
+    """
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in sorted(arrays):
+            array = np.asanyarray(arrays[name])
+            if array.dtype == object:
+                raise InvalidInputError(f"log entry {name!r} has dtype object; only plain arrays are written")
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, array, allow_pickle=False)
+            info = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buffer.getvalue())
+    return path
+
+
+def _as_command(out: Any) -> Command:
+    """Normalise a controller output to a validated :class:`Command`."""
+    cmd = out if isinstance(out, Command) else Command(qdot=out)
+    try:
+        qd = np.asarray(cmd.qdot, dtype=float)
+    except (TypeError, ValueError) as error:
+        raise InvalidInputError(f"command qdot must be numeric (12,) [rad/s]: {error}") from None
+    if qd.shape != (N_JOINTS,):
+        raise InvalidInputError(f"command qdot must have shape ({N_JOINTS},) [rad/s], got shape {qd.shape}")
+    if not np.all(np.isfinite(qd)):
+        raise InvalidInputError(f"command qdot must be finite [rad/s], got {qd.tolist()}")
+    if not isinstance(cmd.status, str):
+        raise InvalidInputError(f"command status must be a str, got {type(cmd.status).__name__}")
+    errors = {}
+    for name, value in dict(cmd.task_errors).items():
+        if not isinstance(name, str):
+            raise InvalidInputError(f"task error names must be str, got {name!r}")
+        errors[name] = float(value)
+    return Command(qdot=qd, status=cmd.status, task_errors=errors)
+
+
+class _Log:
+    """Preallocated per-tick arrays plus per-frame lists."""
+
+    def __init__(self, n: int, truth: Mapping[str, Any] | None, log_timing: bool, log_clouds: bool) -> None:
+        self.n = n
+        self.t = np.full(n, np.nan)
+        self.q = np.full((n, N_JOINTS), np.nan)
+        self.qdot = np.full((n, N_JOINTS), np.nan)
+        self.qdot_cmd = np.zeros((n, N_JOINTS))
+        self.force = np.full((n, 3), np.nan)
+        self.status: list[str] = [""] * n
+        self.stem_points = np.full(n, -1, np.int32)
+        self.cloud_time = np.full(n, np.nan)
+        self.task_errors: dict[str, NDArray[np.float64]] = {}
+        self.truth = {k: np.full((n, *np.shape(v)), np.nan) for k, v in (truth or {}).items()}
+        self.controller_time = np.full(n, np.nan) if log_timing else None
+        self.log_clouds = log_clouds
+        self.frames: list[tuple[float, int, int, NDArray[np.float64]]] = []
+        self.cloud_points: list[NDArray[np.float32]] = []
+        self.cloud_labels: list[NDArray[np.int8]] = []
+
+    def frame(self, cloud: PointCloud) -> None:
+        self.frames.append((cloud.timestamp, len(cloud), cloud.count(STEM), cloud.camera_pose))
+        if self.log_clouds:
+            self.cloud_points.append(cloud.points.astype(np.float32))
+            self.cloud_labels.append(cloud.labels.astype(np.int8))
+
+    def task(self, k: int, errors: Mapping[str, float]) -> None:
+        for name, value in errors.items():
+            if name not in self.task_errors:
+                self.task_errors[name] = np.full(self.n, np.nan)
+            self.task_errors[name][k] = value
+
+    def arrays(self, k: int) -> dict[str, NDArray[Any]]:
+        """The first ``k`` ticks as a dict of arrays."""
+        width = max([len(s) for s in self.status[:k]] + [1])
+        out: dict[str, NDArray[Any]] = {
+            "t": self.t[:k],
+            "q": self.q[:k],
+            "qdot": self.qdot[:k],
+            "qdot_cmd": self.qdot_cmd[:k],
+            "force": self.force[:k],
+            "status": np.array(self.status[:k], dtype=f"<U{width}"),
+            "stem_points": self.stem_points[:k],
+            "cloud_time": self.cloud_time[:k],
+        }
+        for name, values in self.task_errors.items():
+            out[f"task_error/{name}"] = values[:k]
+        for name, values in self.truth.items():
+            out[f"truth/{name}"] = values[:k]
+        if self.controller_time is not None:
+            out["controller_time"] = self.controller_time[:k]
+        f = self.frames
+        out["frame_time"] = np.array([x[0] for x in f], dtype=float)
+        out["frame_n_points"] = np.array([x[1] for x in f], dtype=np.int64)
+        out["frame_stem_points"] = np.array([x[2] for x in f], dtype=np.int64)
+        out["frame_camera_pose"] = np.array([x[3] for x in f], dtype=float).reshape(len(f), 4, 4)
+        if self.log_clouds:
+            sizes = [len(p) for p in self.cloud_points]
+            out["cloud_offsets"] = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+            out["cloud_points"] = (
+                np.concatenate(self.cloud_points) if self.cloud_points else np.zeros((0, 3), np.float32)
+            )
+            out["cloud_labels"] = np.concatenate(self.cloud_labels) if self.cloud_labels else np.zeros(0, np.int8)
+        return out
+
+
+def _format_error(error: BaseException) -> str:
+    return (
+        "".join(traceback.format_exception_only(type(error), error)).strip()
+        + "\n"
+        + "".join(traceback.format_tb(error.__traceback__))
+    )
+
+
+def run_episode(
+    robot: RobotInterface,
+    controller: Controller,
+    *,
+    duration: float,
+    log_path: str | Path | None = None,
+    metadata: Mapping[str, Any] | None = None,
+    stop_at_end: bool = True,
+    log_clouds: bool = False,
+    log_timing: bool = False,
+) -> EpisodeResult:
+    """Run ``controller`` on ``robot`` for ``duration`` seconds at the robot's control rate.
+
+    Args:
+        robot: the robot (simulated or real), already reset to the episode's start.
+        controller: object with ``reset(robot)`` and ``step(obs) -> Command | array``.
+        duration: episode length [s] (rounded to whole control periods).
+        log_path: where to write the compressed ``.npz`` log (None: not written).
+        metadata: scalars or strings stored as ``meta/<key>`` in the log.
+        stop_at_end: bring the arms to rest after the last tick (not logged).
+        log_clouds: also log every camera frame's points and labels.
+        log_timing: log the controller's wall-clock time per step (makes logs differ
+            between runs).
+
+    Returns:
+        The :class:`EpisodeResult` (also when the controller failed).
+    """
+    if not isinstance(robot, RobotInterface):
+        raise InvalidInputError(f"robot must implement RobotInterface, got {type(robot).__name__}")
+    if not callable(getattr(controller, "step", None)) or not callable(getattr(controller, "reset", None)):
+        raise InvalidInputError(
+            f"controller must have reset(robot) and step(obs) methods, got {type(controller).__name__}"
+        )
+    if not isinstance(duration, (int, float)) or not np.isfinite(duration) or duration <= 0:
+        raise InvalidInputError(f"duration must be a finite time > 0 [s], got {duration!r}")
+    n_ticks = int(round(duration / robot.control_period))
+    truth_fn = getattr(robot, "ground_truth", None)
+    truth0 = truth_fn() if callable(truth_fn) else None
+    log = _Log(n_ticks, truth0, log_timing, log_clouds)
+
+    status, error = "completed", None
+    latest: PointCloud | None = None
+    latest_stem = -1
+    wall0 = time.perf_counter()
+    k = 0
+    try:
+        try:
+            controller.reset(robot)
+        except Exception as exc:
+            status, error = "controller_error", "controller.reset failed: " + _format_error(exc)
+        while status == "completed" and k < n_ticks:
+            cloud = robot.camera_cloud()
+            if cloud is not None:
+                latest, latest_stem = cloud, cloud.count(STEM)
+                log.frame(cloud)
+            obs = Observation(
+                time=robot.time,
+                q=robot.joint_positions(),
+                qdot=robot.joint_velocities(),
+                force=robot.wrist_force(),
+                cloud=latest,
+                new_cloud=cloud is not None,
+            )
+            log.t[k], log.q[k], log.qdot[k], log.force[k] = obs.time, obs.q, obs.qdot, obs.force
+            if latest is not None:
+                log.stem_points[k] = latest_stem
+                log.cloud_time[k] = latest.timestamp
+            if truth_fn is not None:
+                for name, value in truth_fn().items():
+                    log.truth[name][k] = value
+            t0 = time.perf_counter()
+            try:
+                out = controller.step(obs)
+            except Exception as exc:
+                status, error = "controller_error", "controller.step failed: " + _format_error(exc)
+            else:
+                try:
+                    cmd = _as_command(out)
+                except InvalidInputError as exc:
+                    status, error = "invalid_command", str(exc)
+            if log.controller_time is not None:
+                log.controller_time[k] = time.perf_counter() - t0
+            if status != "completed":
+                log.status[k] = "error"
+                k += 1
+                break
+            log.qdot_cmd[k] = cmd.qdot
+            log.status[k] = cmd.status
+            log.task(k, cmd.task_errors)
+            robot.send_joint_velocities(cmd.qdot)
+            k += 1
+            try:
+                robot.step()
+            except HarvestQPError as exc:
+                status, error = "robot_error", "robot.step failed: " + _format_error(exc)
+                break
+    finally:
+        # Whatever happened (controller error, end of episode, Ctrl-C), leave the arms at rest.
+        if status in ("controller_error", "invalid_command") or stop_at_end:
+            try:
+                robot.stop()
+            except HarvestQPError as exc:
+                if status == "completed":
+                    status, error = "robot_error", "robot.stop failed: " + _format_error(exc)
+    wall = time.perf_counter() - wall0
+
+    arrays = log.arrays(k)
+    arrays["episode_status"] = np.array(status)
+    arrays["error"] = np.array(error or "")
+    arrays["control_period"] = np.array(robot.control_period)
+    arrays["duration"] = np.array(float(duration))
+    arrays["n_ticks"] = np.array(k)
+    seed = getattr(robot, "seed", None)
+    if isinstance(seed, (int, np.integer)):
+        arrays["seed"] = np.array(int(seed))
+    for key, value in (metadata or {}).items():
+        arrays[f"meta/{key}"] = np.asarray(value)
+    path = write_npz(log_path, arrays) if log_path is not None else None
+    return EpisodeResult(
+        status=status,
+        error=error,
+        n_ticks=k,
+        sim_time=k * robot.control_period,
+        wall_time=wall,
+        log=arrays,
+        log_path=path,
+    )

@@ -1,0 +1,338 @@
+"""Fast single-origin ray casting against MuJoCo primitive geoms (numba).
+
+:func:`mujoco.mj_multiRay` tests every ray against every geom (about 20 ms for the
+283x160 image of the vine scene with its ~75 geoms, too slow for 30 Hz at 3x real
+time). This kernel gives the same distances and geom ids (agreement to ~1e-12 m, see
+tests/sim/test_camera.py) by testing each geom only against the pixels inside its
+projected bounding sphere, with the same filters as ``mj_multiRay`` (transparent geoms,
+``bodyexclude``, static geoms when ``flg_static`` is 0, geoms farther than ``cutoff``).
+It handles planes, spheres, capsules, ellipsoids, cylinders and boxes; a model with
+other geom types (meshes, height fields, SDFs) must use ``mj_multiRay``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+from numba import njit
+
+__all__ = ["SUPPORTED_GEOM_TYPES", "supports_model", "cast_rays"]
+
+_PLANE = int(mujoco.mjtGeom.mjGEOM_PLANE)
+_SPHERE = int(mujoco.mjtGeom.mjGEOM_SPHERE)
+_CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
+_ELLIPSOID = int(mujoco.mjtGeom.mjGEOM_ELLIPSOID)
+_CYLINDER = int(mujoco.mjtGeom.mjGEOM_CYLINDER)
+_BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
+SUPPORTED_GEOM_TYPES = frozenset((_PLANE, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _BOX))
+
+
+def supports_model(model: mujoco.MjModel) -> bool:
+    """True when every geom of ``model`` is a primitive this kernel handles."""
+    return all(int(t) in SUPPORTED_GEOM_TYPES for t in model.geom_type)
+
+
+@njit(cache=True, inline="always")
+def _quadratic(a: float, b: float, c: float) -> float:
+    """Smallest non-negative root of a t^2 + 2 b t + c = 0, or -1."""
+    det = b * b - a * c
+    if det < 0.0 or a < 1e-15:
+        return -1.0
+    s = math.sqrt(det)
+    t0 = (-b - s) / a
+    if t0 >= 0.0:
+        return t0
+    t1 = (-b + s) / a
+    return t1 if t1 >= 0.0 else -1.0
+
+
+@njit(cache=True, inline="always")
+def _sphere(ox, oy, oz, dx, dy, dz, r):
+    return _quadratic(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz, ox * ox + oy * oy + oz * oz - r * r)
+
+
+@njit(cache=True, inline="always")
+def _keep(best, t):
+    if t >= 0.0 and (best < 0.0 or t < best):
+        return t
+    return best
+
+
+@njit(cache=True)
+def _geom_local(gtype, size, ox, oy, oz, dx, dy, dz):
+    """Distance along the ray to a geom in its local frame (ray origin o, direction d), or -1."""
+    if gtype == 0:  # plane: front face only, within the rectangle (size 0 = infinite)
+        if dz > -1e-15:
+            return -1.0
+        t = -oz / dz
+        if t < 0.0:
+            return -1.0
+        px = ox + t * dx
+        py = oy + t * dy
+        if (size[0] <= 0.0 or abs(px) <= size[0]) and (size[1] <= 0.0 or abs(py) <= size[1]):
+            return t
+        return -1.0
+    if gtype == 2:  # sphere
+        return _sphere(ox, oy, oz, dx, dy, dz, size[0])
+    if gtype == 3:  # capsule: cylinder side and two end spheres
+        r, h = size[0], size[1]
+        best = -1.0
+        t = _quadratic(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - r * r)
+        if t >= 0.0 and abs(oz + t * dz) <= h:
+            best = t
+        best = _keep(best, _sphere(ox, oy, oz - h, dx, dy, dz, r))
+        best = _keep(best, _sphere(ox, oy, oz + h, dx, dy, dz, r))
+        return best
+    if gtype == 4:  # ellipsoid: scale to the unit sphere (t is unchanged)
+        sx, sy, sz = size[0], size[1], size[2]
+        return _sphere(ox / sx, oy / sy, oz / sz, dx / sx, dy / sy, dz / sz, 1.0)
+    if gtype == 5:  # cylinder: side and two end disks
+        r, h = size[0], size[1]
+        best = -1.0
+        t = _quadratic(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - r * r)
+        if t >= 0.0 and abs(oz + t * dz) <= h:
+            best = t
+        if abs(dz) > 1e-15:
+            for side in (-1.0, 1.0):
+                t = (side * h - oz) / dz
+                if t >= 0.0:
+                    px = ox + t * dx
+                    py = oy + t * dy
+                    if px * px + py * py <= r * r:
+                        best = _keep(best, t)
+        return best
+    if gtype == 6:  # box: slabs
+        tmin = -1e300
+        tmax = 1e300
+        o = (ox, oy, oz)
+        d = (dx, dy, dz)
+        for i in range(3):
+            if abs(d[i]) < 1e-15:
+                if abs(o[i]) > size[i]:
+                    return -1.0
+            else:
+                t1 = (-size[i] - o[i]) / d[i]
+                t2 = (size[i] - o[i]) / d[i]
+                if t1 > t2:
+                    t1, t2 = t2, t1
+                tmin = max(tmin, t1)
+                tmax = min(tmax, t2)
+        if tmax < tmin or tmax < 0.0:
+            return -1.0
+        return tmin if tmin >= 0.0 else tmax
+    return -1.0
+
+
+@njit(cache=True)
+def _sphere_rect(c0, c1, c2, r, focal, width, height, tan_h, tan_v, rect):
+    """Grow ``rect`` (u0, u1, v0, v1) by the pixels a sphere can cover; returns False if none.
+
+    A sphere outside one of the frustum's side planes covers nothing; one reaching behind
+    the image plane inside the frustum may cover any pixel (the whole image).
+    """
+    # Side planes through the optical centre, inward unit normals.
+    nh = math.sqrt(1.0 + tan_h * tan_h)
+    nv = math.sqrt(1.0 + tan_v * tan_v)
+    if (c0 + tan_h * c2) / nh < -r or (-c0 + tan_h * c2) / nh < -r:
+        return False
+    if (c1 + tan_v * c2) / nv < -r or (-c1 + tan_v * c2) / nv < -r:
+        return False
+    if c2 + r <= 0.0:
+        return False
+    zmin = c2 - r
+    if zmin <= 1e-6:
+        rect[0] = 0
+        rect[1] = width - 1
+        rect[2] = 0
+        rect[3] = height - 1
+        return True
+    zmax = c2 + r
+    xa, xb = c0 - r, c0 + r
+    ya, yb = c1 - r, c1 + r
+    # Bounds of x/z and y/z over the box around the sphere.
+    lx = xa / zmax if xa >= 0.0 else xa / zmin
+    hx = xb / zmin if xb >= 0.0 else xb / zmax
+    ly = ya / zmax if ya >= 0.0 else ya / zmin
+    hy = yb / zmin if yb >= 0.0 else yb / zmax
+    u0 = max(0, int(math.floor(width / 2.0 + focal * lx - 0.5)))
+    u1 = min(width - 1, int(math.ceil(width / 2.0 + focal * hx - 0.5)))
+    v0 = max(0, int(math.floor(height / 2.0 + focal * ly - 0.5)))
+    v1 = min(height - 1, int(math.ceil(height / 2.0 + focal * hy - 0.5)))
+    if u0 > u1 or v0 > v1:
+        return False
+    rect[0] = min(rect[0], u0)
+    rect[1] = max(rect[1], u1)
+    rect[2] = min(rect[2], v0)
+    rect[3] = max(rect[3], v1)
+    return True
+
+
+@njit(cache=True)
+def cast_rays(
+    rays_c,  # (h*w, 3) unit pixel rays in the camera frame, row-major
+    height,
+    width,
+    focal,
+    origin,  # (3,) camera position (world)
+    rotation,  # (3, 3) camera rotation (world from camera)
+    geom_type,  # (ngeom,) int
+    geom_size,  # (ngeom, 3)
+    geom_xpos,  # (ngeom, 3)
+    geom_xmat,  # (ngeom, 9)
+    geom_rbound,  # (ngeom,) bounding-sphere radius; 0 = unbounded (planes)
+    geom_mask,  # (ngeom,) bool: geoms that can be hit
+    cutoff,  # ignore geoms farther than this [m]
+    geomid,  # out (h*w,) int32
+    dist,  # out (h*w,) float64 (-1: no hit)
+):
+    """For every pixel ray, the nearest geom hit (id, distance) as ``mj_multiRay`` returns them."""
+    n = rays_c.shape[0]
+    for i in range(n):
+        geomid[i] = -1
+        dist[i] = -1.0
+    # Half-extents of the frustum slightly enlarged: pixel rays reach to half a pixel in.
+    tan_h = (width / 2.0 + 1.0) / focal
+    tan_v = (height / 2.0 + 1.0) / focal
+    rect = np.empty(4, np.int64)
+    for g in range(geom_type.shape[0]):
+        if not geom_mask[g]:
+            continue
+        # Geom centre and rotation in the camera frame.
+        px = geom_xpos[g, 0] - origin[0]
+        py = geom_xpos[g, 1] - origin[1]
+        pz = geom_xpos[g, 2] - origin[2]
+        c0 = rotation[0, 0] * px + rotation[1, 0] * py + rotation[2, 0] * pz
+        c1 = rotation[0, 1] * px + rotation[1, 1] * py + rotation[2, 1] * pz
+        c2 = rotation[0, 2] * px + rotation[1, 2] * py + rotation[2, 2] * pz
+        # Rg_c = R^T Rg (3x3), row-major.
+        rg = np.empty((3, 3))
+        for a in range(3):
+            for b in range(3):
+                rg[a, b] = (
+                    rotation[0, a] * geom_xmat[g, 0 * 3 + b]
+                    + rotation[1, a] * geom_xmat[g, 1 * 3 + b]
+                    + rotation[2, a] * geom_xmat[g, 2 * 3 + b]
+                )
+        r = geom_rbound[g]
+        gt = geom_type[g]
+        if gt != 0 and r > 0.0:
+            if math.sqrt(c0 * c0 + c1 * c1 + c2 * c2) - r > cutoff:
+                continue
+            rect[0] = width
+            rect[1] = -1
+            rect[2] = height
+            rect[3] = -1
+            half = geom_size[g, 1]
+            radius = geom_size[g, 0]
+            if (gt == 3 or gt == 5) and half > radius:
+                # Long capsule or cylinder: bound it by spheres along its axis, so a geom
+                # passing beside or behind the camera does not cover the whole image.
+                k = min(16, int(math.ceil(half / radius)))
+                sub = radius + half / k
+                seen = False
+                for j in range(k):
+                    s = half * ((2.0 * j + 1.0) / k - 1.0)
+                    if _sphere_rect(
+                        c0 + rg[0, 2] * s,
+                        c1 + rg[1, 2] * s,
+                        c2 + rg[2, 2] * s,
+                        sub,
+                        focal,
+                        width,
+                        height,
+                        tan_h,
+                        tan_v,
+                        rect,
+                    ):
+                        seen = True
+                if not seen:
+                    continue
+            elif not _sphere_rect(c0, c1, c2, r, focal, width, height, tan_h, tan_v, rect):
+                continue
+            u0, u1, v0, v1 = rect[0], rect[1], rect[2], rect[3]
+        else:
+            u0, u1, v0, v1 = 0, width - 1, 0, height - 1
+        # Ray origin in the geom frame: -Rg_c^T c.
+        ox = -(rg[0, 0] * c0 + rg[1, 0] * c1 + rg[2, 0] * c2)
+        oy = -(rg[0, 1] * c0 + rg[1, 1] * c1 + rg[2, 1] * c2)
+        oz = -(rg[0, 2] * c0 + rg[1, 2] * c1 + rg[2, 2] * c2)
+        size = geom_size[g]
+        for v in range(v0, v1 + 1):
+            for u in range(u0, u1 + 1):
+                i = v * width + u
+                ex = rays_c[i, 0]
+                ey = rays_c[i, 1]
+                ez = rays_c[i, 2]
+                dx = rg[0, 0] * ex + rg[1, 0] * ey + rg[2, 0] * ez
+                dy = rg[0, 1] * ex + rg[1, 1] * ey + rg[2, 1] * ez
+                dz = rg[0, 2] * ex + rg[1, 2] * ey + rg[2, 2] * ez
+                t = _geom_local(gt, size, ox, oy, oz, dx, dy, dz)
+                if t >= 0.0 and t <= cutoff and (dist[i] < 0.0 or t < dist[i]):
+                    dist[i] = t
+                    geomid[i] = g
+
+
+@njit(cache=True)
+def compact_cloud(
+    depth,  # (n,) z-depth per pixel [m] (inf / nan: no hit)
+    geomid,  # (n,) geom hit per pixel (-1: none)
+    rays_c,  # (n, 3) unit pixel rays in the camera frame
+    rotation,  # (3, 3) camera rotation (world from camera)
+    origin,  # (3,) camera position
+    min_depth,
+    max_depth,
+    stem_range,
+    noise,  # (n,) standard normal draws for depth noise, or (0,)
+    noise_scale,  # depth noise std at 1 m [m]
+    keep,  # (n,) bool: pixel not dropped out, or (0,)
+    geom_ok,  # (ngeom,) bool: geoms the camera may see
+    geom_label,  # (ngeom,) int8
+    geom_color,  # (ngeom, 3) uint8
+    pixel_color,  # (n, 3) uint8 rendered colours, or (0, 3)
+    stem_label,
+    obstacle_label,
+    out_points,  # (n, 3)
+    out_labels,  # (n,) int8
+    out_colors,  # (n, 3) uint8
+    out_depth,  # (n,)
+    out_pixels,  # (n, 2) int32
+    width,
+):
+    """Valid pixels -> world points, labels, colours; returns the number of points written."""
+    count = 0
+    n = depth.shape[0]
+    use_noise = noise.shape[0] == n
+    use_keep = keep.shape[0] == n
+    use_pixel_color = pixel_color.shape[0] == n
+    for i in range(n):
+        g = geomid[i]
+        if g < 0 or not geom_ok[g]:
+            continue
+        z = depth[i]
+        if not (z >= min_depth and z <= max_depth):
+            continue
+        if use_keep and not keep[i]:
+            continue
+        if use_noise:
+            # Stereo depth error grows with depth squared (fixed disparity error).
+            z = z + noise[i] * noise_scale * z * z
+        s = z / rays_c[i, 2]
+        x = rays_c[i, 0] * s
+        y = rays_c[i, 1] * s
+        zz = rays_c[i, 2] * s
+        for k in range(3):
+            out_points[count, k] = origin[k] + rotation[k, 0] * x + rotation[k, 1] * y + rotation[k, 2] * zz
+        label = geom_label[g]
+        # Beyond the detection range a stem point is just another obstacle (the paper).
+        if label == stem_label and s > stem_range:
+            label = obstacle_label
+        out_labels[count] = label
+        for k in range(3):
+            out_colors[count, k] = pixel_color[i, k] if use_pixel_color else geom_color[g, k]
+        out_depth[count] = z
+        out_pixels[count, 0] = i // width
+        out_pixels[count, 1] = i % width
+        count += 1
+    return count

@@ -1,0 +1,372 @@
+"""The simulated dual-UR5e lab: :class:`SimRobot` implements :class:`~harvest_qp.interface.RobotInterface`.
+
+One control period (2 ms by default) applies the held joint-velocity command through the
+``speedj``-like servos (:mod:`harvest_qp.sim.actuation`), integrates the physics, samples
+the wrist F/T sensor and, every 1/30 s, captures a camera frame. The state is only ever
+changed through the actuators, so the force sensor reads the true interaction force.
+
+At :meth:`SimRobot.reset` the robot starts at ``HOME_Q`` holding the cluster (the paper's
+initial state): the grasp weld is activated at the current gripper-cluster pose, the arms
+hold still for ``settle_time`` while the scene comes to rest, and the stem's springs are
+then re-zeroed so the stem starts unloaded (the gripper carries the cluster) before the
+clock is set to 0.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections import deque
+
+import mujoco
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from harvest_qp.exceptions import HarvestQPError, InvalidInputError
+from harvest_qp.interface import N_JOINTS, PointCloud, RobotInterface
+from harvest_qp.robot import description as desc
+from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo
+from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
+from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor, site_force_world
+from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
+
+__all__ = ["SimRobot", "SimulationError"]
+
+
+class SimulationError(HarvestQPError):
+    """The physics diverged (MuJoCo warned about bad accelerations or state values)."""
+
+
+class SimRobot(RobotInterface):
+    """MuJoCo simulation of the dual-UR5e in the vine scene.
+
+    Args:
+        scene: a built :class:`VineScene`, or parameters to build one (default: the
+            paper's setup, ``VineSceneParams()``).
+        seed: seed of the sensor noise (camera and force).
+        camera: camera settings (default: the paper's D415 setup, :data:`DEFAULT_CAMERA`),
+            or None for no camera (faster).
+        force: wrist F/T sensor settings.
+        actuation: servo settings; the servo gains come from the scene's model, so
+            ``bandwidth`` and ``damping_ratio`` only apply when the scene is built here.
+        control_period: control cycle [s], a multiple of the physics timestep (2 ms).
+        payload_compensation: compensate the held cluster's weight in the grasping arm's
+            joint torques, as a UR5e does with its configured payload.
+        settle_time: time the scene settles at reset before the clock starts [s].
+    """
+
+    def __init__(
+        self,
+        scene: VineScene | VineSceneParams | None = None,
+        *,
+        seed: int = 0,
+        camera: CameraConfig | None = DEFAULT_CAMERA,
+        force: ForceSensorConfig | None = None,
+        actuation: ActuationConfig | None = None,
+        control_period: float = 0.002,
+        payload_compensation: bool = True,
+        settle_time: float = 0.2,
+    ) -> None:
+        if scene is None or isinstance(scene, VineSceneParams):
+            scene = build_vine_scene(scene, actuation=actuation)
+        if not isinstance(scene, VineScene):
+            raise InvalidInputError(f"scene must be a VineScene or VineSceneParams, got {type(scene).__name__}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InvalidInputError(f"seed must be a non-negative integer, got {seed!r}")
+        if camera is not None and not isinstance(camera, CameraConfig):
+            raise InvalidInputError(f"camera must be a CameraConfig or None, got {type(camera).__name__}")
+        if not np.isfinite(settle_time) or settle_time < 0:
+            raise InvalidInputError(f"settle_time must be >= 0 [s], got {settle_time!r}")
+        self.scene = scene
+        # A private copy: reset() edits the model (weld pose, stem spring rest values), so
+        # robots built from the same scene must not share it.
+        self.model = copy.deepcopy(scene.model)
+        self.data = mujoco.MjData(self.model)
+        self.seed = int(seed)
+        m = self.model
+        dt = float(m.opt.timestep)
+        substeps = control_period / dt
+        if not np.isfinite(control_period) or control_period <= 0 or abs(substeps - round(substeps)) > 1e-9:
+            raise InvalidInputError(
+                f"control_period must be a positive multiple of the physics timestep {dt} s, got {control_period!r}"
+            )
+        self.control_period = float(control_period)
+        self._substeps = int(round(substeps))
+        self.payload_compensation = bool(payload_compensation)
+        self.settle_time = float(settle_time)
+
+        names = desc.joint_names()
+        joint_ids = np.array([m.joint(n).id for n in names])
+        self._qpos_ids = m.jnt_qposadr[joint_ids].copy()
+        self._dof_ids = m.jnt_dofadr[joint_ids].copy()
+        act_ids = np.array([m.actuator(n).id for n in scene.actuator_names])
+        self._servo = SpeedjServo(m, act_ids, self._qpos_ids, actuation if actuation is not None else ActuationConfig())
+        self._kp = m.actuator_gainprm[act_ids, 0].copy()
+        ids = scene.ids
+        self._ids = ids
+        self._force = WristForceSensor(
+            m, ids["ft_force"], ids["ft_site"], float(m.body_mass[ids["grasp_tool"]]),
+            force if force is not None else ForceSensorConfig(), seed=self.seed,
+        )  # fmt: skip
+        self.camera_config = camera
+        self._camera: DepthCamera | None = None
+        if camera is not None:
+            self._camera = make_camera(
+                m, camera, geom_labels=scene.geom_labels, exclude_body=ids["cam_tool"], camera=CAMERA_NAME,
+                seed=self.seed,
+            )  # fmt: skip
+        self._spring0 = m.qpos_spring.copy()
+        self._stem_qpos = self._stem_spring_addresses()
+        self._jacp = np.zeros((3, m.nv))
+        self._grasp_dofs = self._dof_ids[6:]
+        self._viewer = None
+        self._viewer_every = 16
+        self.reset()
+
+    # ------------------------------------------------------------------ setup
+
+    def _stem_spring_addresses(self) -> NDArray[np.int64]:
+        """qpos addresses of the stem and cluster joints, whose springs are re-zeroed at reset."""
+        m = self.model
+        addrs: list[int] = []
+        for j in range(m.njnt):
+            name = m.joint(j).name
+            if name.startswith("stem_") or name == "cluster_ball":
+                n = {int(mujoco.mjtJoint.mjJNT_BALL): 4, int(mujoco.mjtJoint.mjJNT_SLIDE): 1}[int(m.jnt_type[j])]
+                addrs.extend(range(m.jnt_qposadr[j], m.jnt_qposadr[j] + n))
+        return np.array(addrs, dtype=np.int64)
+
+    def reset(self, *, seed: int | None = None) -> None:
+        """Restart the episode: robot at ``home_q`` holding the cluster, clock at 0.
+
+        Args:
+            seed: new seed of the sensor noise (default: keep the current one).
+        """
+        if seed is not None:
+            if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+                raise InvalidInputError(f"seed must be a non-negative integer, got {seed!r}")
+            self.seed = int(seed)
+        m, d = self.model, self.data
+        m.qpos_spring[:] = self._spring0
+        mujoco.mj_resetData(m, d)
+        d.qpos[self._qpos_ids] = self.scene.home_q
+        mujoco.mj_forward(m, d)
+        self._servo.reset(self.scene.home_q)
+        self.set_grasp(True)
+        self._ticks = 0
+        self._settled = False
+        self._failed = False
+        self._warnings = np.asarray(d.warning.number, dtype=np.int64).copy()
+        settle = int(round(self.settle_time / m.opt.timestep))
+        mujoco.mj_step1(m, d)
+        for _ in range(settle // 2):
+            self._physics_step()
+        # Start with an unloaded stem (the gripper carries the cluster, as in the lab): zero
+        # the stem's springs at the settled shape, then shift the axial spring's rest length
+        # so it also carries the stem's own weight instead of the cluster.
+        m.qpos_spring[self._stem_qpos] = d.qpos[self._stem_qpos]
+        for _ in range(settle // 4):
+            self._physics_step()
+        slide = self._ids["stem_slide"]
+        m.qpos_spring[m.jnt_qposadr[slide]] += self.stem_tension() / m.jnt_stiffness[slide]
+        for _ in range(settle - settle // 2 - settle // 4):
+            self._physics_step()
+        self._check_physics()
+        self._settled = True
+        d.time = 0.0
+        self._force.reset(seed=self.seed)
+        self._force.update(d, self.control_period)
+        self._frames: deque[tuple[float, PointCloud]] = deque()
+        self._next_frame_tick = 0
+        if self._camera is not None:
+            self._camera.reset(seed=self.seed)
+            self._maybe_capture()
+
+    # ------------------------------------------------------------------ RobotInterface
+
+    @property
+    def time(self) -> float:
+        """Simulated time since the reset [s]."""
+        return self._ticks * self.control_period
+
+    def joint_positions(self) -> NDArray[np.float64]:
+        return self.data.qpos[self._qpos_ids].copy()
+
+    def joint_velocities(self) -> NDArray[np.float64]:
+        return self.data.qvel[self._dof_ids].copy()
+
+    def wrist_force(self) -> NDArray[np.float64]:
+        return self._force.reading()
+
+    def tare_force(self) -> None:
+        self._force.tare()
+
+    def camera_cloud(self) -> PointCloud | None:
+        latest = None
+        while self._frames and self._frames[0][0] <= self.time + 1e-12:
+            latest = self._frames.popleft()[1]
+        return latest
+
+    def send_joint_velocities(self, qdot: ArrayLike) -> None:
+        self._servo.command(qdot)
+
+    def step(self) -> None:
+        if self._failed:
+            raise SimulationError("the simulation diverged earlier; call reset() to start again")
+        for _ in range(self._substeps):
+            self._physics_step()
+        self._check_physics()
+        self._ticks += 1
+        self._force.update(self.data, self.control_period)
+        self._maybe_capture()
+        if self._viewer is not None and self._ticks % self._viewer_every == 0:
+            self._viewer.sync()
+
+    def stop(self) -> None:
+        """Ramp the commands to zero within the acceleration limits and wait until at rest.
+
+        Advances the simulated time by the ramp (at most ``max_velocity / max_acceleration``)
+        plus up to 0.2 s for the joints to settle.
+        """
+        if self._failed:
+            return  # nothing left to stop: MuJoCo has reset the diverged state
+        self._servo.command(np.zeros(N_JOINTS))
+        limit = int(np.ceil(self._servo.config.max_velocity / self._servo.acc_limit.min() / self.control_period)) + 2
+        for _ in range(limit):
+            if self._servo.at_rest():
+                break
+            self.step()
+        for _ in range(int(0.2 / self.control_period)):
+            if np.max(np.abs(self.joint_velocities())) < 1e-3:
+                break
+            self.step()
+
+    # ------------------------------------------------------------------ simulation extras
+
+    def set_grasp(self, active: bool) -> None:
+        """Hold (weld at the current relative pose) or release the cluster.
+
+        The payload compensation follows the grasp, as when a UR5e's payload is updated.
+        """
+        m, d = self.model, self.data
+        eq = self._ids["weld"]
+        if active:
+            b1, b2 = m.eq_obj1id[eq], m.eq_obj2id[eq]
+            R1 = d.xmat[b1].reshape(3, 3)
+            # Weld data: anchor, relative position R1^T (x2 - x1), relative quat q1^-1 q2.
+            m.eq_data[eq, 0:3] = 0.0
+            m.eq_data[eq, 3:6] = R1.T @ (d.xpos[b2] - d.xpos[b1])
+            q1inv = np.zeros(4)
+            mujoco.mju_negQuat(q1inv, d.xquat[b1])
+            mujoco.mju_mulQuat(m.eq_data[eq, 6:10], q1inv, d.xquat[b2])
+            m.eq_data[eq, 10] = 1.0
+        d.eq_active[eq] = 1 if active else 0
+        self._holding = bool(active)
+
+    @property
+    def holding(self) -> bool:
+        """True while the grasp weld is active."""
+        return self._holding
+
+    def stem_force(self) -> NDArray[np.float64]:
+        """True force the stem applies to the cluster [N, world] (ground truth, not measurable)."""
+        return site_force_world(self.model, self.data, self._ids["stem_force"], self._ids["stem_end_site"])
+
+    def stem_tension(self) -> float:
+        """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""
+        f = self.stem_force()
+        towards_base = self.scene.stem_base - self.data.site_xpos[self._ids["stem_end_site"]]
+        sign = 1.0 if np.dot(f, towards_base) >= 0 else -1.0
+        return sign * float(np.linalg.norm(f))
+
+    def site_pose(self, name: str) -> NDArray[np.float64]:
+        """World pose (4x4) of a site, e.g. ``"camera"``, ``"gripper"``, ``"cutter_tip"``."""
+        try:
+            sid = self.model.site(name).id
+        except KeyError:
+            names = [self.model.site(i).name for i in range(self.model.nsite)]
+            raise InvalidInputError(f"unknown site {name!r}; valid names: {names}") from None
+        T = np.eye(4)
+        T[:3, :3] = self.data.site_xmat[sid].reshape(3, 3)
+        T[:3, 3] = self.data.site_xpos[sid]
+        return T
+
+    def velocity_reference(self) -> NDArray[np.float64]:
+        """The acceleration-limited joint velocity reference being tracked (12,) [rad/s]."""
+        return self._servo.qd_ref.copy()
+
+    def capture_cloud(self) -> PointCloud:
+        """Capture a camera frame now, outside the frame schedule (for tests and tools)."""
+        if self._camera is None:
+            raise InvalidInputError("this SimRobot has no camera (camera=None)")
+        return self._camera.capture(self.data, self.site_pose("camera"), self.time)
+
+    def ground_truth(self) -> dict[str, float | NDArray[np.float64]]:
+        """Quantities a real robot cannot measure, for logs and tests."""
+        return {
+            "stem_tension": self.stem_tension(),
+            "stem_force": self.stem_force(),
+            "qdot_ref": self.velocity_reference(),
+        }
+
+    # ------------------------------------------------------------------ internals
+
+    def _physics_step(self) -> None:
+        m, d = self.model, self.data
+        self._servo.update(d, m.opt.timestep)
+        if self.payload_compensation and self._holding:
+            # Like a UR5e's payload setting: hold the cluster's weight in the joint torques.
+            # The weld keeps the cluster's centre of mass fixed on the tool.
+            c = self._ids["cluster"]
+            mujoco.mj_jac(m, d, self._jacp, None, d.xipos[c], self._ids["grasp_tool"])
+            weight = m.body_mass[c] * np.asarray(m.opt.gravity)
+            tau = -self._jacp[:, self._grasp_dofs].T @ weight
+            d.ctrl[self._servo.ctrl_ids[6:]] += tau / self._kp[6:]
+        # step2 integrates with the forces of the current state; step1 then computes the
+        # new state's kinematics so every reading refers to the same instant.
+        mujoco.mj_step2(m, d)
+        mujoco.mj_step1(m, d)
+
+    def _check_physics(self) -> None:
+        d = self.data
+        counts = np.asarray(d.warning.number, dtype=np.int64)
+        if np.any(counts > self._warnings) or not np.all(np.isfinite(d.qvel)):
+            new = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts > self._warnings)]
+            self._warnings = counts
+            self._failed = True
+            when = f"t = {self.time:.3f} s" if self._settled else "while settling the scene at reset"
+            raise SimulationError(f"the simulation became unstable {when} (MuJoCo warnings: {new})")
+
+    def _maybe_capture(self) -> None:
+        if self._camera is None or self._ticks < self._next_frame_tick:
+            return
+        t = self.time
+        cloud = self._camera.capture(self.data, self.site_pose("camera"), t)
+        self._frames.append((t + self._camera.config.latency, cloud))
+        # Frame instants on the control grid closest to k / rate (33.3 ms -> 16-17 ticks).
+        k = round(t * self._camera.config.rate) + 1
+        self._next_frame_tick = max(self._ticks + 1, int(round(k / self._camera.config.rate / self.control_period)))
+
+    def open_viewer(self, *, sync_every: int = 16) -> None:
+        """Show the simulation in MuJoCo's passive viewer (needs a display; headless otherwise).
+
+        Args:
+            sync_every: redraw every this many control ticks (16 ticks = 32 ms, ~30 FPS).
+        """
+        try:
+            import mujoco.viewer
+
+            self._viewer = mujoco.viewer.launch_passive(self.model, self.data)
+        except Exception as error:  # no display, or macOS without mjpython
+            raise HarvestQPError(f"cannot open the MuJoCo viewer: {error}") from error
+        self._viewer_every = max(1, int(sync_every))
+
+    def close_viewer(self) -> None:
+        """Close the viewer opened by :meth:`open_viewer`, if any."""
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
+
+    @property
+    def mujoco_warnings(self) -> dict[str, int]:
+        """MuJoCo warning counts since the last reset."""
+        return {mujoco.mjtWarning(i).name: int(w.number) for i, w in enumerate(self.data.warning)}

@@ -1,0 +1,766 @@
+"""Seeded vine scene around the dual-UR5e: branch, cane, leaves, a bending stem and a grape cluster.
+
+The scene reproduces the paper's lab (Section ``sec:exper``): plastic branches and leaves
+around a grape cluster whose red stem is 0.07 m long; the grasping arm already holds the
+cluster and the camera arm starts away from the region of interest.
+
+Everything is placed relative to the grasping arm's gripper frame {G} at ``HOME_Q``
+(about (0.50, -0.12, 1.15) m, pointing +x with y_G down):
+
+* the cluster top (where the stem ends) sits ``grasp_offset`` above the gripper point,
+  along -y_G, and the berries hang below it along y_G;
+* the stem rises from there to the stem base p_sb in ``stem_segments`` capsules; its rest
+  shape is an arc of total angle ``stem_bend`` leaning towards ``stem_bend_azimuth``;
+* the branch passes just above p_sb, rising from it into the canopy (away from the robot)
+  along ``branch_yaw`` / ``branch_pitch``; the cane runs along y through the branch's far end;
+* one leaf hangs between the camera's start position and the stem so the stem is
+  occluded at the start (``occlude_stem``), the other leaves are scattered around the stem,
+  and ``canopy_leaves`` hang from the cane behind the cluster (the foliage wall the
+  camera sees from its start pose, which looks +x past the cluster).
+
+Physics: the branch, cane and leaves are static. The stem is a chain of capsules on ball
+joints (bending stiffness ``stem_bend_stiffness``) whose top joint also has an axial slide
+spring (``stem_axial_stiffness``, about 400 N/m), so pulling the cluster stretches it. The
+cluster is one rigid body of sphere berries on a ball joint at the stem end. A weld
+equality between the ``grasp_tool`` body and the cluster is the grasp (activated by
+:class:`harvest_qp.sim.SimRobot` at the current relative pose).
+
+Contacts: only the branch and cane collide with the robot (rigid wood). Leaves, stem and
+berries are seen by the camera but do not collide: real leaves yield, and the held
+cluster touching the gripper would fight the weld.
+
+Randomisation: :meth:`VineSceneParams.sample` draws every scalar uniformly from
+:data:`PARAM_RANGES`; leaf poses and berry positions are drawn from ``seed`` in both the
+default and sampled scenes (see :data:`LEAF_LAYOUT` for their ranges).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+from numpy.typing import NDArray
+
+from harvest_qp.exceptions import InvalidInputError, ModelError
+from harvest_qp.interface import OBSTACLE, ROBOT, STEM
+from harvest_qp.robot import description as desc
+from harvest_qp.robot import paths
+from harvest_qp.sim.actuation import ActuationConfig, add_joint_actuators
+
+__all__ = [
+    "PARAM_RANGES",
+    "LEAF_LAYOUT",
+    "VineSceneParams",
+    "VineScene",
+    "build_vine_scene",
+    "STEM_COLOR",
+    "CAMERA_NAME",
+]
+
+#: Uniform sampling range (low, high) of every scalar in :class:`VineSceneParams`
+#: used by :meth:`VineSceneParams.sample`. Lengths [m], angles [rad], masses [kg],
+#: stiffness [N/m] or [N m/rad]; integer fields are drawn inclusively.
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "stem_length": (0.05, 0.07),
+    "stem_segments": (3, 5),
+    "stem_radius": (0.0025, 0.004),
+    "stem_bend": (0.0, 0.6),
+    "stem_bend_azimuth": (-np.pi, np.pi),
+    "stem_axial_stiffness": (300.0, 600.0),
+    "stem_bend_stiffness": (0.01, 0.05),
+    "cluster_mass": (0.2, 0.5),
+    "berry_count": (30, 45),
+    "berry_radius": (0.008, 0.01),
+    "cluster_length": (0.12, 0.17),
+    "cluster_radius": (0.04, 0.06),
+    "branch_yaw": (-0.6, 0.6),
+    "branch_pitch": (0.1, 0.6),
+    "branch_radius": (0.008, 0.016),
+    "branch_length": (0.25, 0.4),
+    "leaf_count": (3, 8),
+    "canopy_leaves": (6, 20),
+    "leaf_size": (0.05, 0.08),
+    "occluder_distance": (0.06, 0.1),
+}
+
+#: Ranges of the per-leaf random draws (from ``seed``), for every scene:
+#: ``distance`` of a free leaf's centre from the stem middle [m], ``size_scale`` of its
+#: half-length relative to ``leaf_size``, ``width_ratio`` of its half-width to its
+#: half-length, ``tilt`` of a leaf's normal away from its nominal direction [rad]
+#: (occluder: facing the camera; free leaves: facing away from the stem), the
+#: occluder's ``lateral_offset`` from the line of sight [m], and for canopy leaves their
+#: position along the cane from its middle (``canopy_along``), below it
+#: (``canopy_drop``) and along x from it (``canopy_depth``, negative towards the robot) [m].
+LEAF_LAYOUT: dict[str, tuple[float, float]] = {
+    "distance": (0.09, 0.22),
+    "size_scale": (0.8, 1.2),
+    "width_ratio": (0.7, 0.9),
+    "tilt": (-0.5, 0.5),
+    "occluder_tilt": (-0.25, 0.25),
+    "lateral_offset": (-0.008, 0.008),
+    "canopy_along": (-0.75, 0.75),
+    "canopy_drop": (0.02, 0.25),
+    "canopy_depth": (-0.08, 0.04),
+}
+
+#: Stem colour (red, as the paper's painted stem); every other colour has a red share
+#: below 45 % of R + G + B so colour-based stem detection can tell them apart.
+STEM_COLOR = (0.85, 0.08, 0.08, 1.0)
+LEAF_COLOR = (0.22, 0.55, 0.16, 1.0)
+BRANCH_COLOR = (0.40, 0.30, 0.20, 1.0)
+BERRY_COLOR = (0.33, 0.14, 0.42, 1.0)
+RACHIS_COLOR = (0.35, 0.45, 0.18, 1.0)
+
+#: Name of the MuJoCo camera on the camera arm used by the OpenGL renderer.
+CAMERA_NAME = "rgbd_camera"
+
+#: Largest stem stiffnesses that integrate stably at the 2 ms timestep (measured: 3e4 N/m
+#: and 10 N m/rad still ran, 1e5 N/m and 20 N m/rad diverged).
+MAX_AXIAL_STIFFNESS = 2.0e4
+MAX_BEND_STIFFNESS = 10.0
+
+_INT_FIELDS = ("stem_segments", "berry_count", "leaf_count", "canopy_leaves")
+_LEAF_THICKNESS = 0.0015  # half-thickness of a leaf ellipsoid [m]
+_PETIOLE_RADIUS = 0.0025
+_WELD_SOLREF = (0.004, 1.0)  # stiff grasp: 2 timesteps, critically damped
+
+
+@dataclass(frozen=True)
+class VineSceneParams:
+    """Parameters of the vine scene; the defaults are the paper's lab setup.
+
+    Attributes:
+        seed: seed of the leaf layout and berry positions (and of nothing else).
+        stem_length: stem length from the cluster top to the branch [m] (paper: 0.07).
+        stem_segments: number of capsule segments on ball joints.
+        stem_radius: stem radius [m].
+        stem_bend: total bend angle of the stem's rest shape [rad] (0 = straight).
+        stem_bend_azimuth: world yaw towards which the stem base leans [rad] (0 = +x).
+        stem_axial_stiffness: axial spring stiffness of the stem [N/m].
+        stem_bend_stiffness: bending stiffness of each ball joint [N m/rad].
+        cluster_mass: mass of the grape cluster [kg].
+        berry_count: number of berries.
+        berry_radius: berry radius [m].
+        cluster_length: length of the berry part of the cluster [m] (it starts ~3 cm below the grasp).
+        cluster_radius: radius of the cluster's widest (top) berry layer [m].
+        branch_yaw: yaw of the branch from the stem base into the canopy [rad] (0 = +x).
+        branch_pitch: upward slope of the branch [rad].
+        branch_radius: branch radius [m].
+        branch_length: branch length beyond the stem base [m].
+        leaf_count: number of leaves around the stem, the occluding leaf included.
+        canopy_leaves: number of leaves hanging from the cane behind the cluster (the
+            canopy wall the camera sees from its start pose).
+        leaf_size: nominal leaf half-length [m].
+        occlude_stem: place one leaf between the camera's start position and the stem.
+        occluder_distance: distance of the occluding leaf from the stem middle [m].
+        grasp_offset: distance from the gripper point up to the stem end [m].
+        camera_start: position [m] the occluding leaf hides the stem from; None = the
+            camera position at ``HOME_Q``.
+    """
+
+    seed: int = 0
+    stem_length: float = 0.07
+    stem_segments: int = 3
+    stem_radius: float = 0.003
+    stem_bend: float = 0.3
+    stem_bend_azimuth: float = 0.0
+    stem_axial_stiffness: float = 400.0
+    stem_bend_stiffness: float = 0.02
+    cluster_mass: float = 0.3
+    berry_count: int = 40
+    berry_radius: float = 0.009
+    cluster_length: float = 0.15
+    cluster_radius: float = 0.05
+    branch_yaw: float = 0.0
+    branch_pitch: float = 0.35
+    branch_radius: float = 0.012
+    branch_length: float = 0.3
+    leaf_count: int = 5
+    canopy_leaves: int = 12
+    leaf_size: float = 0.065
+    occlude_stem: bool = True
+    occluder_distance: float = 0.08
+    grasp_offset: float = 0.015
+    camera_start: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        positive = (
+            "stem_length", "stem_radius", "stem_axial_stiffness", "cluster_mass", "berry_radius",
+            "cluster_length", "cluster_radius", "branch_radius", "branch_length", "leaf_size",
+            "occluder_distance",
+        )  # fmt: skip
+        for name in positive:
+            value = getattr(self, name)
+            if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) or value <= 0:
+                raise InvalidInputError(f"VineSceneParams.{name} must be a finite number > 0, got {value!r}")
+        for name in ("stem_bend", "stem_bend_azimuth", "branch_yaw", "branch_pitch", "grasp_offset"):
+            if not np.isfinite(getattr(self, name)):
+                raise InvalidInputError(f"VineSceneParams.{name} must be finite, got {getattr(self, name)!r}")
+        if not 0 <= self.stem_bend <= np.pi / 2:
+            raise InvalidInputError(f"VineSceneParams.stem_bend must be in [0, pi/2] rad, got {self.stem_bend!r}")
+        if not -1.2 <= self.branch_pitch <= 1.2:
+            raise InvalidInputError(
+                f"VineSceneParams.branch_pitch must be in [-1.2, 1.2] rad, got {self.branch_pitch!r}"
+            )
+        # Beyond these the stem's light segments make the 2 ms integration diverge.
+        if self.stem_axial_stiffness > MAX_AXIAL_STIFFNESS:
+            raise InvalidInputError(
+                f"VineSceneParams.stem_axial_stiffness must be <= {MAX_AXIAL_STIFFNESS} N/m (stable at "
+                f"dt = 2 ms), got {self.stem_axial_stiffness!r}"
+            )
+        if self.stem_bend_stiffness > MAX_BEND_STIFFNESS:
+            raise InvalidInputError(
+                f"VineSceneParams.stem_bend_stiffness must be <= {MAX_BEND_STIFFNESS} N m/rad (stable at "
+                f"dt = 2 ms), got {self.stem_bend_stiffness!r}"
+            )
+        if self.stem_bend_stiffness < 0 or not np.isfinite(self.stem_bend_stiffness):
+            raise InvalidInputError(
+                f"VineSceneParams.stem_bend_stiffness must be >= 0 [N m/rad], got {self.stem_bend_stiffness!r}"
+            )
+        if not 0 <= self.grasp_offset < self.stem_length + self.cluster_length:
+            raise InvalidInputError(
+                f"VineSceneParams.grasp_offset must be in [0, {self.stem_length + self.cluster_length}) m, "
+                f"got {self.grasp_offset!r}"
+            )
+        for name, low in (("stem_segments", 1), ("berry_count", 1), ("leaf_count", 0), ("canopy_leaves", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise InvalidInputError(f"VineSceneParams.{name} must be an integer >= {low}, got {value!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise InvalidInputError(f"VineSceneParams.seed must be a non-negative integer, got {self.seed!r}")
+        if self.stem_radius * 2 >= self.stem_length / self.stem_segments:
+            raise InvalidInputError(
+                f"stem segments of {self.stem_length / self.stem_segments:.4f} m are too short for a stem "
+                f"radius of {self.stem_radius} m; use fewer segments or a thinner stem"
+            )
+        if self.camera_start is not None:
+            start = np.asarray(self.camera_start, dtype=float)
+            if start.shape != (3,) or not np.all(np.isfinite(start)):
+                raise InvalidInputError(
+                    f"camera_start must be 3 finite coordinates [m] or None, got {self.camera_start!r}"
+                )
+
+    @classmethod
+    def sample(cls, seed: int, **overrides) -> VineSceneParams:
+        """Random parameters: every field of :data:`PARAM_RANGES` uniform in its range.
+
+        Args:
+            seed: seed of the draws (also used as the layout ``seed``).
+            **overrides: fields to set instead of drawing them.
+        """
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InvalidInputError(f"seed must be a non-negative integer, got {seed!r}")
+        rng = np.random.default_rng([int(seed), 0x5EED])
+        values: dict[str, float | int] = {}
+        for name, (low, high) in PARAM_RANGES.items():
+            if name in _INT_FIELDS:
+                values[name] = int(rng.integers(int(low), int(high) + 1))
+            else:
+                values[name] = float(rng.uniform(low, high))
+        unknown = set(overrides) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise InvalidInputError(f"unknown VineSceneParams fields: {sorted(unknown)}")
+        values.update(overrides)
+        values.setdefault("seed", int(seed))
+        return cls(**values)
+
+
+@dataclass(eq=False)
+class VineScene:
+    """A compiled vine scene with the robot, and where its parts are.
+
+    Attributes:
+        params: the parameters it was built from.
+        spec: the MuJoCo spec (``spec.to_xml()`` gives the MJCF).
+        model: the compiled model.
+        home_q: (12,) initial joint positions [rad].
+        gripper_home: (4, 4) gripper frame {G} at ``home_q``.
+        camera_home: (4, 4) camera frame {C} at ``home_q``.
+        stem_polyline: (stem_segments + 1, 3) rest-shape stem points from the stem end
+            (cluster top) up to the stem base p_sb [m].
+        geom_labels: (ngeom,) int8 camera label of every geom (STEM / OBSTACLE / ROBOT).
+        ids: ids of named parts: ``cluster`` (body), ``weld`` (equality),
+            ``cam_tool`` / ``grasp_tool`` (bodies), ``stem_slide`` (joint),
+            ``occluder`` (geom, -1 if none), sensor ids ``ft_force``, ``ft_torque``, ``stem_force``.
+        stem_geoms / leaf_geoms / berry_geoms: geom ids of those parts.
+        actuator_names: the 12 joint servo names in joint order.
+    """
+
+    params: VineSceneParams
+    spec: mujoco.MjSpec
+    model: mujoco.MjModel
+    home_q: NDArray[np.float64]
+    gripper_home: NDArray[np.float64]
+    camera_home: NDArray[np.float64]
+    stem_polyline: NDArray[np.float64]
+    geom_labels: NDArray[np.int8]
+    ids: dict[str, int]
+    stem_geoms: NDArray[np.int32]
+    leaf_geoms: NDArray[np.int32]
+    berry_geoms: NDArray[np.int32]
+    actuator_names: list[str] = field(default_factory=list)
+
+    @property
+    def stem_base(self) -> NDArray[np.float64]:
+        """Rest position of the stem base p_sb [m] (where it joins the branch)."""
+        return self.stem_polyline[-1]
+
+    @property
+    def stem_end(self) -> NDArray[np.float64]:
+        """Rest position of the stem end at the cluster top [m]."""
+        return self.stem_polyline[0]
+
+
+# --------------------------------------------------------------------------- geometry helpers
+
+
+def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    return v / np.linalg.norm(v)
+
+
+def _frame_from_z(z: NDArray[np.float64], hint: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation whose z axis is ``z`` and whose x axis is ``hint`` made orthogonal to it."""
+    z = _unit(z)
+    x = hint - np.dot(hint, z) * z
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
+    x = _unit(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def _quat(R: NDArray[np.float64]) -> list[float]:
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R).ravel())
+    return q.tolist()
+
+
+def _rotate(v: NDArray[np.float64], axis: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
+    """Rodrigues rotation of ``v`` about the unit ``axis``."""
+    return v * np.cos(angle) + np.cross(axis, v) * np.sin(angle) + axis * np.dot(axis, v) * (1 - np.cos(angle))
+
+
+def _segment_distance(a0, a1, b0, b1) -> float:
+    """Distance between segments a0-a1 and b0-b1 (sampled, good to ~1 mm here)."""
+    s = np.linspace(0.0, 1.0, 25)
+    pa = a0 + s[:, None] * (a1 - a0)
+    pb = b0 + s[:, None] * (b1 - b0)
+    return float(np.min(np.linalg.norm(pa[:, None] - pb[None], axis=2)))
+
+
+def _point_segment_distance(p, a, b) -> tuple[float, NDArray[np.float64]]:
+    ab = b - a
+    t = float(np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0))
+    closest = a + t * ab
+    return float(np.linalg.norm(p - closest)), closest
+
+
+# --------------------------------------------------------------------------- builder
+
+
+def _robot_home(spec: mujoco.MjSpec, home_q: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+    """Poses of the task frames and the joint-space inertia diagonal at ``home_q``."""
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    data.qpos[:12] = home_q
+    mujoco.mj_forward(model, data)
+    out: dict[str, NDArray[np.float64]] = {}
+    for name in ("gripper", "camera", "ft_sensor"):
+        sid = model.site(name).id
+        T = np.eye(4)
+        T[:3, :3] = data.site_xmat[sid].reshape(3, 3)
+        T[:3, 3] = data.site_xpos[sid]
+        out[name] = T
+    M = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, M)  # MuJoCo 4.0 signature (takes MjData)
+    out["inertia"] = np.diag(M)[:12].copy()
+    return out
+
+
+def _stem_polyline(p: VineSceneParams, stem_end: NDArray, up: NDArray) -> NDArray[np.float64]:
+    """Rest shape of the stem from its end (cluster top) to its base: an arc of angle stem_bend."""
+    lean = np.array([np.cos(p.stem_bend_azimuth), np.sin(p.stem_bend_azimuth), 0.0])
+    lean = lean - np.dot(lean, up) * up
+    lean = _unit(lean) if np.linalg.norm(lean) > 1e-9 else _frame_from_z(up, np.array([1.0, 0, 0]))[:, 0]
+    axis = _unit(np.cross(up, lean))
+    n = p.stem_segments
+    seg = p.stem_length / n
+    pts = [stem_end]
+    for i in range(n):
+        # The tangent turns from "up" towards "lean" along the stem, bottom to top.
+        t = _rotate(up, axis, p.stem_bend * (i + 0.5) / n)
+        pts.append(pts[-1] + seg * t)
+    return np.array(pts)
+
+
+def _berry_positions(p: VineSceneParams, rng: np.random.Generator) -> NDArray[np.float64]:
+    """Berry centres in the cluster frame (z down the cluster): an inverted cone below the grasp.
+
+    The berries fill ``cluster_length`` below the grasped part of the rachis, from
+    ``cluster_radius`` at the top tapering to 30 % at the tip, by random sequential
+    placement; the allowed overlap grows in stages when the cluster is crowded.
+    """
+    r = p.berry_radius
+    top = p.grasp_offset + 0.03 + r  # leave the grasped part of the rachis free
+    bottom = top + max(p.cluster_length - 2 * r, 2 * r)
+    centres: list[NDArray] = []
+    for gap in (1.8, 1.6, 1.4, 1.2, 1.0):  # centre distance / r: slight overlap, as in a real bunch
+        for _attempt in range(3000):
+            if len(centres) == p.berry_count:
+                return np.array(centres)
+            h = rng.uniform(top, bottom)
+            envelope = max(p.cluster_radius * (1.0 - 0.7 * (h - top) / (bottom - top)) - r, 0.0)
+            rho = envelope * np.sqrt(rng.uniform())
+            phi = rng.uniform(0, 2 * np.pi)
+            c = np.array([rho * np.cos(phi), rho * np.sin(phi), h])
+            if not centres or np.min(np.linalg.norm(np.array(centres) - c, axis=1)) >= gap * r:
+                centres.append(c)
+    if len(centres) < p.berry_count:
+        raise ModelError(
+            f"cannot fit {p.berry_count} berries of radius {r} m into a cluster of length "
+            f"{p.cluster_length} m and radius {p.cluster_radius} m"
+        )
+    return np.array(centres)
+
+
+@dataclass
+class _Leaf:
+    centre: NDArray[np.float64]
+    rotation: NDArray[np.float64]  # columns: long axis, short axis, normal
+    half_length: float
+    half_width: float
+    petiole: tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+def _leaf_layout(
+    p: VineSceneParams,
+    rng: np.random.Generator,
+    *,
+    stem: NDArray,
+    cluster_axis: tuple[NDArray, NDArray],
+    tool_axis: tuple[NDArray, NDArray],
+    branch: tuple[NDArray, NDArray],
+    cane: tuple[NDArray, NDArray],
+    camera_start: NDArray,
+) -> list[_Leaf]:
+    """Leaf poses: an occluder between ``camera_start`` and the stem, then free leaves around it."""
+    mid = 0.5 * (stem[0] + stem[-1])
+    stem_dir = _unit(stem[-1] - stem[0])
+    leaves: list[_Leaf] = []
+
+    def petiole_for(centre, R, half_length, support=branch):
+        _, on_branch = _point_segment_distance(centre, *support)
+        towards = on_branch - centre
+        in_plane = towards - np.dot(towards, R[:, 2]) * R[:, 2]
+        base = centre + half_length * 0.9 * _unit(in_plane) if np.linalg.norm(in_plane) > 1e-9 else centre
+        return base, on_branch
+
+    def clear(centre, R, half_length, petiole) -> bool:
+        reach = half_length + 0.01
+        for a, b in zip(stem[:-1], stem[1:], strict=True):
+            if _point_segment_distance(centre, a, b)[0] < reach + p.stem_radius:
+                return False
+            if _segment_distance(petiole[0], petiole[1], a, b) < 0.012 + p.stem_radius:
+                return False
+        if _point_segment_distance(centre, *cluster_axis)[0] < reach + p.cluster_radius:
+            return False
+        if _segment_distance(petiole[0], petiole[1], *cluster_axis) < p.cluster_radius + 0.01:
+            return False
+        if _point_segment_distance(centre, *tool_axis)[0] < reach + 0.06:
+            return False
+        if _segment_distance(petiole[0], petiole[1], *tool_axis) < 0.06:
+            return False
+        return True
+
+    if p.occlude_stem and p.leaf_count > 0:
+        u = _unit(camera_start - mid)
+        side = (
+            _unit(np.cross(u, stem_dir))
+            if np.linalg.norm(np.cross(u, stem_dir)) > 1e-6
+            else _frame_from_z(u, stem_dir)[:, 1]
+        )
+        lateral = rng.uniform(*LEAF_LAYOUT["lateral_offset"], size=2)
+        centre = mid + p.occluder_distance * u + lateral[0] * side + lateral[1] * stem_dir
+        normal = _rotate(u, side, rng.uniform(*LEAF_LAYOUT["occluder_tilt"]))
+        normal = _rotate(normal, stem_dir, rng.uniform(*LEAF_LAYOUT["occluder_tilt"]))
+        R = _frame_from_z(normal, stem_dir)  # long axis along the stem's image
+        # Big enough to cover the stem seen from the camera start, whatever the draw.
+        half_length = max(p.leaf_size * rng.uniform(*LEAF_LAYOUT["size_scale"]), 0.6 * p.stem_length + 0.02)
+        half_width = max(half_length * rng.uniform(*LEAF_LAYOUT["width_ratio"]), 0.045)
+        leaves.append(_Leaf(centre, R, half_length, half_width, petiole_for(centre, R, half_length)))
+
+    free = p.leaf_count - len(leaves)
+    for _ in range(free):
+        for _attempt in range(200):
+            d = rng.normal(size=3)
+            d = _unit(d)
+            centre = mid + rng.uniform(*LEAF_LAYOUT["distance"]) * d
+            normal = _unit(d + rng.uniform(*LEAF_LAYOUT["tilt"]) * _unit(rng.normal(size=3)))
+            R = _frame_from_z(normal, _unit(rng.normal(size=3)))
+            half_length = p.leaf_size * rng.uniform(*LEAF_LAYOUT["size_scale"])
+            half_width = half_length * rng.uniform(*LEAF_LAYOUT["width_ratio"])
+            petiole = petiole_for(centre, R, half_length)
+            if clear(centre, R, half_length, petiole):
+                leaves.append(_Leaf(centre, R, half_length, half_width, petiole))
+                break
+
+    cane_mid = 0.5 * (cane[0] + cane[1])
+    cane_dir = _unit(cane[1] - cane[0])
+    for _ in range(p.canopy_leaves):
+        for _attempt in range(50):
+            centre = (
+                cane_mid
+                + rng.uniform(*LEAF_LAYOUT["canopy_along"]) * cane_dir
+                - rng.uniform(*LEAF_LAYOUT["canopy_drop"]) * np.array([0.0, 0.0, 1.0])
+                + rng.uniform(*LEAF_LAYOUT["canopy_depth"]) * np.array([1.0, 0.0, 0.0])
+            )
+            normal = _unit(np.array([-1.0, 0.0, 0.0]) + rng.uniform(*LEAF_LAYOUT["tilt"]) * _unit(rng.normal(size=3)))
+            R = _frame_from_z(normal, _unit(rng.normal(size=3)))
+            half_length = p.leaf_size * rng.uniform(*LEAF_LAYOUT["size_scale"])
+            half_width = half_length * rng.uniform(*LEAF_LAYOUT["width_ratio"])
+            petiole = petiole_for(centre, R, half_length, cane)
+            if clear(centre, R, half_length, petiole):
+                leaves.append(_Leaf(centre, R, half_length, half_width, petiole))
+                break
+    return leaves
+
+
+def build_vine_scene(
+    params: VineSceneParams | None = None,
+    *,
+    home_q: NDArray[np.float64] | None = None,
+    actuation: ActuationConfig | None = None,
+) -> VineScene:
+    """Build and compile the vine scene with the dual-UR5e, its servos and sensors.
+
+    Args:
+        params: scene parameters (default: the paper's setup, :class:`VineSceneParams`).
+        home_q: (12,) initial joint positions [rad] the cluster is placed for
+            (default ``HOME_Q``).
+        actuation: joint servo settings (default :class:`ActuationConfig`).
+
+    Returns:
+        The compiled :class:`VineScene`.
+    """
+    p = params if params is not None else VineSceneParams()
+    if not isinstance(p, VineSceneParams):
+        raise InvalidInputError(f"params must be a VineSceneParams, got {type(p).__name__}")
+    q0 = np.array(desc.HOME_Q if home_q is None else home_q, dtype=float)
+    if q0.shape != (12,) or not np.all(np.isfinite(q0)):
+        raise InvalidInputError(f"home_q must be 12 finite joint positions [rad], got {home_q!r}")
+    actuation = actuation if actuation is not None else ActuationConfig()
+
+    try:
+        spec = mujoco.MjSpec.from_file(str(paths.scene_path()))
+    except Exception as error:  # mujoco raises plain ValueError on parse errors
+        raise ModelError(f"cannot load the robot scene {paths.scene_path()}: {error}") from error
+    spec.modelname = f"vine_scene_seed{p.seed}"
+    home = _robot_home(spec, q0)
+    G = home["gripper"]
+    y_g = G[:3, 1]  # crop direction, down the cluster
+    up = -y_g
+    stem_end = G[:3, 3] + p.grasp_offset * up
+    stem = _stem_polyline(p, stem_end, up)
+    stem_base = stem[-1]
+    rng = np.random.default_rng([int(p.seed), 0x1EAF])
+
+    world = spec.worldbody
+    # ---- branch and cane (static, collide with the robot)
+    b_dir = np.array(
+        [
+            np.cos(p.branch_pitch) * np.cos(p.branch_yaw),
+            np.cos(p.branch_pitch) * np.sin(p.branch_yaw),
+            np.sin(p.branch_pitch),
+        ]
+    )
+    b_axis = stem_base + (p.branch_radius + 0.5 * p.stem_radius) * np.array([0.0, 0.0, 1.0])
+    b0 = b_axis - 0.03 * b_dir
+    b1 = b_axis + p.branch_length * b_dir
+    vine = world.add_body(name="vine")
+    wood = dict(contype=0, conaffinity=1, group=1, rgba=list(BRANCH_COLOR))
+    vine.add_geom(
+        name="branch",
+        type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+        fromto=[*b0, *b1],
+        size=[p.branch_radius, 0, 0],
+        **wood,
+    )
+    cane_r = 1.5 * p.branch_radius + 0.004
+    cane = (b1 - np.array([0.0, 0.8, 0.0]), b1 + np.array([0.0, 0.8, 0.0]))
+    vine.add_geom(
+        name="cane",
+        type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+        fromto=[*cane[0], *cane[1]],
+        size=[cane_r, 0, 0],
+        **wood,
+    )
+    vine.add_site(name="stem_base", pos=list(stem_base), group=4)
+
+    # ---- stem: chain of capsules on ball joints, axial slide spring at the top
+    n = p.stem_segments
+    seg_len = p.stem_length / n
+    lean_hint = stem[-1] - stem[0]
+    parent_R, parent_p = np.eye(3), np.zeros(3)
+    parent = world
+    seg_mass = max(1000.0 * np.pi * p.stem_radius**2 * seg_len, 0.002)
+    stem_names = []
+    for k in range(n):
+        top, bot = stem[n - k], stem[n - k - 1]
+        R = _frame_from_z(bot - top, lean_hint)
+        body = parent.add_body(name=f"stem_{k}", pos=list(parent_R.T @ (top - parent_p)), quat=_quat(parent_R.T @ R))
+        body.add_joint(
+            name=f"stem_ball_{k}",
+            type=mujoco.mjtJoint.mjJNT_BALL,
+            stiffness=[p.stem_bend_stiffness, 0, 0],
+            damping=[0.002, 0, 0],
+            armature=1e-5,
+        )
+        if k == 0:
+            body.add_joint(
+                name="stem_slide",
+                type=mujoco.mjtJoint.mjJNT_SLIDE,
+                axis=[0, 0, 1],
+                stiffness=[p.stem_axial_stiffness, 0, 0],
+                damping=[2.0, 0, 0],
+                armature=1e-3,
+            )
+        body.add_geom(
+            name=f"stem_seg_{k}",
+            type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+            fromto=[0, 0, 0, 0, 0, seg_len],
+            size=[p.stem_radius, 0, 0],
+            mass=seg_mass,
+            contype=0,
+            conaffinity=0,
+            group=1,
+            rgba=list(STEM_COLOR),
+        )
+        stem_names.append(f"stem_seg_{k}")
+        parent, parent_R, parent_p = body, R, top
+
+    # ---- cluster: rachis + berries in one body hanging on a ball joint at the stem end
+    R_c = _frame_from_z(y_g, G[:3, 2])
+    cluster = parent.add_body(
+        name="cluster", pos=list(parent_R.T @ (stem_end - parent_p)), quat=_quat(parent_R.T @ R_c)
+    )
+    cluster.add_joint(
+        name="cluster_ball", type=mujoco.mjtJoint.mjJNT_BALL, stiffness=[p.stem_bend_stiffness, 0, 0],
+        damping=[0.002, 0, 0], armature=1e-5,
+    )  # fmt: skip
+    cluster.add_site(name="stem_end", pos=[0, 0, 0], group=4)
+    soft = dict(contype=0, conaffinity=0, group=1)
+    rachis_mass = 0.01
+    cluster.add_geom(
+        name="rachis", type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, 0.7 * p.cluster_length],
+        size=[0.004, 0, 0], mass=rachis_mass, rgba=list(RACHIS_COLOR), **soft,
+    )  # fmt: skip
+    berries = _berry_positions(p, rng)
+    berry_mass = (p.cluster_mass - rachis_mass) / len(berries)
+    for i, c in enumerate(berries):
+        cluster.add_geom(
+            name=f"berry_{i}", type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(c), size=[p.berry_radius, 0, 0],
+            mass=berry_mass, rgba=list(BERRY_COLOR), **soft,
+        )  # fmt: skip
+
+    # ---- leaves
+    camera_start = home["camera"][:3, 3] if p.camera_start is None else np.asarray(p.camera_start, float)
+    cluster_axis = (stem_end, stem_end + (p.grasp_offset + 0.03 + p.cluster_length) * y_g)
+    tool_axis = (home["ft_sensor"][:3, 3], G[:3, 3])
+    leaves = _leaf_layout(
+        p, rng, stem=stem, cluster_axis=cluster_axis, tool_axis=tool_axis, branch=(b0, b1), cane=cane,
+        camera_start=camera_start,
+    )  # fmt: skip
+    for i, leaf in enumerate(leaves):
+        shade = 1.0 + 0.12 * (rng.uniform() - 0.5)
+        rgba = [LEAF_COLOR[0] * shade, LEAF_COLOR[1] * shade, LEAF_COLOR[2] * shade, 1.0]
+        vine.add_geom(
+            name=f"leaf_{i}", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID, pos=list(leaf.centre),
+            quat=_quat(leaf.rotation),
+            size=[leaf.half_length, leaf.half_width, _LEAF_THICKNESS], rgba=rgba, **soft,
+        )  # fmt: skip
+        a, b = leaf.petiole
+        if np.linalg.norm(b - a) > 1e-3:
+            vine.add_geom(
+                name=f"petiole_{i}", type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[*a, *b],
+                size=[_PETIOLE_RADIUS, 0, 0], rgba=list(RACHIS_COLOR), **soft,
+            )  # fmt: skip
+
+    # ---- grasp, sensors, camera, servos
+    spec.add_equality(
+        name="grasp", type=mujoco.mjtEq.mjEQ_WELD, name1=desc.GRASP_TOOL.name, name2="cluster",
+        objtype=mujoco.mjtObj.mjOBJ_BODY, solref=list(_WELD_SOLREF),
+    )  # fmt: skip
+    spec.add_sensor(
+        name="ft_force",
+        type=mujoco.mjtSensor.mjSENS_FORCE,
+        objtype=mujoco.mjtObj.mjOBJ_SITE,
+        objname="ft_sensor",
+    )
+    spec.add_sensor(
+        name="ft_torque",
+        type=mujoco.mjtSensor.mjSENS_TORQUE,
+        objtype=mujoco.mjtObj.mjOBJ_SITE,
+        objname="ft_sensor",
+    )
+    spec.add_sensor(
+        name="stem_force",
+        type=mujoco.mjtSensor.mjSENS_FORCE,
+        objtype=mujoco.mjtObj.mjOBJ_SITE,
+        objname="stem_end",
+    )
+    cam_site = spec.site("camera")
+    # MuJoCo cameras look along -z with y up; {C} looks along +z with y down: turn by pi about x.
+    site_R = np.zeros(9)
+    mujoco.mju_quat2Mat(site_R, np.asarray(cam_site.quat, float))
+    cam_R = site_R.reshape(3, 3) @ np.diag([1.0, -1.0, -1.0])
+    spec.body(desc.CAMERA_TOOL.name).add_camera(name=CAMERA_NAME, pos=list(cam_site.pos), quat=_quat(cam_R), fovy=40.0)
+    actuator_names = add_joint_actuators(spec, home["inertia"], actuation)
+
+    try:
+        model = spec.compile()
+    except Exception as error:
+        raise ModelError(f"the vine scene (seed {p.seed}) does not compile: {error}") from error
+
+    robot_bodies = {model.body(desc.collision_bodies()[0].link).id}
+    for b in range(model.nbody):
+        name = model.body(b).name
+        if name.startswith(desc.ARM_PREFIXES) or name in (desc.CAMERA_TOOL.name, desc.GRASP_TOOL.name):
+            robot_bodies.add(b)
+    labels = np.full(model.ngeom, OBSTACLE, dtype=np.int8)
+    for g in range(model.ngeom):
+        if int(model.geom_bodyid[g]) in robot_bodies:
+            labels[g] = ROBOT
+    stem_ids = np.array([model.geom(nm).id for nm in stem_names], dtype=np.int32)
+    labels[stem_ids] = STEM
+    ids = {
+        "cluster": model.body("cluster").id,
+        "weld": model.equality("grasp").id,
+        "cam_tool": model.body(desc.CAMERA_TOOL.name).id,
+        "grasp_tool": model.body(desc.GRASP_TOOL.name).id,
+        "stem_slide": model.joint("stem_slide").id,
+        "occluder": model.geom("leaf_0").id if (p.occlude_stem and leaves) else -1,
+        "ft_force": model.sensor("ft_force").id,
+        "ft_torque": model.sensor("ft_torque").id,
+        "stem_force": model.sensor("stem_force").id,
+        "camera_site": model.site("camera").id,
+        "gripper_site": model.site("gripper").id,
+        "ft_site": model.site("ft_sensor").id,
+        "stem_end_site": model.site("stem_end").id,
+    }
+    geom_names = [model.geom(g).name for g in range(model.ngeom)]
+    return VineScene(
+        params=p,
+        spec=spec,
+        model=model,
+        home_q=q0,
+        gripper_home=G,
+        camera_home=home["camera"],
+        stem_polyline=stem,
+        geom_labels=labels,
+        ids=ids,
+        stem_geoms=stem_ids,
+        leaf_geoms=np.array([g for g, nm in enumerate(geom_names) if nm.startswith("leaf_")], dtype=np.int32),
+        berry_geoms=np.array([g for g, nm in enumerate(geom_names) if nm.startswith("berry_")], dtype=np.int32),
+        actuator_names=actuator_names,
+    )

@@ -1,0 +1,170 @@
+"""Episode runner: logging, bit-for-bit determinism, and surviving controller failures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.interface import PointCloud
+from harvest_qp.runner import Command, Observation, run_episode, write_npz
+from harvest_qp.sim import CameraConfig, ForceSensorConfig, SimRobot, SimulationError, VineSceneParams
+from tests.sim.helpers import JointPD
+
+
+def _wave(t: float, q0: np.ndarray) -> np.ndarray:
+    """Camera arm sweeps towards the vine; the grasping arm holds."""
+    q = q0.copy()
+    q[0] -= 0.4 * np.sin(np.pi * t / 2)
+    q[3] += 0.2 * np.sin(np.pi * t)
+    return q
+
+
+def _noisy_robot(seed: int) -> SimRobot:
+    return SimRobot(
+        VineSceneParams.sample(seed),
+        seed=seed,
+        camera=CameraConfig(depth_noise=0.002, dropout=0.05),
+        force=ForceSensorConfig(noise_std=0.02),
+    )
+
+
+def test_same_seed_gives_the_same_log_bit_for_bit(tmp_path):
+    paths = []
+    for name in ("a", "b"):
+        robot = _noisy_robot(5)
+        result = run_episode(robot, JointPD(_wave), duration=0.5, log_path=tmp_path / f"{name}.npz", log_clouds=True)
+        assert result.ok
+        paths.append(result.log_path)
+    assert paths[0].read_bytes() == paths[1].read_bytes()
+    # A different noise seed changes the log (so the comparison above can fail).
+    other = run_episode(_noisy_robot(6), JointPD(_wave), duration=0.5, log_path=tmp_path / "c.npz")
+    assert other.log_path.read_bytes() != paths[0].read_bytes()
+
+
+def test_log_contents(tmp_path):
+    robot = SimRobot(camera=CameraConfig())
+    result = run_episode(robot, JointPD(_wave), duration=0.4, log_path=tmp_path / "ep", metadata={"name": "wave"})
+    assert result.ok and result.n_ticks == 200 and result.sim_time == pytest.approx(0.4)
+    assert result.log_path.suffix == ".npz"
+    log = dict(np.load(result.log_path))
+    assert log["t"].shape == (200,) and log["q"].shape == (200, 12) and log["qdot_cmd"].shape == (200, 12)
+    np.testing.assert_allclose(np.diff(log["t"]), 0.002)
+    assert log["force"].shape == (200, 3)
+    assert set(log["status"]) == {"ok"}
+    assert log["task_error/joint_error"].shape == (200,)
+    assert log["truth/stem_tension"].shape == (200,) and log["truth/stem_force"].shape == (200, 3)
+    # 30 Hz camera: frames at 0, 1/30, ..., 11/30 s seen by the ticks 0 .. 0.398 s.
+    assert len(log["frame_time"]) == 12
+    np.testing.assert_allclose(log["frame_time"], np.arange(12) / 30, atol=0.002)
+    assert np.all(log["cloud_time"] <= log["t"] + 1e-12)
+    assert np.all(log["stem_points"] >= 0) and log["frame_camera_pose"].shape == (12, 4, 4)
+    assert str(log["episode_status"]) == "completed" and str(log["error"]) == ""
+    assert str(log["meta/name"]) == "wave"
+    # The command was executed: the camera arm moved as commanded.
+    assert log["q"][-1, 0] < log["q"][0, 0] - 0.05
+
+
+class _Failing:
+    def __init__(self, at: float, kind: str) -> None:
+        self.at, self.kind = at, kind
+
+    def reset(self, robot) -> None:
+        self.started = True
+
+    def step(self, obs: Observation):
+        if obs.time >= self.at - 1e-9:
+            if self.kind == "raise":
+                raise RuntimeError("solver exploded")
+            if self.kind == "nan":
+                return Command(qdot=np.full(12, np.nan))
+            return np.zeros(7)
+        return Command(qdot=np.r_[np.full(6, 0.5), np.zeros(6)], status="ok")
+
+
+@pytest.mark.parametrize(
+    ("kind", "status", "words"),
+    [("raise", "controller_error", "solver exploded"), ("nan", "invalid_command", "finite"),
+     ("shape", "invalid_command", "shape")],
+)  # fmt: skip
+def test_controller_failures_stop_the_arms_and_are_recorded(tmp_path, kind, status, words):
+    robot = SimRobot(camera=None)
+    result = run_episode(robot, _Failing(0.2, kind), duration=1.0, log_path=tmp_path / "fail.npz")
+    assert result.status == status and not result.ok
+    assert words in result.error
+    assert result.n_ticks == 101  # ticks 0 .. 0.2 s, the last one failed
+    log = np.load(result.log_path)
+    assert str(log["episode_status"]) == status and words in str(log["error"])
+    assert log["status"][-1] == "error" and log["status"][0] == "ok"
+    # The arms were brought to rest.
+    assert np.abs(robot.joint_velocities()).max() < 1e-3
+    assert np.all(robot.velocity_reference() == 0.0)
+
+
+def test_reset_failure_is_recorded():
+    class BadReset:
+        def reset(self, robot):
+            raise ValueError("no robot model")
+
+        def step(self, obs):
+            return np.zeros(12)
+
+    result = run_episode(SimRobot(camera=None), BadReset(), duration=0.1)
+    assert result.status == "controller_error" and "no robot model" in result.error and result.n_ticks == 0
+
+
+def test_observation_carries_the_latest_cloud():
+    seen = []
+
+    class Recorder:
+        def reset(self, robot):
+            pass
+
+        def step(self, obs: Observation):
+            seen.append((obs.time, obs.new_cloud, obs.cloud))
+            return np.zeros(12)
+
+    run_episode(SimRobot(), Recorder(), duration=0.1)
+    assert seen[0][1] and isinstance(seen[0][2], PointCloud)
+    new = [t for t, is_new, _ in seen if is_new]
+    assert len(new) == 3  # 0, 1/30, 2/30 s
+    assert all(cloud is not None for _, _, cloud in seen)
+
+
+def test_a_diverging_simulation_ends_the_episode_as_a_robot_error():
+    robot = SimRobot(camera=None)
+    # Make the stem absurdly stiff after the reset: the next steps blow up.
+    robot.model.jnt_stiffness[robot.scene.ids["stem_slide"]] = 1e9
+    result = run_episode(robot, JointPD(), duration=1.0)
+    assert result.status == "robot_error" and "unstable" in result.error
+    assert 0 < result.n_ticks < 500
+    # The robot refuses to go on until it is reset.
+    with pytest.raises(SimulationError, match="reset"):
+        robot.step()
+    robot.model.jnt_stiffness[robot.scene.ids["stem_slide"]] = robot.scene.model.jnt_stiffness[
+        robot.scene.ids["stem_slide"]
+    ]
+    robot.reset()
+    robot.step()
+
+
+def test_run_episode_validates_its_arguments():
+    robot = SimRobot(camera=None)
+    with pytest.raises(InvalidInputError, match="duration"):
+        run_episode(robot, JointPD(), duration=0.0)
+    with pytest.raises(InvalidInputError, match="controller"):
+        run_episode(robot, object(), duration=0.1)
+    with pytest.raises(InvalidInputError, match="RobotInterface"):
+        run_episode(object(), JointPD(), duration=0.1)
+
+
+def test_write_npz_is_deterministic_and_loadable(tmp_path):
+    arrays = {"a": np.arange(5.0), "b": np.array("text"), "c/d": np.zeros((2, 3), np.int8)}
+    p1 = write_npz(tmp_path / "x.npz", arrays)
+    p2 = write_npz(tmp_path / "y.npz", arrays)
+    assert p1.read_bytes() == p2.read_bytes()
+    loaded = np.load(p1)
+    np.testing.assert_array_equal(loaded["a"], arrays["a"])
+    assert str(loaded["b"]) == "text" and loaded["c/d"].dtype == np.int8
+    with pytest.raises(InvalidInputError, match="object"):
+        write_npz(tmp_path / "z.npz", {"bad": np.array([None, 1], dtype=object)})
