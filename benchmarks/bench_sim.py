@@ -14,11 +14,12 @@ Settings timed:
   ``MUJOCO_GL=egl`` (skipped, ``null``, when no GL context can be made);
 * ``no_camera``: control loop and physics alone.
 
-The QP (until ``harvest_qp.controller`` is wired in, see :func:`make_controller`): 12 joint
-velocities, two weighted 6-D frame-Jacobian tasks (the camera frame moving into the region
-of interest to look at the stem, as in the paper's reaching phase, so most frames show
-the vine up close; the gripper frame holding its pose), damping, and joint velocity
-bounds, solved by a daqp ``Model`` set up once; Jacobians from pinocchio on the URDF.
+The QP (see :func:`make_controller`): harvest_qp's ``TaskController`` with two 6-D frame
+pose tasks (the camera frame moving into the region of interest to look at the stem, as
+in the paper's reaching phase, so most frames show the vine up close; the gripper frame
+holding its pose), posture and damping, joint position/speed/acceleration limits and the
+dual-UR5e collision dampers. ``--plain-qp`` times a bare daqp QP instead (two frame
+tasks, damping, velocity bounds) to show the library's own share of the loop.
 
 Usage::
 
@@ -141,28 +142,65 @@ class DaqpTwoTaskController:
         return Command(qdot=np.asarray(x) if exitflag == 1 else np.zeros(12), status=status, task_errors=errors)
 
 
-def make_controller(robot: SimRobot) -> DaqpTwoTaskController:
-    """The per-tick QP controller timed by the benchmark.
+class HarvestQPController:
+    """The same two frame tasks with harvest_qp's :class:`~harvest_qp.TaskController`.
 
-    The one place to swap in ``harvest_qp.controller.TaskController`` (with the same two
-    frame tasks) once its API is settled: anything with ``reset(robot)`` and
-    ``step(obs) -> Command`` works.
+    Camera and gripper :class:`~harvest_qp.tasks.FramePoseTask` (targets as in
+    :class:`DaqpTwoTaskController`), posture and damping tasks, joint position, speed
+    (pi/2 rad/s) and acceleration limits and the dual-UR5e collision dampers (same arm,
+    arm to arm, stand): the full per-tick work of the library's controller.
     """
+
+    def __init__(self, stem) -> None:
+        from harvest_qp import Configuration, TaskController
+        from harvest_qp.limits import CollisionAvoidance, JointVelocityLimit
+        from harvest_qp.tasks import DampingTask, FramePoseTask, PostureTask
+
+        self.view = DaqpTwoTaskController(stem).view  # same camera viewpoint as the plain QP
+        config = Configuration.dual_ur5e()
+        self.camera = FramePoseTask("camera", gain=2.0)
+        self.gripper = FramePoseTask("gripper", gain=2.0)
+        tasks = [self.camera, self.gripper, PostureTask(desc.HOME_Q, weight=1e-4), DampingTask(12, weight=1e-3)]
+        limits = [CollisionAvoidance.dual_ur5e(config), JointVelocityLimit(config, max_velocity=0.5 * np.pi)]
+        self.controller = TaskController(config, tasks, limits, dt=0.002)
+        self.solve_times: list[float] = []
+
+    def reset(self, robot: RobotInterface) -> None:
+        self.controller.reset(robot.joint_positions())
+        self.gripper.set_target_from_configuration(self.controller.configuration)
+
+    def step(self, obs: Observation) -> Command:
+        t0 = time.perf_counter()
+        position = self.view[:3, 3] + 0.03 * np.sin(2 * np.pi * 0.5 * obs.time) * np.array([0.0, 1.0, 0.0])
+        self.camera.set_target(position, self.view[:3, :3])
+        result = self.controller.step(obs.q)
+        self.solve_times.append(time.perf_counter() - t0)
+        config = self.controller.configuration
+        errors = {
+            "camera": float(np.linalg.norm(self.camera.error(config)[:3])),
+            "gripper": float(np.linalg.norm(self.gripper.error(config)[:3])),
+        }
+        return Command(qdot=result.qdot, status=result.status, task_errors=errors)
+
+
+def make_controller(robot: SimRobot, kind: str = "harvest_qp"):
+    """The per-tick QP controller timed by the benchmark: harvest_qp's, or the plain daqp one."""
     scene = robot.scene
-    return DaqpTwoTaskController(0.5 * (scene.stem_base + scene.stem_end))
+    stem = 0.5 * (scene.stem_base + scene.stem_end)
+    return HarvestQPController(stem) if kind == "harvest_qp" else DaqpTwoTaskController(stem)
 
 
-def time_closed_loop(camera: CameraConfig | None, duration: float) -> dict[str, float]:
+def time_closed_loop(camera: CameraConfig | None, duration: float, kind: str = "harvest_qp") -> dict[str, float]:
     """Run the closed loop for ``duration`` simulated seconds; real-time factor and QP time."""
     robot = SimRobot(camera=camera)
-    controller = make_controller(robot)
+    controller = make_controller(robot, kind)
     # Warm-up (numba caches, first frames) outside the timed episode.
-    run_episode(robot, make_controller(robot), duration=0.1, stop_at_end=False)
+    run_episode(robot, make_controller(robot, kind), duration=0.1, stop_at_end=False)
     robot.reset()
     result = run_episode(robot, controller, duration=duration, stop_at_end=False)
     if not result.ok:
         raise RuntimeError(f"benchmark episode failed: {result.status}: {result.error}")
-    ok = np.mean(result.log["status"] == "ok")
+    ok = np.mean(np.char.startswith(result.log["status"].astype(str), "ok"))
     stem_points = result.log["frame_stem_points"]
     return {
         "realtime_factor": result.realtime_factor,
@@ -206,12 +244,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--duration", type=float, default=6.0, help="simulated seconds per setting")
     parser.add_argument("--no-gl", action="store_true", help="skip the OpenGL camera")
     parser.add_argument("--opengl-only", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--plain-qp", action="store_true", help="time a bare daqp QP instead of harvest_qp's")
     args = parser.parse_args(argv)
     pinned = _pin_one_core()
 
     if args.opengl_only:
         cfg = CameraConfig(backend="opengl")
-        r = time_closed_loop(cfg, args.duration)
+        r = time_closed_loop(cfg, args.duration, "plain" if args.plain_qp else "harvest_qp")
         print(json.dumps({"realtime_factor_283x160_opengl": r["realtime_factor"]}))
         return
 
@@ -226,7 +265,7 @@ def main(argv: list[str] | None = None) -> None:
     qp_us = []
     for name, cfg in settings.items():
         duration = args.duration if name != "848x480" else max(1.0, args.duration / 2)
-        r = time_closed_loop(cfg, duration)
+        r = time_closed_loop(cfg, duration, "plain" if args.plain_qp else "harvest_qp")
         results[f"realtime_factor_{name}"] = round(r["realtime_factor"], 3)
         qp_us.append(r["qp_step_us"])
         print(
