@@ -65,6 +65,87 @@ def run_reach_demo(config_path: Path, *, duration: float | None = None, solver: 
     }
 
 
+def run_sim_demo(
+    config_path: Path,
+    *,
+    duration: float | None = None,
+    solver: str | None = None,
+    seed: int = 0,
+    camera: bool = True,
+    log_path: Path | None = None,
+) -> dict:
+    """The main demo: the QP controller on the MuJoCo vine scene, headless; return a summary.
+
+    The grasping arm holds the cluster (the paper's initial state); the camera arm
+    reaches the viewpoint of the config's ``viewpoint`` entry around the stem.
+    """
+    from harvest_qp.config import build_controller_config, read_config_file
+    from harvest_qp.episodes import QPEpisodeController, environment_capsules, stem_viewpoint
+    from harvest_qp.runner import run_episode
+    from harvest_qp.sim import SimRobot, VineSceneParams
+
+    data = read_config_file(config_path)
+    robot = SimRobot(VineSceneParams(), seed=seed, camera=_camera_config() if camera else None)
+    environment = environment_capsules(robot.model, robot.data, data.get("environment", []))
+    configuration = Configuration.dual_ur5e(robot.joint_positions())
+    config = build_controller_config(data, configuration, environment=environment)
+    controller = TaskController(configuration, config.tasks, config.limits, dt=config.dt,
+                                solver=solver or config.solver)
+    stem = 0.5 * (robot.scene.stem_base + robot.scene.stem_end)
+    view = data.get("viewpoint", {}) or {}
+    camera_task = next((t for t in config.tasks if isinstance(t, FramePoseTask) and t.frame == "camera"), None)
+    if camera_task is not None:
+        camera_task.set_target(*stem_viewpoint(stem, **view))
+    collision = next((lim for lim in config.limits if isinstance(lim, CollisionAvoidance)), None)
+    episode = QPEpisodeController(controller)
+    duration = duration or config.duration
+    result = run_episode(robot, episode, duration=duration, log_path=log_path, log_timing=True,
+                         metadata={"config": str(config_path)})
+    log = result.log
+    statuses = Counter(str(s).split(":")[0] for s in log["status"])
+    q = log["q"]
+    min_distance = None
+    if collision is not None:
+        min_distance = float(min(collision.distances(_at(configuration, qi)).min() for qi in q[::10]))
+    configuration.update(q[-1])
+    camera_position = configuration.frame_position("camera")
+    z_axis = configuration.frame_rotation("camera")[:, 2]
+    to_stem = stem - camera_position
+    centring = float(np.degrees(np.arccos(np.clip(z_axis @ to_stem / np.linalg.norm(to_stem), -1, 1))))
+    stem_points = log["stem_points"]
+    return {
+        "episode": result.status,
+        "simulated [s]": float(result.sim_time),
+        "real-time factor": float(result.realtime_factor),
+        "solver": controller.solver.backend_name,
+        "statuses": dict(statuses),
+        "camera to viewpoint [m]": float(log["task_error/camera_position"][-1]),
+        "camera to stem [m]": float(np.linalg.norm(to_stem)),
+        "stem off optical axis [deg]": centring,
+        "stem points seen first/last": f"{int(max(stem_points[0], 0))} / {int(max(stem_points[-1], 0))}",
+        "gripper hold error [mm]": 1e3 * float(np.nanmax(log["task_error/gripper_position"])),
+        "wrist force, untared [N]": float(np.linalg.norm(log["force"][-1])),
+        "min collision distance [m]": min_distance,
+        "max joint speed [rad/s]": float(np.abs(log["qdot_cmd"]).max()),
+        "joints within limits": bool(
+            np.all(q >= configuration.lower_limits) and np.all(q <= configuration.upper_limits)
+        ),
+        "median QP step [us]": 1e6 * float(np.median(log["controller_time"])),
+        "log": str(result.log_path) if result.log_path else None,
+    }
+
+
+def _camera_config():
+    from harvest_qp.sim import CameraConfig
+
+    return CameraConfig()
+
+
+def _at(configuration: Configuration, q: np.ndarray) -> Configuration:
+    configuration.update(q)
+    return configuration
+
+
 def _print_summary(title: str, summary: dict) -> None:
     print(title)
     for key, value in summary.items():
@@ -75,19 +156,34 @@ def _print_summary(title: str, summary: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="harvest-qp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="run the QP demo headless and print a summary")
-    demo.add_argument("--config", type=Path, default=None, help="YAML task config (default: tasks/reach_targets.yaml)")
+    demo = sub.add_parser("demo", help="run the QP demo headless on the MuJoCo vine scene and print a summary")
+    demo.add_argument("--config", type=Path, default=None,
+                      help="YAML task config (default: tasks/sim_reach_stem.yaml; "
+                      "tasks/reach_targets.yaml with --kinematic)")
     demo.add_argument("--duration", type=float, default=None, help="seconds to simulate")
     demo.add_argument("--solver", default=None, help="daqp | proxsuite | qpsolvers:<name>")
+    demo.add_argument("--seed", type=int, default=0, help="sensor-noise seed of the simulation")
+    demo.add_argument("--no-camera", action="store_true", help="simulate without the RGB-D camera (faster)")
+    demo.add_argument("--log", type=Path, default=None, help="write the episode log (.npz) here")
+    demo.add_argument("--kinematic", action="store_true",
+                      help="ideal velocity tracking instead of MuJoCo (arms swap sides; no vine)")
     check = sub.add_parser("check-config", help="validate a YAML task config")
     check.add_argument("config", type=Path)
     args = parser.parse_args(argv)
     try:
-        if args.command == "demo":
+        if args.command == "demo" and args.kinematic:
             path = args.config or tasks_dir() / "reach_targets.yaml"
             summary = run_reach_demo(path, duration=args.duration, solver=args.solver)
-            _print_summary(f"harvest_qp reach demo ({path.name}), dual UR5e, headless", summary)
+            _print_summary(f"harvest_qp reach demo ({path.name}), dual UR5e, kinematic, headless", summary)
             ok = summary["joints within limits"] and summary["statuses"].get("fallback", 0) == 0
+            return 0 if ok else 1
+        if args.command == "demo":
+            path = args.config or tasks_dir() / "sim_reach_stem.yaml"
+            summary = run_sim_demo(path, duration=args.duration, solver=args.solver, seed=args.seed,
+                                   camera=not args.no_camera, log_path=args.log)
+            _print_summary(f"harvest_qp demo ({path.name}), dual UR5e in the MuJoCo vine scene, headless", summary)
+            ok = (summary["episode"] == "completed" and summary["joints within limits"]
+                  and summary["statuses"].get("fallback", 0) == 0)
             return 0 if ok else 1
         if args.command == "check-config":
             config = load_controller_config(args.config, Configuration.dual_ur5e())

@@ -18,6 +18,7 @@ Every key is checked: an unknown task type, option or a bad value raises
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ import yaml
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import ConfigError, HarvestQPError
 from harvest_qp.limits import (
+    CapsuleGeometry,
     CollisionAvoidance,
     JointAccelerationLimit,
     JointPositionLimit,
@@ -105,7 +107,7 @@ def _build_task(entry: dict, configuration: Configuration, where: str) -> Task:
     )
 
 
-def _build_limit(entry: dict, configuration: Configuration, where: str) -> Limit:
+def _build_limit(entry: dict, configuration: Configuration, where: str, environment=()) -> Limit:
     kind = entry.get("type")
     if kind == "joint_position":
         return JointPositionLimit(configuration, **_options(entry, {"gain", "max_acceleration"}, where))
@@ -118,7 +120,7 @@ def _build_limit(entry: dict, configuration: Configuration, where: str) -> Limit
             entry, {"safety_distance", "influence_distance", "gain", "max_pairs", "obstacle_spheres"}, where
         )
         spheres = opts.pop("obstacle_spheres", [])
-        limit = CollisionAvoidance.dual_ur5e(configuration, **opts)
+        limit = CollisionAvoidance.dual_ur5e(configuration, environment=environment, **opts)
         if spheres:
             try:
                 centers = np.array([s["center"] for s in spheres], dtype=float)
@@ -133,17 +135,25 @@ def _build_limit(entry: dict, configuration: Configuration, where: str) -> Limit
     )
 
 
-def build_controller_config(data: dict, configuration: Configuration) -> ControllerConfig:
-    """Tasks and limits from an already-parsed configuration mapping."""
+def build_controller_config(
+    data: dict, configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = ()
+) -> ControllerConfig:
+    """Tasks and limits from an already-parsed configuration mapping.
+
+    ``environment``: world-fixed capsules (e.g. the scene's branch) for the collision limit.
+    """
     if not isinstance(data, dict):
         raise ConfigError(f"a task configuration must be a mapping, got {type(data).__name__}")
-    known = {"dt", "solver", "duration", "tasks", "limits", "description"}
+    known = {"dt", "solver", "duration", "tasks", "limits", "description"}  # the rest goes to ``extra``
     tasks_spec = data.get("tasks")
     if not isinstance(tasks_spec, list) or not tasks_spec:
         raise ConfigError("'tasks' must be a non-empty list of task entries")
     tasks, limits = [], []
+    def build_limit(entry, config, where):
+        return _build_limit(entry, config, where, environment)
+
     for key, spec, build, out in (("tasks", tasks_spec, _build_task, tasks),
-                                  ("limits", data.get("limits", []) or [], _build_limit, limits)):
+                                  ("limits", data.get("limits", []) or [], build_limit, limits)):
         if not isinstance(spec, list):
             raise ConfigError(f"'{key}' must be a list, got {type(spec).__name__}")
         for i, entry in enumerate(spec):
@@ -172,8 +182,8 @@ def build_controller_config(data: dict, configuration: Configuration) -> Control
                             extra=extra)
 
 
-def load_controller_config(path: str | Path, configuration: Configuration) -> ControllerConfig:
-    """Read a YAML task configuration (``yaml.safe_load``: no arbitrary objects)."""
+def read_config_file(path: str | Path) -> dict:
+    """Parse a YAML task configuration file safely (``yaml.safe_load``: no arbitrary objects)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"task configuration not found: {path}")
@@ -181,7 +191,17 @@ def load_controller_config(path: str | Path, configuration: Configuration) -> Co
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: invalid YAML: {err}") from err
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a task configuration must be a mapping, got {type(data).__name__}")
+    return data
+
+
+def load_controller_config(
+    path: str | Path, configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = ()
+) -> ControllerConfig:
+    """Read a YAML task configuration (``yaml.safe_load``: no arbitrary objects)."""
+    data = read_config_file(path)
     try:
-        return build_controller_config(data, configuration)
+        return build_controller_config(data, configuration, environment=environment)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from err

@@ -62,3 +62,25 @@ def test_cli_check_config_reports_errors(tmp_path, capsys):
     assert main(["check-config", str(path)]) == 2
     assert "unknown task type" in capsys.readouterr().err
     assert main(["check-config", str(tasks_dir() / "reach_targets.yaml")]) == 0
+
+
+def test_main_demo_on_the_mujoco_scene_reaches_the_stem_view(tmp_path):
+    from harvest_qp.cli import run_sim_demo
+
+    log = tmp_path / "demo.npz"
+    summary = run_sim_demo(tasks_dir() / "sim_reach_stem.yaml", duration=4.0, camera=True, log_path=log)
+    assert summary["episode"] == "completed"
+    assert summary["statuses"] == {"ok": 2000}
+    assert summary["camera to viewpoint [m]"] < 0.02
+    assert summary["stem off optical axis [deg]"] < 3.0
+    assert summary["gripper hold error [mm]"] < 2.0  # the cluster stays held
+    assert summary["min collision distance [m]"] > 0.01
+    first, last = (int(x) for x in summary["stem points seen first/last"].split(" / "))
+    assert first == 0 and last > 20, "the stem is hidden at the start and seen at the viewpoint"
+    assert log.is_file()
+
+
+def test_cli_demo_exit_code(capsys):
+    assert main(["demo", "--duration", "0.5", "--no-camera"]) == 0
+    out = capsys.readouterr().out
+    assert "MuJoCo vine scene" in out and "joints within limits" in out
