@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from harvest_qp.exceptions import InfeasibleProblemError, SolverError, SolverNotAvailableError
+from harvest_qp.qp_kernels import all_finite
 
 if TYPE_CHECKING:
     from harvest_qp.solver import QPProblem
@@ -35,7 +36,7 @@ class Backend(Protocol):
 
 
 def _checked(x, problem: QPProblem, backend: str) -> np.ndarray:
-    if x is None or not np.all(np.isfinite(x)):
+    if x is None or not all_finite(x):
         raise SolverError(f"{backend} returned a non-finite solution", problem=problem, backend=backend)
     violation = problem.violation(x)
     if violation > FEASIBILITY_TOLERANCE:
@@ -75,6 +76,7 @@ class DaqpBackend:
         if fresh:
             self._allocate(n, n_in)
         A, upper, lower, sense = self._A, self._upper, self._lower, self._sense
+        rows_changed = fresh or n_in > 0 or n_eq > 0 or self._n_eq > 0
         if n_eq or self._n_eq:
             A[:n] = 0.0
             A[:n_eq] = problem.A
@@ -100,7 +102,10 @@ class DaqpBackend:
                     f"daqp setup failed (exitflag {flag})", problem=problem, backend=self.name, status=flag
                 )
         else:
-            self._model.update(H=problem.H, f=problem.f, A=A, bupper=upper, blower=lower, sense=sense)
+            if rows_changed:
+                self._model.update(H=problem.H, f=problem.f, A=A, bupper=upper, blower=lower, sense=sense)
+            else:  # only bounds and cost moved: skip copying the constraint matrix
+                self._model.update(H=problem.H, f=problem.f, bupper=upper, blower=lower)
         x, _, flag, _ = self._model.solve()
         if flag < 0:
             self._model = None  # start from scratch next time: a bad active set is not reused

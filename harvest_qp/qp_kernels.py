@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 
@@ -86,3 +87,40 @@ def intersect_boxes(lowers, uppers, lower, upper, conflict):
             hi = new_hi
         lower[j] = lo
         upper[j] = hi
+
+
+@njit(cache=True)
+def all_finite(x):
+    """True when no entry of the 1-D array ``x`` is NaN or infinite."""
+    for i in range(x.shape[0]):
+        if not np.isfinite(x[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def add_to_diagonal(H, value):
+    """``H += value * I`` in place."""
+    for i in range(H.shape[0]):
+        H[i, i] += value
+
+
+@njit(cache=True)
+def position_limit_bounds(q, q_min, q_max, gain, dt, max_acceleration, lower, upper):
+    """Velocity bounds [rad/s] keeping ``q + qdot dt`` in ``[q_min, q_max]``.
+
+    ``gain * (q_min - q) / dt <= qdot <= gain * (q_max - q) / dt``; with a non-empty
+    ``max_acceleration`` the bounds are also capped at the braking speed
+    ``sqrt(2 a margin)`` (only inside the range: outside, the plain bound returns the joint).
+    """
+    braking = max_acceleration.shape[0] > 0
+    for i in range(q.shape[0]):
+        below = q_min[i] - q[i]
+        above = q_max[i] - q[i]
+        lo = gain * below / dt
+        hi = gain * above / dt
+        if braking:
+            hi = min(hi, np.sqrt(2.0 * max_acceleration[i] * max(above, 0.0)))
+            lo = max(lo, -np.sqrt(2.0 * max_acceleration[i] * max(-below, 0.0)))
+        lower[i] = lo
+        upper[i] = hi

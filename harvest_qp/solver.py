@@ -26,7 +26,13 @@ from harvest_qp.collision.kernels import max_violation
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError
 from harvest_qp.limits.limit import Limit
-from harvest_qp.qp_kernels import accumulate_diagonal, accumulate_task, clip_inplace, intersect_boxes
+from harvest_qp.qp_kernels import (
+    accumulate_diagonal,
+    accumulate_task,
+    add_to_diagonal,
+    clip_inplace,
+    intersect_boxes,
+)
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
 
@@ -92,13 +98,12 @@ def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: in
 
     Returns ``(lower, upper, conflicts)``; a conflict names the joint and the limit that yielded.
     """
-    lower = np.full(n, -INF)
-    upper = np.full(n, INF)
     if not limits_rows:
-        return lower, upper, []
+        return np.full(n, -INF), np.full(n, INF), []
+    lower, upper = np.empty(n), np.empty(n)
     ordered = sorted(limits_rows, key=_priority)
-    lowers = np.vstack([lo for _, lo, _ in ordered])
-    uppers = np.vstack([hi for _, _, hi in ordered])
+    lowers = np.array([lo for _, lo, _ in ordered])
+    uppers = np.array([hi for _, _, hi in ordered])
     conflict = np.empty(n, dtype=np.int64)
     intersect_boxes(lowers, uppers, lower, upper, conflict)
     conflicts = []
@@ -203,7 +208,7 @@ class Solver:
         for level in levels:
             entries = by_level.get(level, [])
             H = np.zeros((n, n))
-            H.flat[:: n + 1] = self.regularization if entries else max(self.regularization, 1e-12)
+            add_to_diagonal(H, self.regularization if entries else max(self.regularization, 1e-12))
             f = np.zeros(n)
             for task, J, v in entries:
                 if J is None:  # joint-space task: J = I

@@ -7,13 +7,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.qp_kernels import all_finite
 
 
 def as_vector(value: np.ndarray | Sequence[float] | float, size: int, name: str) -> np.ndarray:
     """``value`` as a finite float vector of length ``size`` (a scalar is broadcast); a copy."""
     if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (size,):
         # Fast path for the control loop: already the right kind of array.
-        if not np.isfinite(value).all():
+        if not all_finite(value):
             raise InvalidInputError(f"{name} must be finite (no NaN or inf), got {value}")
         return value.copy()
     try:
@@ -39,6 +40,8 @@ def as_nonnegative_vector(value, size: int, name: str) -> np.ndarray:
 
 def as_positive_scalar(value: float, name: str, *, allow_zero: bool = False) -> float:
     """A finite scalar > 0 (or >= 0 with ``allow_zero``)."""
+    if type(value) is float and 0.0 < value < np.inf:  # fast path for the control loop
+        return value
     try:
         x = float(value)
     except (TypeError, ValueError):

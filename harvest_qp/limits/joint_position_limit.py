@@ -6,6 +6,7 @@ import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.limits.limit import Limit, LimitRows
+from harvest_qp.qp_kernels import position_limit_bounds
 from harvest_qp.validation import as_positive_scalar, as_vector
 
 
@@ -44,14 +45,12 @@ class JointPositionLimit(Limit):
         self.max_acceleration = (
             None if max_acceleration is None else as_vector(max_acceleration, n, "max_acceleration")
         )
+        # The kernel takes an empty array for "no braking bound".
+        self._braking = np.zeros(0) if self.max_acceleration is None else self.max_acceleration
 
     def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
-        below = self.lower - configuration.q  # <= 0 inside the range
-        above = self.upper - configuration.q  # >= 0 inside the range
-        lower = self.gain * below / dt
-        upper = self.gain * above / dt
-        if self.max_acceleration is not None:
-            # Braking speed; outside the range (negative margin) the plain bound applies.
-            upper = np.minimum(upper, np.sqrt(2.0 * self.max_acceleration * np.maximum(above, 0.0)))
-            lower = np.maximum(lower, -np.sqrt(2.0 * self.max_acceleration * np.maximum(-below, 0.0)))
+        lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
+        position_limit_bounds(
+            configuration.q, self.lower, self.upper, self.gain, dt, self._braking, lower, upper
+        )
         return LimitRows(lower=lower, upper=upper)
