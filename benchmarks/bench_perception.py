@@ -1,0 +1,284 @@
+"""Per-frame perception pipeline: harvest_qp.perception next to a brute-force version.
+
+The frame is a ray-cast synthetic vine scene (:mod:`harvest_qp.perception.synthetic`): a
+6 cm bent stem hanging from a branch, a 60-berry cluster, four leaves (one partly in front
+of the stem) and a background wall, seen by a D415-like camera 0.25 m from the stem base,
+at 283x160 (the paper's 848x480 downsampled by 3) and at 848x480.
+
+Timed, side by side in one process:
+
+* ``pipeline``: :func:`harvest_qp.perception.process_cloud`, i.e. classification, stem
+  model and p_sb, free space and p_gd (Fibonacci inverse mapping, KD-tree argmax), and the
+  unveiling pairs over all non-stem points with V_cu (culled, bundled kernel);
+* ``bruteforce``: the same equations written straightforwardly: boolean-mask
+  classification, the same stem model, exhaustive nearest-sample search, brute-force
+  argmax for ``eq:attr_point``, and the dense O(n_S n_O) ``eq:nearest`` kernel over every
+  stem point and every non-stem point.  Too slow to repeat at 848x480 (10^9 pairs), so it
+  runs there only with ``--bruteforce-848``.
+* scikit-learn's KMeans / NearestNeighbors stand-ins when scikit-learn is importable
+  (it is not a dependency; skipped otherwise).
+
+Both versions must agree (same p_sb, p_gd, pairs and V_cu); the script checks this and
+fails loudly otherwise.  BLAS is limited to one thread (set before numpy loads), as in the
+other benchmarks: on a 2-core machine running other loops, multi-threaded BLAS calls on
+small matrices stall and inflate the timings 2-3x.
+
+Usage::
+
+    python benchmarks/bench_perception.py [--repeats 30] [--bruteforce-848]
+
+The last line printed is one JSON object with ``pipeline_ms_283x160``,
+``pipeline_ms_848x480``, ``bruteforce_ms_283x160`` (and ``bruteforce_ms_848x480`` when
+run), the speed-up ratios and the frame sizes.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from harvest_qp.perception import (  # noqa: E402
+    classify,
+    fibonacci_sphere,
+    fit_stem,
+    process_cloud,
+    ray_obstacle_pairs,
+    unveiling_velocity,
+)
+from harvest_qp.perception.free_space import compute_free_space  # noqa: E402
+from harvest_qp.perception.synthetic import VineScene, render_scene  # noqa: E402
+
+D_A, D_O, K_C, N_SAMPLES = 0.01, 0.001, 0.00025, 500
+TARGET_MS = {"283x160": 10.0, "848x480": 33.0}
+RESOLUTIONS = {"283x160": (283, 160), "848x480": (848, 480)}
+
+
+@dataclass
+class Frame:
+    points: np.ndarray
+    stem_mask: np.ndarray
+    camera: np.ndarray
+    gripper: np.ndarray
+
+
+def make_frame(width: int, height: int) -> Frame:
+    scene = VineScene.default()
+    camera = scene.stem_base + np.array([0.25, 0.02, -0.04])
+    rendered = render_scene(scene, camera, width=width, height=height)
+    return Frame(rendered.points, rendered.stem_mask, camera, scene.stem_end + np.array([0.0, 0.0, -0.05]))
+
+
+def median_ms(function, repeats: int) -> tuple[float, object]:
+    result = function()  # warm-up (caches, page faults)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = function()
+        times.append(time.perf_counter() - start)
+    return 1e3 * float(np.median(times)), result
+
+
+# ------------------------------------------------------------------ the fast pipeline
+
+
+def pipeline(frame: Frame):
+    return process_cloud(frame.points, frame.stem_mask, camera_position=frame.camera, gripper_position=frame.gripper)
+
+
+def pipeline_stages(frame: Frame, repeats: int) -> dict[str, float]:
+    """Median time of each stage of :func:`process_cloud`, called one by one."""
+    split = classify.split_scene(frame.points, frame.stem_mask)
+    stem = fit_stem(split.stem, frame.gripper)
+    obstacles = classify.obstacles_near_stem_base(split.non_stem, stem.base, stem.length)
+    pairs = ray_obstacle_pairs(split.stem, split.non_stem, frame.camera, d_a=D_A, d_o=D_O)
+    return {
+        "classification": median_ms(lambda: classify.split_scene(frame.points, frame.stem_mask), repeats)[0],
+        "stem model": median_ms(lambda: fit_stem(split.stem, frame.gripper), repeats)[0],
+        "grasp obstacles": median_ms(
+            lambda: classify.obstacles_near_stem_base(split.non_stem, stem.base, stem.length), repeats
+        )[0],
+        "free space + p_gd": median_ms(
+            lambda: compute_free_space(obstacles, stem.base, stem.length, frame.camera, n_samples=N_SAMPLES),
+            repeats,
+        )[0],
+        "unveiling pairs": median_ms(
+            lambda: ray_obstacle_pairs(split.stem, split.non_stem, frame.camera, d_a=D_A, d_o=D_O), repeats
+        )[0],
+        "V_cu": median_ms(lambda: unveiling_velocity(pairs, k_c=K_C), repeats)[0],
+    }
+
+
+# ------------------------------------------------------------------ the brute-force version
+
+
+@dataclass
+class BruteForceResult:
+    stem_base: np.ndarray
+    target: np.ndarray
+    n_pairs: int
+    velocity: np.ndarray
+
+
+def _skew_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.cross(a, b)
+
+
+def bruteforce(frame: Frame, *, chunk_pairs: int = 1_000_000) -> BruteForceResult:
+    # Classification with boolean masks.
+    stem_points = frame.points[frame.stem_mask]
+    non_stem = frame.points[~frame.stem_mask]
+    stem = fit_stem(stem_points, frame.gripper)  # the same k-means + PCA model
+    base, length = stem.base, stem.length
+    grasp_obstacles = non_stem[np.linalg.norm(non_stem - base, axis=1) < length]
+
+    # Free space: exhaustive nearest-sample search for every projected obstacle.
+    samples = base + length * fibonacci_sphere(N_SAMPLES)
+    offsets = grasp_obstacles - base
+    projected = base + length * offsets / np.linalg.norm(offsets, axis=1)[:, None]
+    occupied = np.zeros(N_SAMPLES, dtype=bool)
+    for start in range(0, len(projected), 2000):
+        block = projected[start : start + 2000]
+        distances = np.linalg.norm(block[:, None, :] - samples[None, :, :], axis=2)
+        occupied[np.argmin(distances, axis=1)] = True
+    centroid = grasp_obstacles.mean(axis=0)
+    normal = np.linalg.svd(grasp_obstacles - centroid, full_matrices=False)[2][2]
+    normal = normal if normal @ (frame.camera - centroid) > 0 else -normal
+    free = samples[~occupied & ((samples - centroid) @ normal >= 0.0)]
+    # eq:attr_point by brute force: all free samples against all projected obstacles.
+    clearance = np.linalg.norm(free[:, None, :] - projected[None, :, :], axis=2).min(axis=1)
+    target = free[int(np.argmax(clearance))]
+
+    # Unveiling: eq:nearest over all n_S x n_O pairs, chunked by stem points.
+    camera = frame.camera
+    p_co = non_stem - camera
+    stems_per_chunk = max(1, chunk_pairs // max(1, len(non_stem)))
+    n_pairs = 0
+    omega = np.zeros((len(stem_points), 3))
+    for start in range(0, len(stem_points), stems_per_chunk):
+        p_cs = stem_points[start : start + stems_per_chunk] - camera
+        length_cs = np.linalg.norm(p_cs, axis=1)
+        projection = (p_cs @ p_co.T) / length_cs[:, None]  # (p_cs / |p_cs|)^T p_co
+        interior = (projection > 0.0) & (projection < length_cs[:, None])
+        fraction = np.clip(projection / length_cs[:, None], 0.0, 1.0)
+        nearest = camera + fraction[:, :, None] * p_cs[:, None, :]  # eq:nearest, all three branches
+        gap = nearest - non_stem[None, :, :]
+        distance = np.linalg.norm(gap, axis=2)
+        r_hat = distance - D_O
+        near = r_hat < D_A
+        n_pairs += int(np.count_nonzero(near))
+        # eq:u_ij, eq:omega_pivot on the interior pairs, eq:omega_i summed per stem point.
+        j, k = np.nonzero(near & interior)
+        r = np.maximum(r_hat[j, k], 1e-6)
+        barrier = D_A**2 - (D_A - r) ** 2
+        e = (D_A - r)[:, None] * gap[j, k] / distance[j, k][:, None]
+        u = (2.0 / barrier * np.log(D_A**2 / barrier))[:, None] * e
+        lever = nearest[j, k] - stem_points[start + j]
+        pair_omega = _skew_times(lever, u) / (lever * lever).sum(axis=1)[:, None]
+        np.add.at(omega, start + j, pair_omega)
+    rays = stem_points - camera
+    velocity = K_C * np.concatenate((_skew_times(rays, omega).sum(axis=0), omega.sum(axis=0)))  # eq:v_c2
+    return BruteForceResult(base, target, n_pairs, velocity)
+
+
+def check_agreement(fast, slow: BruteForceResult) -> None:
+    np.testing.assert_allclose(fast.stem_base, slow.stem_base, atol=1e-12)
+    np.testing.assert_allclose(fast.target, slow.target, atol=1e-12)
+    assert len(fast.unveiling) == slow.n_pairs, (len(fast.unveiling), slow.n_pairs)
+    np.testing.assert_allclose(fast.unveiling_velocity, slow.velocity, rtol=1e-8)
+
+
+# ------------------------------------------------------------------ optional scikit-learn
+
+
+def sklearn_stand_ins(frame: Frame, repeats: int) -> dict[str, float] | None:
+    """k-means and the p_gd nearest-neighbour query with scikit-learn, if importable."""
+    try:
+        from sklearn.cluster import KMeans
+        from sklearn.neighbors import NearestNeighbors
+    except ImportError:
+        return None
+    split = classify.split_scene(frame.points, frame.stem_mask)
+    stem = fit_stem(split.stem, frame.gripper)
+    obstacles = classify.obstacles_near_stem_base(split.non_stem, stem.base, stem.length)
+    free_space = compute_free_space(obstacles, stem.base, stem.length, frame.camera)
+    return {
+        "sklearn KMeans(2)": median_ms(lambda: KMeans(2, n_init=1, random_state=0).fit(split.stem), repeats)[0],
+        "scipy kmeans2 (ours)": median_ms(lambda: fit_stem(split.stem, frame.gripper), repeats)[0],
+        "sklearn NearestNeighbors p_gd": median_ms(
+            lambda: (
+                NearestNeighbors(n_neighbors=1).fit(free_space.projected_obstacles).kneighbors(free_space.kept_samples)
+            ),
+            repeats,
+        )[0],
+    }
+
+
+# ------------------------------------------------------------------ main
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=30, help="timed calls per measurement (default 30)")
+    parser.add_argument("--bruteforce-848", action="store_true", help="also time the brute force at 848x480 (minutes)")
+    args = parser.parse_args()
+
+    print(f"BLAS threads: OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}; load average {os.getloadavg()}")
+    report: dict[str, object] = {}
+    for name, (width, height) in RESOLUTIONS.items():
+        frame = make_frame(width, height)
+        n_stem = int(np.count_nonzero(frame.stem_mask))
+        fast_ms, fast = median_ms(lambda frame=frame: pipeline(frame), args.repeats)
+        print(
+            f"\n== {name}: {len(frame.points)} points, {n_stem} stem points, {len(fast.unveiling)} ray/obstacle pairs"
+        )
+        print(
+            f"   (candidate obstacles after the cull: {fast.unveiling.n_candidate_obstacles}, grasp obstacles: "
+            f"{len(fast.grasp_obstacles)}, free samples: {int(fast.free_space.free.sum())})"
+        )
+        print(
+            f"   pipeline (process_cloud) median {fast_ms:8.2f} ms   target <= {TARGET_MS[name]:.0f} ms: "
+            f"{'met' if fast_ms <= TARGET_MS[name] else 'MISSED'}"
+        )
+        for stage, ms in pipeline_stages(frame, args.repeats).items():
+            print(f"     {stage:<18} {ms:8.2f} ms")
+        report[f"pipeline_ms_{name}"] = round(fast_ms, 3)
+        report[f"n_points_{name}"] = len(frame.points)
+        report[f"n_stem_{name}"] = n_stem
+        report[f"n_pairs_{name}"] = len(fast.unveiling)
+        report[f"target_met_{name}"] = fast_ms <= TARGET_MS[name]
+
+        if name == "283x160" or args.bruteforce_848:
+            brute_repeats = 3 if name == "283x160" else 1
+            brute_ms, slow = median_ms(lambda frame=frame: bruteforce(frame), brute_repeats)
+            check_agreement(fast, slow)
+            print(
+                f"   brute force      median {brute_ms:8.2f} ms   ({brute_ms / fast_ms:.0f}x slower; "
+                "same p_sb, p_gd, pairs and V_cu)"
+            )
+            report[f"bruteforce_ms_{name}"] = round(brute_ms, 3)
+            report[f"speedup_{name}"] = round(brute_ms / fast_ms, 1)
+        else:
+            print("   brute force      skipped (10^9 pairs; run with --bruteforce-848)")
+
+        stand_ins = sklearn_stand_ins(frame, args.repeats)
+        if stand_ins is None:
+            print("   scikit-learn     not importable: skipped")
+        else:
+            for stage, ms in stand_ins.items():
+                print(f"     {stage:<30} {ms:8.2f} ms")
+
+    report["blas_threads"] = os.environ["OPENBLAS_NUM_THREADS"]
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,456 @@
+"""Unveiling geometry and the unveiling velocity V_cu (``subsec:occlusion_control_signal``).
+
+For every camera-to-stem-point ray j and obstacle k the paper needs the point p_hat_jk of
+the ray segment [p_c, p_sj] nearest to the obstacle (``eq:nearest``) and its distance to
+the obstacle sphere's surface r_hat_jk = ||p_hat_jk - p_ok|| - d_o.  Only pairs with
+r_hat_jk < d_a contribute (the potential ``eq:art_potential`` is zero beyond), so the kernel
+:func:`ray_obstacle_pairs` returns only those, without visiting all n_S x n_O pairs:
+
+1. Obstacle cull, O(n_O) vectorised: an obstacle within R = d_a + d_o of a segment lies
+   within the depth range of the segments and within R of the cone of ray directions.
+2. Ray bundles: the rays are split into compact bundles (recursive median splits of their
+   directions).  For each bundle, the obstacles that can be within R of its cone are found
+   with the same cone test, and the bundle's rays and those obstacles are evaluated as a
+   dense block (one matrix product for the dot products), which keeps numpy on contiguous
+   in-cache arrays instead of gathering pair by pair.
+3. ``eq:nearest`` and r_hat evaluated exactly on the pairs of the block that pass,
+   keeping r_hat < d_a.
+
+:func:`unveiling_velocity` then sums ``eq:u_ij``, ``eq:omega_pivot``, ``eq:omega_i`` and
+``eq:v_c2`` over the pairs with ``np.bincount``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.perception._validation import as_finite_points, as_point
+from harvest_qp.validation import as_positive_scalar
+
+__all__ = [
+    "NEAREST_AT_CAMERA",
+    "NEAREST_AT_STEM_POINT",
+    "NEAREST_INTERIOR",
+    "RayObstaclePairs",
+    "barrier_potential",
+    "ray_obstacle_pairs",
+    "repulsive_velocity",
+    "stem_angular_velocities",
+    "unveiling_velocity",
+]
+
+# Which branch of eq:nearest gave p_hat: the camera, a point inside the segment, the stem point.
+NEAREST_AT_CAMERA = 0
+NEAREST_INTERIOR = 1
+NEAREST_AT_STEM_POINT = 2
+
+# Rays per bundle: larger bundles mean fewer Python-level steps but wider cones, hence more
+# obstacle candidates per ray.
+_BUNDLE_SIZE = 64
+
+
+@dataclass(frozen=True)
+class RayObstaclePairs:
+    """Ray/obstacle pairs inside the influence distance, from :func:`ray_obstacle_pairs`.
+
+    The order of the pairs is deterministic but unspecified (sorting 10^5 pairs would cost
+    more than finding them).
+
+    Attributes:
+        stem_index: ``(P,)`` index j into ``stem_points``.
+        obstacle_index: ``(P,)`` index k into ``obstacle_points``.
+        surface_distance: ``(P,)`` r_hat_jk = ||p_hat_jk - p_ok|| - d_o [m], all < d_a.
+        case: ``(P,)`` branch of ``eq:nearest``: :data:`NEAREST_AT_CAMERA`,
+            :data:`NEAREST_INTERIOR` (the only one ``eq:omega_pivot`` uses) or
+            :data:`NEAREST_AT_STEM_POINT`.
+        segment_parameter: ``(P,)`` s in [0, 1] with p_hat = p_c + s (p_sj - p_c).
+        away_directions: ``(P, 3)`` unit vectors (p_hat - p_ok) / ||p_hat - p_ok||, the
+            direction of e_jk and u_jk in ``eq:u_ij`` (zero when p_hat = p_ok).
+        stem_points: ``(n_S, 3)`` stem points p_sj [m].
+        obstacle_points: ``(n_O, 3)`` obstacle points p_ok [m].
+        camera_position: p_c [m].
+        influence_distance: d_a [m].
+        obstacle_radius: d_o [m].
+        n_candidate_obstacles: obstacles left after the cull (step 1), for diagnostics.
+
+    :attr:`nearest_points` (p_hat_jk, ``(P, 3)`` [m]) is computed from ``segment_parameter``
+    on first access: the velocity does not need it, and not writing it saves time on large
+    frames.
+    """
+
+    stem_index: NDArray[np.intp]
+    obstacle_index: NDArray[np.intp]
+    surface_distance: NDArray[np.float64]
+    case: NDArray[np.int8]
+    segment_parameter: NDArray[np.float64]
+    away_directions: NDArray[np.float64]
+    stem_points: NDArray[np.float64]
+    obstacle_points: NDArray[np.float64]
+    camera_position: NDArray[np.float64]
+    influence_distance: float
+    obstacle_radius: float
+    n_candidate_obstacles: int
+
+    def __len__(self) -> int:
+        return int(self.stem_index.shape[0])
+
+    @functools.cached_property
+    def nearest_points(self) -> NDArray[np.float64]:
+        """``(P, 3)`` p_hat_jk of ``eq:nearest`` [m]: p_c + s (p_sj - p_c), exactly p_sj on the
+        third branch."""
+        rays = self.stem_points - self.camera_position
+        nearest = self.camera_position + self.segment_parameter[:, None] * np.take(rays, self.stem_index, axis=0)
+        at_stem = np.flatnonzero(self.case == NEAREST_AT_STEM_POINT)
+        nearest[at_stem] = np.take(self.stem_points, np.take(self.stem_index, at_stem), axis=0)
+        return nearest
+
+
+@dataclass(frozen=True)
+class _Cone:
+    """A cone of directions from the camera: unit ``axis`` and half-angle via cos/sin."""
+
+    axis: NDArray[np.float64]
+    cos_half_angle: float
+    sin_half_angle: float
+
+    @classmethod
+    def around(cls, directions: NDArray[np.float64]) -> _Cone | None:
+        """The cone about the mean of unit ``directions``, ``None`` if 90 degrees or wider."""
+        axis = directions.sum(axis=0)
+        norm = np.linalg.norm(axis)
+        if norm == 0.0:
+            return None
+        axis /= norm
+        # The half-angle from its cosine is ill-conditioned near 0 (an error of 1e-16 in the
+        # cosine is 1.5e-8 rad); widening the cone by ~1e-6 rad keeps the tests conservative.
+        cos_half_angle = min(1.0, float((directions @ axis).min())) - 1e-12
+        if cos_half_angle <= 0.0:
+            return None
+        return cls(axis, cos_half_angle, float(np.sqrt(1.0 - cos_half_angle**2)))
+
+    def may_reach(self, along_axis: NDArray[np.float64], slant: NDArray[np.float64], reach: float) -> NDArray[np.bool_]:
+        """Whether points may lie within ``reach`` of a ray of the cone.
+
+        A point at distance rho >= reach from the apex can only be within reach of a ray if
+        its angle psi to the axis is below alpha + asin(reach / rho), i.e.
+        rho cos(psi) > cos(alpha) sqrt(rho^2 - reach^2) - sin(alpha) reach.
+
+        Args:
+            along_axis: rho cos(psi), the points' offsets from the apex projected on the axis.
+            slant: sqrt(max(rho^2 - reach^2, 0)), from :func:`_slant`.
+            reach: the distance [m].
+
+        Points closer than ``reach`` to the apex have slant 0 and pass whenever
+        rho cos(psi) > -sin(alpha) reach, so callers must also keep them explicitly.
+        """
+        return along_axis > self.cos_half_angle * slant - self.sin_half_angle * reach
+
+
+def _slant(squared_distance: NDArray[np.float64], reach: float) -> NDArray[np.float64]:
+    """sqrt(max(rho^2 - reach^2, 0)) for the cone test of :meth:`_Cone.may_reach`."""
+    return np.sqrt(np.maximum(squared_distance - reach * reach, 0.0))
+
+
+def _candidate_obstacles(
+    rays: NDArray[np.float64],
+    ray_directions: NDArray[np.float64],
+    obstacles: NDArray[np.float64],
+    camera: NDArray[np.float64],
+    reach: float,
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Obstacles that may lie within ``reach`` of some ray segment (step 1).
+
+    Returns their indices and offsets p_o - p_c [m].  Conservative: only obstacles further
+    than ``reach`` from every segment are dropped.
+    """
+    cone = _Cone.around(ray_directions)
+    if cone is None:  # rays spread over a hemisphere or more: nothing to cull by direction
+        return np.arange(obstacles.shape[0]), obstacles - camera
+    # Depth along the axis first: one matrix-vector product over the whole cloud, without
+    # copying it, drops the background behind the stem and everything behind the camera.
+    depth = obstacles @ cone.axis - camera @ cone.axis
+    index = np.flatnonzero((depth > -reach) & (depth < (rays @ cone.axis).max() + reach))
+    offsets = np.take(obstacles, index, axis=0) - camera
+    squared_distance = np.einsum("ij,ij->i", offsets, offsets)
+    longest_ray = np.sqrt(np.einsum("ij,ij->i", rays, rays).max())
+    keep = cone.may_reach(np.take(depth, index), _slant(squared_distance, reach), reach)
+    keep |= squared_distance < reach * reach  # within reach of every ray's camera end
+    keep &= squared_distance < (longest_ray + reach) ** 2
+    return np.compress(keep, index), np.compress(keep, offsets, axis=0)
+
+
+def _ray_bundles(directions: NDArray[np.float64], max_size: int) -> list[NDArray[np.intp]]:
+    """Split rays into compact bundles of at most ``max_size`` (sort-tile packing).
+
+    The directions are sorted along their major principal axis and cut into strips, each
+    strip is sorted along the minor axis and cut into bundles; the strip count makes the
+    bundles roughly square in direction space.  Two sorts, no per-bundle Python work.
+    """
+    n_rays = directions.shape[0]
+    if n_rays <= max_size:
+        return [np.arange(n_rays)]
+    n_bundles = -(-n_rays // max_size)
+    centred = directions - directions.mean(axis=0)
+    _, spread, axes = np.linalg.svd(centred, full_matrices=False)
+    major, minor = centred @ axes[0], centred @ axes[1]
+    aspect = spread[0] / max(spread[1], spread[0] * 1e-6) if spread[0] > 0.0 else 1.0
+    n_strips = int(np.clip(np.round(np.sqrt(n_bundles * aspect)), 1, n_bundles))
+    strip_size = -(-n_rays // n_strips)
+    strip = np.empty(n_rays, dtype=np.intp)
+    strip[np.argsort(major, kind="stable")] = np.arange(n_rays) // strip_size
+    order = np.lexsort((minor, strip))
+    # Bundle boundaries restart in every strip so that no bundle spans two strips.
+    rank_in_strip = np.arange(n_rays) - np.searchsorted(strip[order], strip[order])
+    bundle_of = strip[order] * (-(-strip_size // max_size)) + rank_in_strip // max_size
+    cuts = np.flatnonzero(np.diff(bundle_of)) + 1
+    return np.split(order, cuts)
+
+
+def ray_obstacle_pairs(
+    stem_points: ArrayLike,
+    obstacle_points: ArrayLike,
+    camera_position: ArrayLike,
+    *,
+    d_a: float = 0.01,
+    d_o: float = 0.001,
+) -> RayObstaclePairs:
+    """Ray/obstacle pairs with r_hat < d_a, their p_hat (``eq:nearest``) and r_hat.
+
+    Args:
+        stem_points: ``(n_S, 3)`` finite stem points p_sj [m]; none may coincide with the camera.
+        obstacle_points: ``(n_O, 3)`` finite obstacle points p_ok [m] (for the camera arm: all
+            non-stem points).  Duplicated points give duplicated pairs, as in the sums.
+        camera_position: camera position p_c [m].
+        d_a: influence distance from the obstacle surface [m] (0.01 in Section ``sec:exper``).
+        d_o: obstacle sphere radius [m] (0.001 in Section ``sec:exper``).
+
+    Returns:
+        The pairs (j, k) whose segment [p_c, p_sj] passes within d_a + d_o of p_ok, i.e.
+        r_hat_jk < d_a, including pairs with r_hat <= 0 (rays through an obstacle sphere).
+
+    Raises:
+        InvalidInputError: wrong shapes, NaN/inf rows, d_a <= 0, d_o < 0, or a stem point at
+            the camera position (its ray has no direction).
+    """
+    stem = as_finite_points("stem_points", stem_points)
+    obstacles = as_finite_points("obstacle_points", obstacle_points)
+    camera = as_point("camera_position", camera_position)
+    d_a = as_positive_scalar(d_a, "d_a")
+    d_o = as_positive_scalar(d_o, "d_o", allow_zero=True)
+    reach = d_a + d_o
+
+    rays = stem - camera  # p_cs_j
+    squared_lengths = np.einsum("ij,ij->i", rays, rays)
+    if (squared_lengths == 0.0).any():
+        raise InvalidInputError(
+            f"stem_points must differ from camera_position; row {int(np.argmin(squared_lengths))} coincides with it"
+        )
+    ray_directions = rays / np.sqrt(squared_lengths)[:, None]
+    # The culls get a hair of slack so that rounding never drops a pair; the pair test
+    # itself uses the exact reach (membership is decided to rounding, ~1e-13 relative).
+    slack_reach = reach * (1.0 + 1e-9)
+    if stem.shape[0] and obstacles.shape[0]:
+        candidates, offsets = _candidate_obstacles(rays, ray_directions, obstacles, camera, slack_reach)
+    else:
+        candidates, offsets = np.zeros(0, dtype=np.intp), np.zeros((0, 3))
+    offsets_t = np.ascontiguousarray(offsets.T)  # p_co_k as columns
+    squared_offsets = np.einsum("ij,ij->i", offsets, offsets)
+    slant = _slant(squared_offsets, slack_reach)
+    near_camera = squared_offsets < slack_reach * slack_reach
+    rays_t = np.ascontiguousarray(rays.T)
+
+    parts: dict[str, list[NDArray]] = {name: [] for name in ("ray", "obstacle", "s", "nearest", "away", "distance")}
+    bundles = _ray_bundles(ray_directions, _BUNDLE_SIZE) if candidates.size else []
+    for bundle in bundles:
+        cone = _Cone.around(np.take(ray_directions, bundle, axis=0))
+        if cone is None:
+            near = np.arange(candidates.size)
+        else:
+            near = np.flatnonzero(cone.may_reach(offsets @ cone.axis, slant, slack_reach) | near_camera)
+        if near.size == 0:
+            continue
+        bundle_rays_t = np.take(rays_t, bundle, axis=1)
+        near_offsets_t = np.take(offsets_t, near, axis=1)
+        # Dense block: dot[i, k] = p_cs_i . p_co_k; s = dot / |p_cs_i|^2 is the segment
+        # parameter of eq:nearest and t = clip(s, 0, 1) gives p_hat = p_c + t p_cs_i, whose
+        # squared distance to the obstacle is |p_co|^2 + t (t |p_cs|^2 - 2 dot).
+        dot = bundle_rays_t.T @ near_offsets_t
+        ray_squared = np.take(squared_lengths, bundle)[:, None]
+        s = dot / ray_squared
+        t = np.clip(s, 0.0, 1.0)
+        squared_distance = np.take(squared_offsets, near)[None, :] + t * (t * ray_squared - 2.0 * dot)
+        ray_local, obstacle_local = np.nonzero(squared_distance < reach * reach)
+        if ray_local.size == 0:
+            continue
+        # p_hat - p_o recomputed from the vectors for the pairs that passed, in (3, P)
+        # layout and while the block is in cache, so that r_hat and the direction of e_jk
+        # are exact to rounding.
+        flat = ray_local * near.size + obstacle_local
+        step = np.take(t, flat) * np.take(bundle_rays_t, ray_local, axis=1)  # p_hat - p_c
+        gap = step - np.take(near_offsets_t, obstacle_local, axis=1)  # p_hat - p_o
+        distance = np.sqrt(np.einsum("ij,ij->j", gap, gap))
+        inverse_distance = np.divide(1.0, distance, out=np.zeros_like(distance), where=distance > 0.0)
+        parts["away"].append(gap * inverse_distance)
+        parts["distance"].append(distance)
+        parts["s"].append(np.take(s, flat))
+        parts["ray"].append(np.take(bundle, ray_local))
+        parts["obstacle"].append(np.take(candidates, np.take(near, obstacle_local)))
+
+    if parts["ray"]:
+        stem_index, obstacle_index, s, distance = (
+            np.concatenate(parts[name]) for name in ("ray", "obstacle", "s", "distance")
+        )
+        away = np.concatenate(parts["away"], axis=1)
+    else:
+        stem_index = obstacle_index = np.zeros(0, dtype=np.intp)
+        s = distance = np.zeros(0)
+        away = np.zeros((3, 0))
+    # Branch of eq:nearest: s <= 0 camera, 0 < s < 1 interior, s >= 1 stem point.
+    case = (s > 0.0).astype(np.int8) + (s >= 1.0)
+    return RayObstaclePairs(
+        stem_index=stem_index,
+        obstacle_index=obstacle_index,
+        surface_distance=distance - d_o,
+        case=case,
+        segment_parameter=np.clip(s, 0.0, 1.0),
+        away_directions=away.T,
+        stem_points=stem,
+        obstacle_points=obstacles,
+        camera_position=camera,
+        influence_distance=d_a,
+        obstacle_radius=d_o,
+        n_candidate_obstacles=int(candidates.size),
+    )
+
+
+def barrier_potential(surface_distance: ArrayLike, d_a: float) -> NDArray[np.float64]:
+    """Barrier potential V(r_hat) of ``eq:art_potential`` (dimensionless).
+
+    V = 1/2 ln^2(d_a^2 / (d_a^2 - (d_a - r_hat)^2)) for 0 < r_hat < d_a, 0 for r_hat >= d_a,
+    +inf for r_hat <= 0 (on or inside the obstacle sphere).
+    """
+    r_hat = np.asarray(surface_distance, dtype=np.float64)
+    d_a = as_positive_scalar(d_a, "d_a")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_ratio = np.log(d_a * d_a / (d_a * d_a - (d_a - r_hat) ** 2))
+        potential = 0.5 * log_ratio**2
+    return np.where(r_hat >= d_a, 0.0, np.where(r_hat <= 0.0, np.inf, potential))
+
+
+def _repulsive_gain(surface_distance: NDArray[np.float64], d_a: float, floor: float) -> NDArray[np.float64]:
+    """||u_jk|| of ``eq:u_ij`` as a function of r_hat [m], with r_hat floored at ``floor``.
+
+    ||u|| = 2 / (d_a^2 - (d_a - r)^2) ln(d_a^2 / (d_a^2 - (d_a - r)^2)) (d_a - r); clamping r
+    to d_a makes it exactly zero outside the influence distance without a mask.
+    """
+    r_hat = np.clip(surface_distance, floor, d_a)
+    barrier = d_a * d_a - (d_a - r_hat) ** 2
+    return 2.0 / barrier * np.log(d_a * d_a / barrier) * (d_a - r_hat)
+
+
+def repulsive_velocity(
+    nearest_points: ArrayLike,
+    obstacle_points: ArrayLike,
+    *,
+    d_a: float,
+    d_o: float,
+    min_surface_distance: float = 1e-6,
+) -> NDArray[np.float64]:
+    """Virtual repulsive velocity u_jk = -dV/dp_hat of ``eq:u_ij``, one row per pair.
+
+    u = 2 / (d_a^2 - (d_a - r)^2) ln(d_a^2 / (d_a^2 - (d_a - r)^2)) e_jk with
+    e_jk = (d_a - r) (p_hat - p_o) / ||p_hat - p_o|| for r = r_hat < d_a, zero otherwise.
+
+    Args:
+        nearest_points: ``(P, 3)`` p_hat_jk [m].
+        obstacle_points: ``(P, 3)`` p_ok [m], paired row by row.
+        d_a: influence distance [m].
+        d_o: obstacle radius [m].
+        min_surface_distance: r_hat is floored at this [m] so that a ray touching or crossing
+            an obstacle sphere (r_hat <= 0, where the paper's potential is infinite) gives a
+            large but finite velocity.  A pair with p_hat exactly at the obstacle centre has no
+            direction and gives zero.
+
+    Returns:
+        ``(P, 3)`` velocities [1/m: the gradient of the dimensionless potential].
+    """
+    nearest = as_finite_points("nearest_points", nearest_points)
+    obstacles = as_finite_points("obstacle_points", obstacle_points)
+    if nearest.shape != obstacles.shape:
+        raise InvalidInputError(
+            f"nearest_points and obstacle_points must have the same shape (P, 3), got "
+            f"{nearest.shape} and {obstacles.shape}"
+        )
+    d_a = as_positive_scalar(d_a, "d_a")
+    d_o = as_positive_scalar(d_o, "d_o", allow_zero=True)
+    floor = as_positive_scalar(min_surface_distance, "min_surface_distance")
+    gap = nearest - obstacles
+    distance = np.sqrt(np.einsum("ij,ij->i", gap, gap))
+    gain = _repulsive_gain(distance - d_o, d_a, floor)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(distance[:, None] > 0.0, gain[:, None] * gap / distance[:, None], 0.0)
+
+
+def stem_angular_velocities(pairs: RayObstaclePairs, *, min_surface_distance: float = 1e-6) -> NDArray[np.float64]:
+    """Angular velocity omega_sj about each stem point: ``eq:omega_pivot`` summed by ``eq:omega_i``.
+
+    omega_jk = S(p_hat - p_sj) u_jk / ||p_hat - p_sj||^2 for pairs in the interior branch of
+    ``eq:nearest``, zero otherwise; omega_sj = sum_k omega_jk.
+
+    On the interior branch p_hat - p_sj = -(1 - s) p_cs_j, so omega_jk =
+    -(p_cs_j x u_jk) / ((1 - s) ||p_cs_j||^2) and the sum over k only needs, per stem point,
+    the sum of u_jk / (1 - s): one ``np.bincount`` per component, then one cross product per
+    stem point instead of one per pair.
+
+    Args:
+        pairs: output of :func:`ray_obstacle_pairs`.
+        min_surface_distance: floor on r_hat [m], see :func:`repulsive_velocity`.
+
+    Returns:
+        ``(n_S, 3)`` omega_sj [1/m^2, the paper's unscaled units; times k_c it is rad/s].
+    """
+    floor = as_positive_scalar(min_surface_distance, "min_surface_distance")
+    gain = _repulsive_gain(pairs.surface_distance, pairs.influence_distance, floor)
+    # Zero weight outside the interior branch, computed on all pairs (most are interior):
+    # cheaper than gathering the interior ones.  The floor on 1 - s only avoids 0/0 at s = 1.
+    interior = pairs.case == NEAREST_INTERIOR
+    weight = gain * interior / np.maximum(1.0 - pairs.segment_parameter, np.finfo(np.float64).tiny)
+    n_stem = pairs.stem_points.shape[0]
+    summed = np.stack(
+        [
+            np.bincount(pairs.stem_index, weights=weight * component, minlength=n_stem)
+            for component in pairs.away_directions.T
+        ],
+        axis=1,
+    )
+    rays = pairs.stem_points - pairs.camera_position
+    return -np.cross(rays, summed) / np.einsum("ij,ij->i", rays, rays)[:, None]
+
+
+def unveiling_velocity(
+    pairs: RayObstaclePairs, *, k_c: float, min_surface_distance: float = 1e-6
+) -> NDArray[np.float64]:
+    """Unveiling twist V_cu of ``eq:v_c2``, ordered [linear; angular] in the world frame.
+
+    V_cu = k_c sum_j [S(p_sj - p_c); I_3] omega_sj, with omega_sj from
+    :func:`stem_angular_velocities`; d_a and d_o are those the pairs were computed with.
+    Zero when there are no stem points (n_S = 0) or no pairs.
+
+    Args:
+        pairs: output of :func:`ray_obstacle_pairs`.
+        k_c: gain (0.00025 in Section ``sec:exper``).
+        min_surface_distance: floor on r_hat [m], see :func:`repulsive_velocity`.
+
+    Returns:
+        ``(6,)`` twist: linear [m/s] then angular [rad/s].
+    """
+    k_c = as_positive_scalar(k_c, "k_c")
+    omega = stem_angular_velocities(pairs, min_surface_distance=min_surface_distance)
+    rays = pairs.stem_points - pairs.camera_position
+    linear = np.cross(rays, omega).sum(axis=0)  # S(p_cs) omega = p_cs x omega
+    return k_c * np.concatenate((linear, omega.sum(axis=0)))
