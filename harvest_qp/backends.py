@@ -19,7 +19,6 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from harvest_qp.exceptions import InfeasibleProblemError, SolverError, SolverNotAvailableError
-from harvest_qp.qp_kernels import all_finite
 
 if TYPE_CHECKING:
     from harvest_qp.solver import QPProblem
@@ -36,9 +35,11 @@ class Backend(Protocol):
 
 
 def _checked(x, problem: QPProblem, backend: str) -> np.ndarray:
-    if x is None or not all_finite(x):
-        raise SolverError(f"{backend} returned a non-finite solution", problem=problem, backend=backend)
+    if x is None:
+        raise SolverError(f"{backend} returned no solution", problem=problem, backend=backend)
     violation = problem.violation(x)
+    if violation == np.inf:
+        raise SolverError(f"{backend} returned a non-finite solution", problem=problem, backend=backend)
     if violation > FEASIBILITY_TOLERANCE:
         raise SolverError(
             f"{backend} returned a solution violating the constraints by {violation:.3g}",

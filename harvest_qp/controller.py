@@ -99,9 +99,8 @@ class TaskController:
         """Joint velocities [rad/s] for the measured joint positions ``q`` [rad]. Never raises."""
         try:
             self.configuration.update(q)
-            solution = self.solver.solve(
-                self.configuration, self.tasks, self.limits, self.dt, previous_qdot=self.previous_qdot
-            )
+            # previous_qdot is this controller's own finite output: skip re-validating it.
+            solution = self.solver._solve(self.configuration, self.tasks, self.limits, self.dt, self.previous_qdot)
             self.solver_solution = solution
             status = OK if not solution.relaxed else f"{OK}: relaxed {', '.join(solution.relaxed)}"
             result = ControlStep(qdot=solution.qdot, status=status, conflicts=solution.conflicts)

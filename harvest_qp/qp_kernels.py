@@ -66,9 +66,11 @@ def intersect_boxes(lowers, uppers, lower, upper, conflict):
     """Intersect boxes row by row (rows in priority order); a later row that does not
     overlap the running box is moved onto the running box's nearest point.
 
-    ``conflict[j]`` is set to the index of the first yielding row for joint ``j`` (-1: none).
+    ``conflict[j]`` is set to the index of the first yielding row for joint ``j`` (-1: none);
+    returns the number of joints with a conflict.
     """
     k, n = lowers.shape
+    n_conflicts = 0
     for j in range(n):
         lo = -1e30
         hi = 1e30
@@ -79,6 +81,7 @@ def intersect_boxes(lowers, uppers, lower, upper, conflict):
             if new_lo > new_hi:
                 if conflict[j] < 0:
                     conflict[j] = r
+                    n_conflicts += 1
                 # The yielding box lies entirely above or below: keep the nearest point.
                 target = hi if lowers[r, j] > hi else lo
                 new_lo = target
@@ -87,6 +90,7 @@ def intersect_boxes(lowers, uppers, lower, upper, conflict):
             hi = new_hi
         lower[j] = lo
         upper[j] = hi
+    return n_conflicts
 
 
 @njit(cache=True)

@@ -105,9 +105,8 @@ def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: in
     lowers = np.array([lo for _, lo, _ in ordered])
     uppers = np.array([hi for _, _, hi in ordered])
     conflict = np.empty(n, dtype=np.int64)
-    intersect_boxes(lowers, uppers, lower, upper, conflict)
     conflicts = []
-    if conflict.max() >= 0:
+    if intersect_boxes(lowers, uppers, lower, upper, conflict):
         conflicts = [BoxConflict(int(j), type(ordered[conflict[j]][0]).__name__) for j in np.flatnonzero(conflict >= 0)]
     return lower, upper, conflicts
 
@@ -161,9 +160,13 @@ class Solver:
             InfeasibleProblemError: the safety constraints admit no solution.
         """
         dt = as_positive_scalar(dt, "dt")
-        n = configuration.nv
         if previous_qdot is not None:
-            previous_qdot = as_vector(previous_qdot, n, "previous_qdot")
+            previous_qdot = as_vector(previous_qdot, configuration.nv, "previous_qdot")
+        return self._solve(configuration, tasks, limits, dt, previous_qdot)
+
+    def _solve(self, configuration, tasks, limits, dt: float, previous_qdot: np.ndarray | None) -> Solution:
+        """:meth:`solve` with ``dt`` and ``previous_qdot`` already validated (the controller's path)."""
+        n = configuration.nv
         boxes, G_rows, h_rows = [], [], []
         for limit in limits:
             rows = limit.compute(configuration, dt, previous_qdot)
@@ -202,7 +205,7 @@ class Solver:
     def _cascade(self, n, by_level, boxes, A, b, G, h) -> Solution:
         """Solve the levels in order, each within the optimal set of those before."""
         lower, upper, conflicts = combine_boxes(boxes, n)
-        solution = Solution(qdot=np.zeros(n), lower=lower, upper=upper, conflicts=conflicts)
+        solution = Solution(qdot=None, lower=lower, upper=upper, conflicts=conflicts)
         levels = sorted(by_level) or [1]
         x = np.zeros(n)
         for level in levels:

@@ -263,9 +263,14 @@ def collision_step(
 
 @njit(cache=True)
 def max_violation(x, lower, upper, A, b, G, h):
-    """Largest violation of ``lower <= x <= upper``, ``A x = b`` and ``G x <= h`` (0 if feasible)."""
+    """Largest violation of ``lower <= x <= upper``, ``A x = b`` and ``G x <= h`` (0 if feasible).
+
+    A non-finite ``x`` counts as an infinite violation.
+    """
     worst = 0.0
     for i in range(x.shape[0]):
+        if not np.isfinite(x[i]):
+            return np.inf
         worst = max(worst, lower[i] - x[i], x[i] - upper[i])
     for r in range(A.shape[0]):
         acc = -b[r]
