@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from harvest_qp.backends import Backend, make_backend
-from harvest_qp.collision.kernels import max_violation
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError
 from harvest_qp.limits.limit import Limit
@@ -32,6 +31,7 @@ from harvest_qp.qp_kernels import (
     add_to_diagonal,
     clip_inplace,
     intersect_boxes,
+    max_violation,
 )
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
@@ -62,6 +62,10 @@ class QPProblem:
     @property
     def n(self) -> int:
         return self.H.shape[0]
+
+    def copy(self) -> QPProblem:
+        """A deep copy (the solver reuses some buffers between steps)."""
+        return QPProblem(**{k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in vars(self).items()})
 
     def violation(self, x: np.ndarray) -> float:
         """Largest constraint violation of ``x`` (0 when feasible)."""
@@ -220,8 +224,13 @@ class Solver:
                     accumulate_task(H, f, J, task.weight, v)
             problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
             solution.problems.append(problem)
+            try:
+                x = self._backend(level).solve(problem)
+            except SolverError as err:
+                err.problem = problem.copy()  # a snapshot: G and h are reused buffers
+                raise
             # Backends meet bounds to their tolerance; clip so joint limits hold exactly.
-            x = clip_inplace(self._backend(level).solve(problem), lower, upper)
+            x = clip_inplace(x, lower, upper)
             if level != levels[-1] and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
                 rows = [

@@ -1,6 +1,7 @@
 """The control loop never raises, never emits NaN and stops safely when it cannot solve."""
 
 import numpy as np
+import pytest
 
 from harvest_qp import TaskController
 from harvest_qp.limits import CollisionAvoidance, JointVelocityLimit
@@ -80,3 +81,20 @@ def test_arms_driven_to_crossing_targets_never_closer_than_safety_distance(confi
     assert min_distance >= collision.safety_distance - 1e-4
     # The dampers were really active, not trivially satisfied.
     assert min_distance < collision.influence_distance
+
+
+def test_solver_error_carries_a_replayable_problem(configuration):
+    from harvest_qp import InfeasibleProblemError, Solver
+
+    hard = FrameTwistTask("gripper", level=HARD)
+    hard.set_reference([5.0, 0, 0, 0, 0, 0])  # beyond the speed limit: infeasible
+    with pytest.raises(InfeasibleProblemError) as info:
+        Solver().solve(configuration, [hard, DampingTask(12)], [JointVelocityLimit(configuration)], DT)
+    problem = info.value.problem
+    assert info.value.backend == "daqp"
+    assert problem.A.shape == (6, 12) and np.allclose(problem.upper, configuration.velocity_limits)
+    # Replaying it on another backend confirms the diagnosis.
+    with pytest.raises(InfeasibleProblemError):
+        from harvest_qp.backends import make_backend
+
+        make_backend("proxsuite").solve(problem)
