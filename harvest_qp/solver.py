@@ -181,20 +181,23 @@ class Solver:
                 h_rows.append(rows.h)
         if len(G_rows) == 1:
             G, h = G_rows[0], h_rows[0]
+        elif G_rows:
+            G, h = np.vstack(G_rows), np.concatenate(h_rows)
         else:
-            G = np.vstack(G_rows) if G_rows else np.zeros((0, n))
-            h = np.concatenate(h_rows) if h_rows else np.zeros(0)
+            G, h = np.zeros((0, n)), np.zeros(0)
 
         by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
         for task in tasks:
             J, v = task.compute_rows(configuration, dt)
             by_level.setdefault(task.level, []).append((task, J, v))
-        hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in by_level.pop(HARD, [])]
-        eq_A = [J[task.weight > 0] for task, J, _ in hard]
-        eq_b = [v[task.weight > 0] for task, _, v in hard]
-        A, b = _orthonormal_rows(
-            np.vstack(eq_A) if eq_A else np.zeros((0, n)), np.concatenate(eq_b) if eq_b else np.zeros(0)
-        )
+        hard = by_level.pop(HARD, None)
+        if hard:
+            hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in hard]
+            A, b = _orthonormal_rows(
+                np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
+            )
+        else:
+            A, b = np.zeros((0, n)), np.zeros(0)
         try:
             return self._cascade(n, by_level, boxes, A, b, G, h)
         except InfeasibleProblemError:

@@ -56,7 +56,7 @@ class FrameTwistTask(Task):
         if self._frame_id is None:
             self._frame_id = configuration.frame_id(self.frame)
         J = configuration.frame_jacobian_by_id(self._frame_id)
-        v = self.gain * self.reference
+        v = self.reference if self.gain == 1.0 else self.gain * self.reference  # never mutated downstream
         if self.weight_frame == "local":
             # Rotate rows into the frame's axes so that weights act on local axes.
             J_local, v_local = np.empty_like(J), np.empty(6)
