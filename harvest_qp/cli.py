@@ -82,10 +82,10 @@ def run_sim_demo(
     from harvest_qp.config import build_controller_config, read_config_file
     from harvest_qp.episodes import QPEpisodeController, environment_capsules, stem_viewpoint
     from harvest_qp.runner import run_episode
-    from harvest_qp.sim import SimRobot, VineSceneParams
+    from harvest_qp.sim import CameraConfig, SimRobot, VineSceneParams
 
     data = read_config_file(config_path)
-    robot = SimRobot(VineSceneParams(), seed=seed, camera=_camera_config() if camera else None)
+    robot = SimRobot(VineSceneParams(), seed=seed, camera=CameraConfig() if camera else None)
     environment = environment_capsules(robot.model, robot.data, data.get("environment", []))
     configuration = Configuration.dual_ur5e(robot.joint_positions())
     config = build_controller_config(data, configuration, environment=environment)
@@ -105,8 +105,12 @@ def run_sim_demo(
     statuses = Counter(str(s).split(":")[0] for s in log["status"])
     q = log["q"]
     min_distance = None
-    if collision is not None:
-        min_distance = float(min(collision.distances(_at(configuration, qi)).min() for qi in q[::10]))
+    if collision is not None:  # every 10th tick of the log, over every candidate pair
+        distances = []
+        for q_tick in q[::10]:
+            configuration.update(q_tick)
+            distances.append(collision.distances(configuration).min())
+        min_distance = float(min(distances))
     configuration.update(q[-1])
     camera_position = configuration.frame_position("camera")
     z_axis = configuration.frame_rotation("camera")[:, 2]
@@ -133,17 +137,6 @@ def run_sim_demo(
         "median QP step [us]": 1e6 * float(np.median(log["controller_time"])),
         "log": str(result.log_path) if result.log_path else None,
     }
-
-
-def _camera_config():
-    from harvest_qp.sim import CameraConfig
-
-    return CameraConfig()
-
-
-def _at(configuration: Configuration, q: np.ndarray) -> Configuration:
-    configuration.update(q)
-    return configuration
 
 
 def _print_summary(title: str, summary: dict) -> None:

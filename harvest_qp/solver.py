@@ -84,7 +84,7 @@ class BoxConflict:
 class Solution:
     """Result of :func:`solve_ik`: joint velocities [rad/s] and what the solver saw."""
 
-    qdot: np.ndarray
+    qdot: np.ndarray | None
     problems: list[QPProblem] = field(default_factory=list)
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
