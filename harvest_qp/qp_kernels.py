@@ -94,6 +94,15 @@ def intersect_boxes(lowers, uppers, lower, upper, conflict):
 
 
 @njit(cache=True)
+def acceleration_bounds(previous, max_acceleration, dt, lower, upper):
+    """``previous -+ max_acceleration * dt``: the velocities reachable in one step [rad/s]."""
+    for i in range(previous.shape[0]):
+        step = max_acceleration[i] * dt
+        lower[i] = previous[i] - step
+        upper[i] = previous[i] + step
+
+
+@njit(cache=True)
 def all_finite(x):
     """True when no entry of the 1-D array ``x`` is NaN or infinite."""
     for i in range(x.shape[0]):

@@ -102,16 +102,23 @@ def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: in
 
     Returns ``(lower, upper, conflicts)``; a conflict names the joint and the limit that yielded.
     """
-    if not limits_rows:
-        return np.full(n, -INF), np.full(n, INF), []
-    lower, upper = np.empty(n), np.empty(n)
     ordered = sorted(limits_rows, key=_priority)
+    if not ordered:
+        return _intersect([], np.zeros((0, n)), np.zeros((0, n)), n)
     lowers = np.array([lo for _, lo, _ in ordered])
     uppers = np.array([hi for _, _, hi in ordered])
-    conflict = np.empty(n, dtype=np.int64)
+    return _intersect([limit for limit, _, _ in ordered], lowers, uppers, n)
+
+
+def _intersect(box_limits: list[Limit], lowers: np.ndarray, uppers: np.ndarray, n: int):
+    """:func:`combine_boxes` on rows already in priority order (row i belongs to ``box_limits[i]``)."""
+    if not box_limits:
+        return np.full(n, -INF), np.full(n, INF), []
+    lower, upper = np.empty(n), np.empty(n)  # the kernel writes every entry
     conflicts = []
+    conflict = np.empty(n, dtype=np.int64)
     if intersect_boxes(lowers, uppers, lower, upper, conflict):
-        conflicts = [BoxConflict(int(j), type(ordered[conflict[j]][0]).__name__) for j in np.flatnonzero(conflict >= 0)]
+        conflicts = [BoxConflict(int(j), type(box_limits[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)]
     return lower, upper, conflicts
 
 
@@ -137,6 +144,8 @@ class Solver:
     def __init__(self, backend: str = "daqp", *, regularization: float = 1e-10) -> None:
         self.backend_name = backend
         self._backends: dict[int, Backend] = {}
+        self._box_key: tuple = ()
+        self._box_list: list[Limit] = []
         self.regularization = as_positive_scalar(regularization, "regularization", allow_zero=True)
 
     def _backend(self, level: int) -> Backend:
@@ -171,11 +180,19 @@ class Solver:
     def _solve(self, configuration, tasks, limits, dt: float, previous_qdot: np.ndarray | None) -> Solution:
         """:meth:`solve` with ``dt`` and ``previous_qdot`` already validated (the controller's path)."""
         n = configuration.nv
-        boxes, G_rows, h_rows = [], [], []
+        box_limits = self._box_limits(limits, n)
+        for i, limit in enumerate(box_limits):
+            limit.fill_box(configuration, dt, previous_qdot, self._lowers[i], self._uppers[i])
+        G_rows, h_rows = [], []
         for limit in limits:
+            if limit.has_box:
+                continue
             rows = limit.compute(configuration, dt, previous_qdot)
             if rows.lower is not None:
-                boxes.append((limit, rows.lower, rows.upper))
+                raise InvalidInputError(
+                    f"{type(limit).__name__}.compute returned a box: set has_box = True on the class "
+                    "(and override fill_box for speed)"
+                )
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
@@ -199,19 +216,30 @@ class Solver:
         else:
             A, b = np.zeros((0, n)), np.zeros(0)
         try:
-            return self._cascade(n, by_level, boxes, A, b, G, h)
+            return self._cascade(n, by_level, box_limits, A, b, G, h)
         except InfeasibleProblemError:
-            relaxable = [box for box in boxes if box[0].priority >= RELAXABLE_PRIORITY]
-            if not relaxable:
+            # Box limits are sorted by priority: the relaxable ones are the tail.
+            safe = [limit for limit in box_limits if limit.priority < RELAXABLE_PRIORITY]
+            if len(safe) == len(box_limits):
                 raise
-            safe = [box for box in boxes if box[0].priority < RELAXABLE_PRIORITY]
             solution = self._cascade(n, by_level, safe, A, b, G, h)
-            solution.relaxed = [type(box[0]).__name__ for box in relaxable]
+            solution.relaxed = [type(limit).__name__ for limit in box_limits[len(safe) :]]
             return solution
 
-    def _cascade(self, n, by_level, boxes, A, b, G, h) -> Solution:
+    def _box_limits(self, limits: Sequence[Limit], n: int) -> list[Limit]:
+        """The box limits in priority order, with row buffers for their boxes (cached)."""
+        key = (n, *map(id, limits))
+        if key != self._box_key:
+            self._box_key = key
+            self._box_list = sorted((limit for limit in limits if limit.has_box), key=lambda lim: lim.priority)
+            self._lowers = np.empty((max(len(self._box_list), 1), n))
+            self._uppers = np.empty((max(len(self._box_list), 1), n))
+        return self._box_list
+
+    def _cascade(self, n, by_level, box_limits, A, b, G, h) -> Solution:
         """Solve the levels in order, each within the optimal set of those before."""
-        lower, upper, conflicts = combine_boxes(boxes, n)
+        k = len(box_limits)
+        lower, upper, conflicts = _intersect(box_limits, self._lowers[:k], self._uppers[:k], n)
         solution = Solution(qdot=None, lower=lower, upper=upper, conflicts=conflicts)
         levels = sorted(by_level) or [1]
         x = np.zeros(n)

@@ -6,6 +6,7 @@ import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.limits.limit import Limit, LimitRows
+from harvest_qp.qp_kernels import acceleration_bounds
 from harvest_qp.validation import as_nonnegative_vector
 
 
@@ -16,12 +17,18 @@ class JointAccelerationLimit(Limit):
     """
 
     priority = 2
+    has_box = True
 
     def __init__(self, configuration: Configuration, *, max_acceleration: float | np.ndarray = 10.0):
         self.max_acceleration = as_nonnegative_vector(max_acceleration, configuration.nv, "max_acceleration")
+        self._zeros = np.zeros(configuration.nv)
 
     def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
+        lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
+        self.fill_box(configuration, dt, previous_qdot, lower, upper)
+        return LimitRows(lower=lower, upper=upper)
+
+    def fill_box(self, configuration: Configuration, dt: float, previous_qdot, lower, upper) -> None:
         # previous_qdot is validated once by the solver for all limits.
-        prev = np.zeros(configuration.nv) if previous_qdot is None else previous_qdot
-        step = self.max_acceleration * dt
-        return LimitRows(lower=prev - step, upper=prev + step)
+        prev = self._zeros if previous_qdot is None else previous_qdot
+        acceleration_bounds(prev, self.max_acceleration, dt, lower, upper)

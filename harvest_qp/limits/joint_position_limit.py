@@ -26,6 +26,7 @@ class JointPositionLimit(Limit):
     """
 
     priority = 1
+    has_box = True
 
     def __init__(
         self,
@@ -50,7 +51,8 @@ class JointPositionLimit(Limit):
 
     def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
         lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
-        position_limit_bounds(
-            configuration.q, self.lower, self.upper, self.gain, dt, self._braking, lower, upper
-        )
+        self.fill_box(configuration, dt, previous_qdot, lower, upper)
         return LimitRows(lower=lower, upper=upper)
+
+    def fill_box(self, configuration: Configuration, dt: float, previous_qdot, lower, upper) -> None:
+        position_limit_bounds(configuration.q, self.lower, self.upper, self.gain, dt, self._braking, lower, upper)

@@ -33,6 +33,26 @@ class Limit(ABC):
 
     #: Order in which box limits are intersected (velocity 0, position 1, acceleration 2).
     priority: int = 10
+    #: True for limits whose :meth:`compute` returns a box (``lower``/``upper``) and no rows.
+    #: The solver then calls :meth:`fill_box`, which writes into its buffers.
+    has_box: bool = False
+
+    def fill_box(
+        self,
+        configuration: Configuration,
+        dt: float,
+        previous_qdot: np.ndarray | None,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> None:
+        """Write this limit's box [rad/s] into ``lower`` and ``upper`` (box limits only).
+
+        The default goes through :meth:`compute`; the built-in limits override it to
+        skip the allocations (it runs every control tick).
+        """
+        rows = self.compute(configuration, dt, previous_qdot)
+        lower[:] = rows.lower
+        upper[:] = rows.upper
 
     @abstractmethod
     def compute(
