@@ -248,3 +248,35 @@ def test_pseudo_inverse_hand_computed_case(configuration):
     # Block structure: a camera-only twist moves only the camera arm (J = diag(J_c, J_g)).
     V = np.concatenate([J[:6] @ np.full(12, 0.1), np.zeros(6)])
     assert np.allclose(mapper.map(V)[6:], 0.0, atol=1e-10)
+
+
+def test_custom_limits_box_and_rows(configuration):
+    """User limits: a box through the default fill_box, rows through compute."""
+    from harvest_qp.limits import Limit, LimitRows
+
+    class ElbowSpeed(Limit):
+        has_box = True
+        priority = 0
+
+        def compute(self, configuration, dt, previous_qdot=None):
+            lower, upper = np.full(12, -10.0), np.full(12, 10.0)
+            lower[2], upper[2] = -0.01, 0.01
+            return LimitRows(lower=lower, upper=upper)
+
+    class NoCameraDescent(Limit):
+        def compute(self, configuration, dt, previous_qdot=None):
+            J = configuration.frame_jacobian("camera")
+            return LimitRows(G=-J[2:3], h=np.zeros(1))  # v_z >= 0
+
+    task = FrameTwistTask("camera")
+    task.set_reference([0.0, 0.0, -0.2, 0.0, 0.0, 0.0])
+    qdot = Solver().solve(configuration, [task, DampingTask(12)], [ElbowSpeed(), NoCameraDescent()], 0.002).qdot
+    assert abs(qdot[2]) <= 0.01 + 1e-12
+    assert configuration.frame_jacobian("camera")[2] @ qdot >= -1e-9
+
+    class Forgetful(Limit):  # returns a box but does not declare it
+        def compute(self, configuration, dt, previous_qdot=None):
+            return LimitRows(lower=-np.ones(12), upper=np.ones(12))
+
+    with pytest.raises(InvalidInputError, match="has_box = True"):
+        Solver().solve(configuration, [task], [Forgetful()], 0.002)
