@@ -78,7 +78,8 @@ class HarvestQPStep:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("-n", type=int, default=2000, help="timed steps per contender")
+    parser.add_argument("-n", type=int, default=2000, help="timed steps per contender (split over the rounds)")
+    parser.add_argument("--rounds", type=int, default=5, help="round-robin rounds (robust to host speed drift)")
     parser.add_argument("--check", type=int, default=200, help="closed-loop check steps (0: none)")
     parser.add_argument("--peers", default="placo,mink,pink", help="comma-separated subset of peers")
     parser.add_argument("--differences", action="store_true", help="print how the peers' set-ups differ")
@@ -92,22 +93,45 @@ def main(argv: list[str] | None = None) -> int:
             for line in lines:
                 print(f"  - {line}")
     evaluator = peers.Evaluator(problem) if args.check else None
-    results: dict[str, float | None] = {}
-    print("medians per step (kinematics to joint velocities), closed loop:")
+
+    # Every contender: key -> factory of a fresh stepper.
+    factories: dict[str, object] = {}
     for solver in ("daqp", "proxsuite"):
         for collision in (False, True):
             key = "harvest_qp" + ("_proxsuite" if solver == "proxsuite" else "") + ("_collision" if collision else "")
-            key += "_us"
-            info = {"pairs": HarvestQPStep(problem, collision, solver).n_pairs}
+            factories[key + "_us"] = lambda c=collision, s=solver: HarvestQPStep(problem, c, s)
+    for name in (p for p in args.peers.split(",") if p):
+        for collision in (False, True):
+            key = f"{name}_collision_us" if collision else f"{name}_us"
+            factories[key] = lambda c=collision, f=peers.PEERS[name]: f(problem, c)
+
+    infos: dict[str, dict] = {}
+    steppers: dict[str, object] = {}
+    for key, make in factories.items():
+        info: dict = {}
+        infos[key] = info
+        try:
+            stepper = make()
+            info["pairs"] = getattr(stepper, "n_pairs", 0)
             if args.check:
-                info["check"] = peers.check_closed_loop(
-                    HarvestQPStep(problem, collision, solver).step, problem, args.check, evaluator
-                )
-            results[key] = peers.time_closed_loop(HarvestQPStep(problem, collision, solver).step, problem, 200, args.n)
-            print(peers.format_result(key, results[key], info))
-    results.update(
-        peers.run_peers(problem, n=args.n, n_check=args.check, peers=tuple(p for p in args.peers.split(",") if p))
-    )
+                info["check"] = peers.check_closed_loop(stepper.step, problem, args.check, evaluator)
+            steppers[key] = make()  # fresh state for timing
+        except Exception as exc:  # noqa: BLE001 - report and skip a contender that cannot run
+            info["error"] = f"{type(exc).__name__}: {exc}"
+
+    # Round-robin: the host's speed drifts by up to ~1.7x over minutes, so every contender
+    # is timed in every round and the median of its round medians is reported.
+    per_round = max(args.n // max(args.rounds, 1), 50)
+    rounds: dict[str, list[float]] = {key: [] for key in steppers}
+    for _ in range(max(args.rounds, 1)):
+        for key, stepper in steppers.items():
+            rounds[key].append(peers.time_closed_loop(stepper.step, problem, 50, per_round))
+    results: dict[str, float | None] = {
+        key: (float(np.median(rounds[key])) if key in rounds else None) for key in factories
+    }
+    print(f"medians per step (kinematics to joint velocities), closed loop, {args.rounds} interleaved rounds:")
+    for key in factories:
+        print(peers.format_result(key, results[key], infos[key]))
     print("ratios (peer / harvest_qp daqp, same variant; > 1: harvest_qp faster):")
     for peer in ("placo", "mink", "pink"):
         for suffix in ("", "_collision"):
