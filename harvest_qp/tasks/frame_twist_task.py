@@ -53,13 +53,19 @@ class FrameTwistTask(Task):
         self.reference = as_vector(twist, 6, f"{self.frame} reference twist")
 
     def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        J, v = self.compute_rows(configuration, dt)
+        return J.copy(), v.copy()
+
+    def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Like :meth:`compute`, into buffers reused at the next call (the solver's fast path)."""
         if self._frame_id is None:
             self._frame_id = configuration.frame_id(self.frame)
+            self._J_local = np.empty((6, configuration.nv))
+            self._v_local = np.empty(6)
         J = configuration.frame_jacobian_by_id(self._frame_id)
-        v = self.reference if self.gain == 1.0 else self.gain * self.reference  # never mutated downstream
+        v = self.reference if self.gain == 1.0 else self.gain * self.reference
         if self.weight_frame == "local":
             # Rotate rows into the frame's axes so that weights act on local axes.
-            J_local, v_local = np.empty_like(J), np.empty(6)
-            rotate_twist_rows(configuration.data.oMf[self._frame_id].rotation, J, v, J_local, v_local)
-            return J_local, v_local
+            rotate_twist_rows(configuration.data.oMf[self._frame_id].rotation, J, v, self._J_local, self._v_local)
+            return self._J_local, self._v_local
         return J, v
