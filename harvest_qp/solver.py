@@ -242,7 +242,6 @@ class Solver:
         lower, upper, conflicts = _intersect(box_limits, self._lowers[:k], self._uppers[:k], n)
         solution = Solution(qdot=None, lower=lower, upper=upper, conflicts=conflicts)
         levels = sorted(by_level) or [1]
-        x = np.zeros(n)
         for level in levels:
             entries = by_level.get(level, [])
             H = np.zeros((n, n))
