@@ -52,6 +52,7 @@ _REPO = Path(__file__).resolve().parents[1]
 if str(_REPO) not in sys.path:  # run from a checkout without installing the package
     sys.path.insert(0, str(_REPO))
 
+from harvest_qp.episodes import QPEpisodeController  # noqa: E402
 from harvest_qp.interface import RobotInterface  # noqa: E402
 from harvest_qp.robot import description as desc  # noqa: E402
 from harvest_qp.robot.paths import urdf_path  # noqa: E402
@@ -142,13 +143,14 @@ class DaqpTwoTaskController:
         return Command(qdot=np.asarray(x) if exitflag == 1 else np.zeros(12), status=status, task_errors=errors)
 
 
-class HarvestQPController:
+class HarvestQPController(QPEpisodeController):
     """The same two frame tasks with harvest_qp's :class:`~harvest_qp.TaskController`.
 
-    Camera and gripper :class:`~harvest_qp.tasks.FramePoseTask` (targets as in
-    :class:`DaqpTwoTaskController`), posture and damping tasks, joint position, speed
-    (pi/2 rad/s) and acceleration limits and the dual-UR5e collision dampers (same arm,
-    arm to arm, stand): the full per-tick work of the library's controller.
+    Camera and gripper :class:`~harvest_qp.tasks.FramePoseTask` (the camera's target as in
+    :class:`DaqpTwoTaskController`, the gripper holding its start pose), posture and
+    damping tasks, joint position, speed (pi/2 rad/s) and acceleration limits and the
+    dual-UR5e collision dampers (same arm, arm to arm, stand): the full per-tick work of
+    the library's controller, as the runner drives it (task errors for the log included).
     """
 
     def __init__(self, stem) -> None:
@@ -159,28 +161,25 @@ class HarvestQPController:
         self.view = DaqpTwoTaskController(stem).view  # same camera viewpoint as the plain QP
         config = Configuration.dual_ur5e()
         self.camera = FramePoseTask("camera", gain=2.0)
-        self.gripper = FramePoseTask("gripper", gain=2.0)
-        tasks = [self.camera, self.gripper, PostureTask(desc.HOME_Q, weight=1e-4), DampingTask(12, weight=1e-3)]
+        tasks = [
+            self.camera,
+            FramePoseTask("gripper", gain=2.0),
+            PostureTask(desc.HOME_Q, weight=1e-4),
+            DampingTask(12, weight=1e-3),
+        ]
         limits = [CollisionAvoidance.dual_ur5e(config), JointVelocityLimit(config, max_velocity=0.5 * np.pi)]
-        self.controller = TaskController(config, tasks, limits, dt=0.002)
+        super().__init__(TaskController(config, tasks, limits, dt=0.002), update_references=self._sway)
         self.solve_times: list[float] = []
 
-    def reset(self, robot: RobotInterface) -> None:
-        self.controller.reset(robot.joint_positions())
-        self.gripper.set_target_from_configuration(self.controller.configuration)
+    def _sway(self, obs: Observation, controller) -> None:
+        position = self.view[:3, 3] + 0.03 * np.sin(2 * np.pi * 0.5 * obs.time) * np.array([0.0, 1.0, 0.0])
+        self.camera.set_target(position, self.view[:3, :3])
 
     def step(self, obs: Observation) -> Command:
         t0 = time.perf_counter()
-        position = self.view[:3, 3] + 0.03 * np.sin(2 * np.pi * 0.5 * obs.time) * np.array([0.0, 1.0, 0.0])
-        self.camera.set_target(position, self.view[:3, :3])
-        result = self.controller.step(obs.q)
+        command = super().step(obs)
         self.solve_times.append(time.perf_counter() - t0)
-        config = self.controller.configuration
-        errors = {
-            "camera": float(np.linalg.norm(self.camera.error(config)[:3])),
-            "gripper": float(np.linalg.norm(self.gripper.error(config)[:3])),
-        }
-        return Command(qdot=result.qdot, status=result.status, task_errors=errors)
+        return command
 
 
 def make_controller(robot: SimRobot, kind: str = "harvest_qp"):
