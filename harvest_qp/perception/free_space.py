@@ -390,7 +390,7 @@ def _score_samples(
     blocked = np.zeros(n_samples, dtype=bool)
     if context.shape[0] == 0:
         return clearance, clearance.copy(), occluded, blocked
-    tree = cKDTree(context)
+    tree = cKDTree(context, balanced_tree=False, compact_nodes=False)  # built per frame: cheaper unbalanced
     # Clearances beyond the cap count the same (the queries stop there, several times faster);
     # ties are then broken by eq:attr_point.
     free_index = np.flatnonzero(free_mask)
