@@ -27,9 +27,11 @@ Lab frames (``--lab``): the same stages on frames of the MuJoCo lab's ray-cast c
 
 Accuracy (``--accuracy``): p_sb, l and p_gd against the lab's ground truth over lab views
 0.3-0.45 m from the stem (:class:`harvest_qp.perception.synthetic.LabViews`), the figures of
-the notes; ``--seeds`` sets how many sampled scenes (12 views each).  BLAS is limited to one thread (set before numpy loads), as in the
-other benchmarks: on a 2-core machine running other loops, multi-threaded BLAS calls on
-small matrices stall and inflate the timings 2-3x.
+the notes; ``--seeds`` sets how many sampled scenes (12 views each).
+
+BLAS is limited to one thread (set before numpy loads), as in the other benchmarks: on a
+2-core machine running other loops, multi-threaded BLAS calls on small matrices stall and
+inflate the timings 2-3x.
 
 Usage::
 
@@ -149,7 +151,9 @@ def make_lab_frame(width: int, height: int) -> Frame:
     views = LabViews(None, camera=CameraConfig(downsample=848 // width))
     target = views.stem_middle
     pose = np.eye(4)
-    pose[:3, 3] = target + 0.35 * np.array([-np.cos(0.3), np.sin(0.3), 0.2]) / np.linalg.norm([np.cos(0.3), np.sin(0.3), 0.2])
+    pose[:3, 3] = target + 0.35 * np.array([-np.cos(0.3), np.sin(0.3), 0.2]) / np.linalg.norm(
+        [np.cos(0.3), np.sin(0.3), 0.2]
+    )
     pose[:3, :3] = look_at(pose[:3, 3], target)
     frame = views.render(pose)
     return Frame(frame.points, frame.stem_mask, frame.camera_position, views.robot.site_pose("gripper")[:3, 3])
@@ -230,7 +234,9 @@ def accuracy(n_seeds: int) -> dict[str, float]:
     ratio = figure(r["l_ratio"] for r in covered)
     report["l_views"] = len(covered)
     report["l_within_15pct"] = float(np.mean(np.abs(ratio - 1.0) <= 0.15))
-    report["l_ratio_p5"], report["l_ratio_median"], report["l_ratio_p95"] = (float(x) for x in np.percentile(ratio, [5, 50, 95]))
+    report["l_ratio_p5"], report["l_ratio_median"], report["l_ratio_p95"] = (
+        float(x) for x in np.percentile(ratio, [5, 50, 95])
+    )
     for mode in ("selection", "attr_point"):
         surface = figure(r.get(f"gd_surface_{mode}") for r in trusted)
         wood = figure(r.get(f"gd_wood_{mode}") for r in trusted)
@@ -356,7 +362,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=30, help="timed calls per measurement (default 30)")
     parser.add_argument("--bruteforce-848", action="store_true", help="also time the brute force at 848x480 (minutes)")
-    parser.add_argument("--lab", action="store_true", help="also time the stages on lab frames (MuJoCo ray-cast camera)")
+    parser.add_argument(
+        "--lab", action="store_true", help="also time the stages on lab frames (MuJoCo ray-cast camera)"
+    )
     parser.add_argument("--accuracy", action="store_true", help="only the accuracy on lab views (no timing)")
     parser.add_argument("--seeds", type=int, default=40, help="sampled scenes for --accuracy (12 views each)")
     args = parser.parse_args()

@@ -258,7 +258,9 @@ def compute_free_space(
         context = as_finite_points("scene_points", scene_points)
         context_radius = as_positive_scalar(context_radius, "context_radius", allow_zero=True)
         segment_clearance = as_positive_scalar(segment_clearance, "segment_clearance", allow_zero=True)
-        segment_skip = 0.003 if segment_skip is None else as_positive_scalar(segment_skip, "segment_skip", allow_zero=True)
+        segment_skip = (
+            0.003 if segment_skip is None else as_positive_scalar(segment_skip, "segment_skip", allow_zero=True)
+        )
         visibility_margin = as_positive_scalar(visibility_margin, "visibility_margin", allow_zero=True)
         visibility_cell = as_positive_scalar(visibility_cell, "visibility_cell")
         clearance_cap = as_positive_scalar(clearance_cap, "clearance_cap")

@@ -196,7 +196,9 @@ def _point_spacing(points: NDArray[np.float64]) -> float:
     return float(np.median(distances[:, 1]))
 
 
-def _estimate_radius(points: NDArray[np.float64], labels: NDArray[np.intp], camera: NDArray[np.float64], pitch: float) -> float:
+def _estimate_radius(
+    points: NDArray[np.float64], labels: NDArray[np.intp], camera: NDArray[np.float64], pitch: float
+) -> float:
     """Stem radius [m] from the width of each cluster across its axis, as seen from the camera.
 
     The seen width of a cylinder of radius r is 2 r wherever it is seen from; pixels sample it

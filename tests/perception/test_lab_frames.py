@@ -236,7 +236,10 @@ def test_process_cloud_on_a_lab_frame(lab):
     target as the parts called directly."""
     view = next(v for v in lab if v.model is not None and v.model.trusted())
     result = process_cloud(
-        view.frame.points, view.frame.stem_mask, camera_position=view.frame.camera_position, gripper_position=view.gripper
+        view.frame.points,
+        view.frame.stem_mask,
+        camera_position=view.frame.camera_position,
+        gripper_position=view.gripper,
     )
     np.testing.assert_allclose(result.stem_base, view.model.base)
     assert result.stem.quality == view.model.quality
