@@ -309,6 +309,12 @@ class Unveiling:
         memory_radius: non-stem points within this of the ROI centre are remembered as 1 cm
             voxels for the viewpoint search [m] (0.45, as measured in FINDINGS).
         frame_period: assumed time between frames [s] when :meth:`observe` gets no timestamp.
+        max_stem_points, max_obstacle_points: in the paper mode, more stem / non-stem points
+            than these are thinned by a uniform stride before the ray/obstacle pairs (``None``:
+            never).  Not in the paper: at 848x480 the pairs took 44 ms median per lab frame
+            (``benchmarks/bench_references.py``); only the bounded law's direction is used, and
+            thinning to these counts changed it by cos >= 0.92 (mostly >= 0.99) on synthetic
+            848x480 frames (``/work/notes/references.md``).
 
     Attributes:
         raw: last unfiltered V_cu ``(6,)`` [m/s; rad/s].
@@ -341,6 +347,8 @@ class Unveiling:
         stall_time: float = 1.5,
         memory_radius: float = 0.45,
         frame_period: float = 1.0 / 30.0,
+        max_stem_points: int | None = 300,
+        max_obstacle_points: int | None = 45_000,
     ) -> None:
         self.k_c = as_positive_scalar(k_c, "k_c")
         self.d_a = as_positive_scalar(d_a, "d_a")
@@ -374,6 +382,11 @@ class Unveiling:
         self.stall_time = as_positive_scalar(stall_time, "stall_time")
         self.memory_radius = as_positive_scalar(memory_radius, "memory_radius")
         self.frame_period = as_positive_scalar(frame_period, "frame_period")
+        for name, value in (("max_stem_points", max_stem_points), ("max_obstacle_points", max_obstacle_points)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
+                raise InvalidInputError(f"{name} must be None or an integer >= 1, got {value!r}")
+        self.max_stem_points = None if max_stem_points is None else int(max_stem_points)
+        self.max_obstacle_points = None if max_obstacle_points is None else int(max_obstacle_points)
         self.next_best_view = NextBestView(
             angles=self.nbv_angles,
             azimuths=self.nbv_azimuths,
@@ -442,6 +455,12 @@ class Unveiling:
             return
         from harvest_qp.perception.unveiling import ray_obstacle_pairs  # noqa: PLC0415 (circular at module level)
 
+        # Only the law's direction is used; uniform strides over the (image-ordered) points keep
+        # it while the cost stays about that of a 283x160 frame (see max_stem_points).
+        if self.max_stem_points is not None and stem.shape[0] > self.max_stem_points:
+            stem = stem[:: -(-stem.shape[0] // self.max_stem_points)]
+        if self.max_obstacle_points is not None and obstacles.shape[0] > self.max_obstacle_points:
+            obstacles = obstacles[:: -(-obstacles.shape[0] // self.max_obstacle_points)]
         pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=self.d_a, d_o=self.d_o)
         self.mode = "paper"
         self.n_pairs = int(np.count_nonzero(_pair_weights(pairs, 1e-6, self.min_pivot)))
