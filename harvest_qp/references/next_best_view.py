@@ -17,7 +17,8 @@ This step looks for a viewpoint instead:
    it on the sphere about the ROI centre (radius: the current distance, at least
    ``min_distance``).
 3. Score: how many predicted stem points each candidate sees past the memory (segment farther
-   than ``clearance`` from every voxel, voxels within ``ignore_radius`` of the stem point
+   than ``clearance`` from every voxel centre, at least the voxel's half-diagonal 8.7 mm so that
+   a voxelised leaf has no gaps, voxels within ``ignore_radius`` of the stem point
    ignored: the crop and gripper touch the stem without hiding it); ties are broken by fewer
    voxels on the lines of sight, then by the smaller angle.  Directions abandoned by the stall
    rule are excluded.
@@ -44,6 +45,7 @@ __all__ = ["NextBestView", "VoxelMemory", "sight_lines"]
 _KEY_OFFSET = 1 << 20  # voxel indices are shifted by this to pack three into one int64
 _KEY_BITS = 21
 _MAX_MEMORY_INPUT = 10_000  # points per frame fed to the voxel memory
+_VOXEL = 0.01  # edge of the memory's voxels [m]
 
 
 class VoxelMemory:
@@ -182,14 +184,16 @@ class NextBestView:
         self.azimuths = int(azimuths)
         self.speed = speed
         self.gain = gain
-        self.clearance = clearance
+        # A surface stored as 1 cm voxel centres has gaps up to the voxel's half-diagonal
+        # (8.7 mm) between centres: a smaller clearance would see through a leaf.
+        self.clearance = max(float(clearance), 0.5 * math.sqrt(3.0) * _VOXEL)
         self.ignore_radius = ignore_radius
         self.goal_fraction = goal_fraction
         self.min_distance = min_distance
         self.stall_time = stall_time
         self.memory_radius = memory_radius
         self.switch_margin = switch_margin
-        self.memory = VoxelMemory(0.01)
+        self.memory = VoxelMemory(_VOXEL)
         self.reset()
 
     def reset(self) -> None:
