@@ -77,6 +77,15 @@ def test_magnitude_is_bounded_and_resolution_independent(frames_at_two_resolutio
         assert np.linalg.norm(bounded[3:]) > 0.1  # not a vanishing twist either
         twists[width] = bounded / np.linalg.norm(bounded)
     assert twists[283] @ twists[848] > 0.98
+    # The Unveiling object thins the 848x480 frame (max_stem_points, max_obstacle_points) before
+    # the pairs: still bounded, still the same direction.
+    raws = {}
+    for width, (eye, stem, obstacles) in frames_at_two_resolutions.items():
+        law = Unveiling()
+        law.observe(eye, stem, obstacles)
+        assert np.linalg.norm(law.raw[3:]) <= 0.2 + 1e-12 and np.linalg.norm(law.raw[:3]) <= 0.1 + 1e-12
+        raws[width] = law.raw / np.linalg.norm(law.raw)
+    assert raws[283] @ raws[848] > 0.9
 
 
 @pytest.fixture(scope="module")
