@@ -45,7 +45,7 @@ class StemStretching:
             integral whose own term still fits in the saturation.
         integration_threshold: the integral starts only once n_c^T f has exceeded this [N]
             (latched until :meth:`reset`); ``None`` integrates from the start as the paper does.
-            Deviation, measured (FINDINGS, "Grasping arm"): at the bimanual start the slack stem
+            Deviation, measured (lab measurements, README): at the bimanual start the slack stem
             swings and is compressed (-2.5 N for ~2 s); integrating that wound the PI up to a
             4.54-5.87 N peak (51-96 % over f_d), integrating only once n_c^T f > 1 N gave
             3.43-3.47 N (14-16 %).

@@ -2,7 +2,7 @@
 
 The paper's V_cu (``eq:v_c2``) is zero while no stem point is seen (n_S = 0).  When a leaf
 hides the stem along the whole approach, the camera then reaches the ROI and never sees the
-stem (FINDINGS, "A stem hidden along the whole approach"; reproduced on the lab scenes by
+stem (the lab measurements in the README; reproduced on the lab scenes by
 ``tests/references/test_unveiling_closed_loop.py``).  Applying the paper's potential to
 *predicted* stem points instead does not help: a ray through the middle of a leaf has
 obstacle points on every side, the repulsions cancel, and the camera dithers (measured on the

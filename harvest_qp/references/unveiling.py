@@ -13,8 +13,7 @@ is :func:`unveiling_velocity` (literal) with its parts :func:`barrier_potential`
 :func:`repulsive_velocity` and :func:`stem_angular_velocities`.
 
 :class:`Unveiling` is the reference object the closed loop uses.  It deviates from the paper
-in two measured ways (numbers in ``/work/notes/references.md`` and FINDINGS, "V_cu (unveiling)
-on lab clouds"):
+in two measured ways (the numbers are in the README's section on the reference laws):
 
 1. Bounded (the "paper" mode).  On this project's clouds the literal law with the paper's
    k_c reaches 1e4-1e5 rad/s and grows with the cloud's resolution: the sums run over every
@@ -30,7 +29,7 @@ on lab clouds"):
 2. Beyond the paper (the "predicted" mode).  While no stem point is seen (n_S = 0, where the
    paper's V_cu is zero), a stem hidden along the whole approach would never be unveiled.  The
    paper's potential applied to predicted stem points does not help: a ray through a leaf is
-   symmetric about it, the repulsions cancel and the camera dithers (FINDINGS; reproduced in
+   symmetric about it, the repulsions cancel and the camera dithers (the lab measurements; reproduced in
    ``tests/references/test_unveiling_closed_loop.py``).  Instead a next-best-view step scores
    candidate viewpoints on the sphere around the ROI centre by how many predicted stem points
    they see past the observed non-stem points, and moves the camera tangentially towards the
@@ -260,7 +259,7 @@ def predicted_stem_points(
     rises from the grasp along -y_g.  Returns ``(n, 3)`` points [m] evenly spaced on the segment
     from ``offset`` to ``offset + length`` above the grasp origin along -y_g.  The defaults
     (1.5 cm, 6 cm) match the lab's grasp offset and a typical 5-7 cm stem; real stems bend
-    5-15 deg off that axis (FINDINGS), which the consumer must tolerate.
+    5-15 deg off that axis (lab measurements, README), which the consumer must tolerate.
     """
     pose = as_pose(gripper_pose, "gripper_pose")
     offset = as_positive_scalar(offset, "offset", allow_zero=True)
@@ -283,8 +282,8 @@ class Unveiling:
         d_a: influence distance of ``eq:art_potential`` [m] (0.01).
         d_o: obstacle sphere radius [m] (0.001).
         time_constant: first-order low-pass on V_cu [s] (the paper's remedy for its
-            discontinuity; 0.2 s measured to work, FINDINGS).
-        max_linear, max_angular: bounds on the raw twist [m/s], [rad/s] (0.1, 0.2: FINDINGS'
+            discontinuity; 0.2 s worked in the lab measurements).
+        max_linear, max_angular: bounds on the raw twist [m/s], [rad/s] (0.1, 0.2: the lab measurements'
             closed-loop variant that unveiled most; the low-pass only shrinks it further).
         min_pivot: pairs whose pivot arm |p_hat - p_sj| is shorter are dropped [m] (3 cm).
         min_stem_points: with predicted points given, the paper mode takes over from the
@@ -303,20 +302,20 @@ class Unveiling:
         goal_fraction: the step stops when this fraction of predicted points is clear from the
             current viewpoint.
         min_distance: the step never brings the camera closer to the ROI centre than this [m];
-            below it an outward speed gain x deficit is added (FINDINGS: without it the camera
+            below it an outward speed gain x deficit is added (lab measurements: without it the camera
             drifted to 3 cm from the grape).
         stall_time: a target viewpoint towards which the camera made less than 1 deg of
-            progress for this long [s] is abandoned and its direction avoided (FINDINGS: a
+            progress for this long [s] is abandoned and its direction avoided (lab measurements: a
             collision row held the arm 20 s aiming at an unreachable viewpoint).
         memory_radius: non-stem points within this of the ROI centre are remembered as 1 cm
-            voxels for the viewpoint search [m] (0.45, as measured in FINDINGS).
+            voxels for the viewpoint search [m] (0.45, as in the lab measurements).
         frame_period: assumed time between frames [s] when :meth:`observe` gets no timestamp.
         max_stem_points, max_obstacle_points: in the paper mode, more stem / non-stem points
             than these are thinned by a uniform stride before the ray/obstacle pairs (``None``:
             never).  Not in the paper: at 848x480 the pairs took 44 ms median per lab frame
             (``benchmarks/bench_references.py``); only the bounded law's direction is used, and
             thinning to these counts changed it by cos >= 0.92 (mostly >= 0.99) on synthetic
-            848x480 frames (``/work/notes/references.md``).
+            848x480 frames (README, reference laws).
 
     Attributes:
         raw: last unfiltered V_cu ``(6,)`` [m/s; rad/s].

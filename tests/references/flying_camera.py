@@ -111,7 +111,7 @@ def hidden_stem_scene(
     """The default scene with its leaves replaced by one leaf ``leaf_offset`` [m] in front of
     the stem's midpoint as seen from +x (the approach direction), shifted by ``leaf_shift``
     (y, z) [m].  Unshifted, the stem stays hidden along the whole straight approach, as in
-    FINDINGS "A stem hidden along the whole approach"; shifted, it is partly occluded."""
+    the lab measurements "A stem hidden along the whole approach"; shifted, it is partly occluded."""
     scene = VineScene.default(seed=seed)
     mid = 0.5 * (scene.stem_base + scene.stem_end)
     centre = mid + np.array([leaf_offset, *leaf_shift])

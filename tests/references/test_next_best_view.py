@@ -125,7 +125,7 @@ def test_minimum_distance_pushes_outwards():
 def test_stall_rule_abandons_a_viewpoint_the_camera_cannot_reach():
     """A camera that never moves (held by a collision row) keeps its first target for
     stall_time (1.5 s), then abandons it and picks another direction.  Catches: a stall
-    rule that never fires (FINDINGS: 20 s pinned on seed 3)."""
+    rule that never fires (lab measurements: 20 s pinned on seed 3)."""
     leaf = _leaf([0.08, 0.0, 0.03], [1.0, 0.0, 0.0], 0.05)
     camera = ROI + np.array([0.35, 0.0, 0.0])
     law = Unveiling(stall_time=1.5)

@@ -95,7 +95,7 @@ def lab():
 
 def test_stem_hidden_along_the_whole_approach_is_unveiled_only_by_the_extension(lab):
     """The lab's default scene (VineSceneParams()), camera from its home pose, ROI on the grape
-    (FINDINGS: V_cr alone reaches 1.01 r and sees 0 stem points).  The paper's law alone
+    (lab measurements: V_cr alone reaches 1.01 r and sees 0 stem points).  The paper's law alone
     (Unveiling without predicted points: n_S = 0 keeps V_cu = 0) sees 0 points for 10 s; with the
     predicted stem points the next-best-view step sees >= 10 within 6 s (measured 3.8 s) and
     keeps the stem in view to the end, at <= 1.05 r and centred.
@@ -122,7 +122,7 @@ def test_paper_potential_on_predicted_points_does_not_unveil(lab):
     """The obvious alternative the extension replaces: the (bounded) paper potential applied to
     the predicted points as if seen.  A ray through the middle of a leaf has obstacle points on
     every side and the repulsions cancel: 0 stem points in 10 s on the default lab scene
-    (FINDINGS measured the same dithering through the QP)."""
+    (the lab measurements showed the same dithering through the QP)."""
 
     class PaperOnPredicted(Unveiling):
         def observe(self, camera_position, stem_points, obstacle_points, *, predicted_stem_points=None, **kwargs):
