@@ -148,6 +148,17 @@ class LabCamera:
         )
         self._stem = STEM
 
+    def shift_occluder(self, distance: float) -> None:
+        """Move the occluding leaf by ``distance`` [m] along its long axis (a partly occluded stem)."""
+        import mujoco
+
+        model, data = self.scene.model, self.data
+        geom = self.scene.ids["occluder"]
+        axis = data.geom_xmat[geom].reshape(3, 3)[:, int(np.argmax(model.geom_size[geom]))]
+        body_rotation = data.xmat[model.geom_bodyid[geom]].reshape(3, 3)
+        model.geom_pos[geom] += body_rotation.T @ (distance * axis)
+        mujoco.mj_forward(model, data)
+
     def frame(self, pose: np.ndarray, t: float):
         cloud = self.camera.capture(self.data, pose, t)
         stem = cloud.labels == self._stem

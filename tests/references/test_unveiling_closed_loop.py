@@ -39,6 +39,23 @@ def test_bounded_law_unveils_a_partly_occluded_stem():
     assert np.linalg.norm(with_cu.positions[-1] - mid) < 0.38 and with_cu.thetas[-1] < np.radians(1.0)
 
 
+def test_bounded_law_unveils_a_partly_occluded_lab_stem():
+    """The lab's default scene with the occluding leaf moved 4 cm along its long axis: under
+    V_cr alone the stem fades to ~4 visible points as the camera nears the ROI; with the bounded
+    V_cu it rises past 150 (measured 203 at 12 s), and the camera still ends within 1.05 r,
+    centred.  Catches: the same bugs as the synthetic test, on the lab's own clouds (robot and
+    berry points included)."""
+    lab = LabCamera()
+    lab.shift_occluder(-0.04)
+    gripper = lab.scene.gripper_home
+    roi = gripper[:3, 3] + 0.04 * gripper[:3, 1]
+    alone = fly_lab(lab, unveiling=None, duration=12.0)
+    with_cu = fly_lab(lab, unveiling=Unveiling(), duration=12.0)
+    assert np.mean(alone.stem_points[-10:]) < 20
+    assert np.mean(with_cu.stem_points[-10:]) > 150
+    assert np.linalg.norm(with_cu.positions[-1] - roi) < 1.05 * 0.35 and with_cu.thetas[-1] < np.radians(1.0)
+
+
 def test_paper_law_without_bounds_is_unusable():
     """The literal law (no pivot drop, no saturation; only the low-pass) on the same flight:
     |w| reaches tens of rad/s and the camera is thrown out of the ROI.  Documents why the
