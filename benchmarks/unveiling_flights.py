@@ -8,6 +8,8 @@ Tables (``--table``):
 * ``partial``: synthetic scene, one leaf over the stem's lower half, approach from 0.5 m for
   8 s: V_cr alone, the bounded law (two bounds), the literal law, the literal law with the
   pivot drop only, saturation only.  ``--width/--height`` pick the resolution.
+* ``lab-partial``: the lab's default scene with the occluding leaf moved by ``--shift`` [m]
+  (default -0.04) along its long axis, 20 s from home: V_cr alone and two bounds.
 * ``magnitude``: one frame at 0.5 m and 0.35 m at 141x80, 283x160, 848x480: |w| of the literal
   law, with the 3 cm pivot drop, and the bounded law, and the bounded direction's agreement.
 * ``hidden``: the MuJoCo lab's default scene and seeds 1-5 (stem hidden along the straight
@@ -72,6 +74,29 @@ def partial(width: int, height: int) -> None:
         print(
             f"| {name} | {n[0]}/{n[20]}/{n[40]}/{n[60]}/{n[-1]} | {n[-20:].mean():.0f} | {flight.max_angular:.3g} | "
             f"{np.linalg.norm(flight.positions[-1] - mid):.3f} | {np.degrees(flight.thetas[-1]):.2f} |",
+            flush=True,
+        )
+
+
+def lab_partial(shift: float) -> None:
+    lab = LabCamera()
+    lab.shift_occluder(shift)
+    gripper = lab.scene.gripper_home
+    roi = gripper[:3, 3] + 0.04 * gripper[:3, 1]
+    print("| variant | stem points at 2/5/8/12/16 s | last 5 s | max |w| [rad/s] | end d/r | end theta [deg] |")
+    print("|---|---|---|---|---|---|")
+    laws = {
+        "V_cr alone": None,
+        "bounded 0.2 rad/s, 0.1 m/s": Unveiling(),
+        "bounded 0.1 rad/s, 0.05 m/s": Unveiling(max_angular=0.1, max_linear=0.05),
+    }
+    for name, law in laws.items():
+        flight = fly_lab(lab, unveiling=law, duration=20.0)
+        n = np.array(flight.stem_points)
+        print(
+            f"| {name} | {'/'.join(str(n[int(t * 10)]) for t in (2, 5, 8, 12, 16))} | {n[-50:].mean():.0f} | "
+            f"{flight.max_angular:.3g} | {np.linalg.norm(flight.positions[-1] - roi) / 0.35:.2f} | "
+            f"{np.degrees(flight.thetas[-1]):.2f} |",
             flush=True,
         )
 
@@ -166,13 +191,16 @@ def prediction() -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--table", choices=("partial", "magnitude", "hidden", "prediction"), required=True)
+    parser.add_argument(
+        "--table", choices=("partial", "lab-partial", "magnitude", "hidden", "prediction"), required=True
+    )
+    parser.add_argument("--shift", type=float, default=-0.04)
     parser.add_argument("--width", type=int, default=283)
     parser.add_argument("--height", type=int, default=160)
     args = parser.parse_args()
     start = time.perf_counter()
-    {"partial": lambda: partial(args.width, args.height), "magnitude": magnitude, "hidden": hidden,
-     "prediction": prediction}[args.table]()  # fmt: skip
+    {"partial": lambda: partial(args.width, args.height), "lab-partial": lambda: lab_partial(args.shift),
+     "magnitude": magnitude, "hidden": hidden, "prediction": prediction}[args.table]()  # fmt: skip
     print(f"({time.perf_counter() - start:.0f} s)")
 
 
