@@ -5,7 +5,8 @@ detached from the arm and flown kinematically under V_cr + V_cu from the camera'
 (``tests/references/flying_camera.py``): 10 s, frames at 10 Hz, at 283x160 (downsample 3) and
 848x480 (downsample 1).  Timed on the recorded frames:
 
-* ``Unveiling.observe`` in the "predicted" mode (next-best-view step, while the stem is hidden)
+* ``Unveiling.observe`` in the "predicted" mode (one full next-best-view step, while the stem
+  is hidden; with the default ``nbv_period`` only every third 30 Hz frame runs one)
   and in the "paper" mode (ray/obstacle pairs + bounded V_cu, once the stem is seen);
 * ``ReachingCentering.update``, ``Unveiling.update``, ``StemStretching.update`` per control tick.
 
@@ -82,7 +83,9 @@ def main() -> None:
         frames, predicted, roi = frames_along_a_flight(downsample)
         for mode in ("predicted", "paper"):
             chosen = [f for f in frames if f[3] == mode]
-            law = Unveiling()
+            # nbv_period=0: every call plans (the timed figure is one full step; at 30 Hz frames
+            # the default nbv_period = 0.1 s plans on every third frame only).
+            law = Unveiling(nbv_period=0.0)
             per_frame = []
             for camera, stem, obstacles, _ in chosen:
                 per_frame.append(
