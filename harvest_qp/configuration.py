@@ -41,6 +41,7 @@ class Configuration:
         self.data = model.createData()
         self._frame_ids = {model.frames[i].name: i for i in range(model.nframes)}
         self._joint_ids = {model.names[i]: i for i in range(1, model.njoints)}
+        self._nframes = model.nframes
         self.update(pin.neutral(model) if q is None else q)
 
     # ------------------------------------------------------------------ construction
@@ -93,10 +94,19 @@ class Configuration:
         """Joint speed limits [rad/s]."""
         return self.model.velocityLimit
 
+    @property
+    def q(self) -> np.ndarray:
+        """Joint positions [rad] (nv,); assigning it is :meth:`update` (checked, kinematics recomputed)."""
+        return self._q
+
+    @q.setter
+    def q(self, value: np.ndarray | Sequence[float]) -> None:
+        self.update(value)
+
     def update(self, q: np.ndarray | Sequence[float]) -> None:
         """Set joint positions [rad] and recompute placements and joint Jacobians."""
         q = as_vector(q, self.model.nq, "Configuration q")
-        self.q = q
+        self._q = q
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
 
@@ -140,6 +150,11 @@ class Configuration:
 
     def frame_jacobian_by_id(self, frame_id: int) -> np.ndarray:
         """Like :meth:`frame_jacobian` for a frame index (no name lookup, for hot loops)."""
+        is_index = type(frame_id) is int or isinstance(frame_id, np.integer)
+        if not is_index or not 0 <= frame_id < self._nframes:
+            raise InvalidInputError(
+                f"frame_id must be an int in [0, {self._nframes}) (see frame_id()), got {describe(frame_id)}"
+            )
         return pin.getFrameJacobian(self.model, self.data, frame_id, _LWA)
 
     def point_jacobian(self, name: str, point: np.ndarray) -> np.ndarray:

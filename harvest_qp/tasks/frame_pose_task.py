@@ -26,12 +26,39 @@ class FramePoseTask(Task):
     def __init__(self, frame: str, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0) -> None:
         self.frame = as_name(frame, "FramePoseTask frame")
         super().__init__(6, weight=weight, level=level, gain=gain)
-        self.target_position: np.ndarray | None = None
-        self.target_rotation: np.ndarray | None = None
-        self.feedforward = np.zeros(6)
+        self._target_position: np.ndarray | None = None
+        self._target_rotation: np.ndarray | None = None
+        self._feedforward = np.zeros(6)
 
     def _label(self) -> str:
         return f"FramePoseTask({getattr(self, 'frame', '?')!r})"
+
+    @property
+    def target_position(self) -> np.ndarray | None:
+        """Target position [m] (world), None before :meth:`set_target`."""
+        return self._target_position
+
+    @target_position.setter
+    def target_position(self, value: np.ndarray | Sequence[float]) -> None:
+        self._target_position = as_vector(value, 3, f"{self._label()} target position")
+
+    @property
+    def target_rotation(self) -> np.ndarray | None:
+        """Target rotation matrix (world), None before :meth:`set_target`."""
+        return self._target_rotation
+
+    @target_rotation.setter
+    def target_rotation(self, value: np.ndarray | Sequence[Sequence[float]]) -> None:
+        self._target_rotation = as_rotation(value, f"{self._label()} target rotation")
+
+    @property
+    def feedforward(self) -> np.ndarray:
+        """Feed-forward twist [m/s, rad/s] (world) added to the feedback."""
+        return self._feedforward
+
+    @feedforward.setter
+    def feedforward(self, value: np.ndarray | Sequence[float]) -> None:
+        self._feedforward = as_vector(value, 6, f"{self._label()} feedforward")
 
     def set_target(
         self,
@@ -46,7 +73,7 @@ class FramePoseTask(Task):
         position = as_vector(position, 3, f"{label} target position")
         rotation = as_rotation(rotation, f"{label} target rotation")
         feedforward = np.zeros(6) if feedforward is None else as_vector(feedforward, 6, f"{label} feedforward")
-        self.target_position, self.target_rotation, self.feedforward = position, rotation, feedforward
+        self._target_position, self._target_rotation, self._feedforward = position, rotation, feedforward
 
     def set_target_from_configuration(self, configuration: Configuration) -> None:
         """Hold the frame where it is now."""
@@ -60,7 +87,7 @@ class FramePoseTask(Task):
 
     def error(self, configuration: Configuration) -> np.ndarray:
         """Pose error ``[p* - p; log3(R* R^T)]`` [m, rad] in the world frame."""
-        if self.target_position is None:
+        if self._target_position is None or self._target_rotation is None:
             raise InvalidInputError(f"{self._label()} has no target: call set_target first")
         self._ensure_bound(configuration)
         pose = configuration.frame_pose(self.frame)

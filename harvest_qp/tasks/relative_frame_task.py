@@ -41,11 +41,29 @@ class RelativeFrameTask(Task):
             # The pose of a frame in itself never changes: the rows would be all zero.
             raise InvalidInputError(f"RelativeFrameTask frame and root must differ, got both {frame!r}")
         super().__init__(6, weight=weight, level=level, gain=gain)
-        self.target_position: np.ndarray | None = None
-        self.target_rotation: np.ndarray | None = None
+        self._target_position: np.ndarray | None = None
+        self._target_rotation: np.ndarray | None = None
 
     def _label(self) -> str:
         return f"RelativeFrameTask({getattr(self, 'frame', '?')!r}, {getattr(self, 'root', '?')!r})"
+
+    @property
+    def target_position(self) -> np.ndarray | None:
+        """Target position [m] of ``frame`` in ``root``, None before :meth:`set_target`."""
+        return self._target_position
+
+    @target_position.setter
+    def target_position(self, value: np.ndarray | Sequence[float]) -> None:
+        self._target_position = as_vector(value, 3, f"{self._label()} target position")
+
+    @property
+    def target_rotation(self) -> np.ndarray | None:
+        """Target rotation matrix of ``frame`` in ``root``, None before :meth:`set_target`."""
+        return self._target_rotation
+
+    @target_rotation.setter
+    def target_rotation(self, value: np.ndarray | Sequence[Sequence[float]]) -> None:
+        self._target_rotation = as_rotation(value, f"{self._label()} target rotation")
 
     def set_target(
         self, position: np.ndarray | Sequence[float], rotation: np.ndarray | Sequence[Sequence[float]]
@@ -54,7 +72,7 @@ class RelativeFrameTask(Task):
         label = self._label()
         position = as_vector(position, 3, f"{label} target position")
         rotation = as_rotation(rotation, f"{label} target rotation")
-        self.target_position, self.target_rotation = position, rotation
+        self._target_position, self._target_rotation = position, rotation
 
     def check_configuration(self, configuration: Configuration) -> None:
         super().check_configuration(configuration)
@@ -84,7 +102,7 @@ class RelativeFrameTask(Task):
 
     def error(self, configuration: Configuration) -> np.ndarray:
         """Relative pose error [m, rad] in root coordinates."""
-        if self.target_position is None:
+        if self._target_position is None or self._target_rotation is None:
             raise InvalidInputError(f"{self._label()} has no target: call set_target first")
         p, R = self.relative_pose(configuration)
         return np.concatenate([self.target_position - p, pin.log3(self.target_rotation @ R.T)])

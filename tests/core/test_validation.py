@@ -105,6 +105,21 @@ BAD_INPUT = [
         lambda: RelativeFrameTask("cutter_tip", "gripper").set_target(np.zeros(3), 2 * np.eye(3)),
         ["RelativeFrameTask", "rotation", "det R = 8"],
     ),
+    (
+        "pose assign rotation",
+        lambda: setattr(FramePoseTask("gripper"), "target_rotation", 2 * np.eye(3)),
+        ["rotation", "det R = 8"],
+    ),
+    (
+        "pose assign feedforward",
+        lambda: setattr(FramePoseTask("gripper"), "feedforward", None),
+        ["feedforward", "None"],
+    ),
+    (
+        "relative assign position",
+        lambda: setattr(RelativeFrameTask("cutter_tip", "gripper"), "target_position", None),
+        ["position", "None"],
+    ),
     ("relative same", lambda: RelativeFrameTask("gripper", "gripper"), ["root", "'gripper'"]),
     ("relative root None", lambda: RelativeFrameTask("gripper", None), ["root", "None"]),
     ("jpl gain 2", lambda: JointPositionLimit(C, gain=2), ["JointPositionLimit gain", "2", "(0, 1]"]),
@@ -144,6 +159,9 @@ BAD_INPUT = [
     ("integrate 11", lambda: C.integrate(np.zeros(11), 0.1), ["qdot", "(11,)"]),
     ("integrate dt nan", lambda: C.integrate(np.zeros(12), np.nan), ["dt", "nan"]),
     ("integrate dt<0", lambda: C.integrate(np.zeros(12), -0.1), ["dt", "-0.1"]),
+    ("frame_id 1e6", lambda: C.frame_jacobian_by_id(10**6), ["frame_id", "1000000"]),
+    ("frame_id float", lambda: C.frame_jacobian_by_id(2.0), ["frame_id", "2.0"]),
+    ("assign q", lambda: setattr(C, "q", None), ["q", "None"]),
     ("point None", lambda: C.point_jacobian("gripper", None), ["point", "None"]),
     ("urdf None", lambda: Configuration.from_urdf(None), ["URDF path", "None"]),
     ("residual qdot", lambda: DampingTask(12).residual(C, np.zeros(11), 0.002), ["qdot", "(11,)"]),
@@ -176,6 +194,20 @@ def test_a_rejected_set_target_keeps_the_old_target():
     with pytest.raises(InvalidInputError):
         task.set_target([9.0, 9.0, 9.0], 2 * np.eye(3))
     np.testing.assert_array_equal(task.target_position, [0.1, 0.2, 0.3])
+
+
+def test_assigning_q_recomputes_the_kinematics(rng):
+    """Oracle: pinocchio's forward kinematics. Catches ``configuration.q = ...`` storing the
+    joints without recomputing frame placements and Jacobians (a stale pose)."""
+    configuration = Configuration.dual_ur5e()
+    q = configuration.q + rng.uniform(-0.5, 0.5, 12)
+    configuration.q = q
+    model = configuration.model
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    np.testing.assert_allclose(
+        configuration.frame_position("gripper"), data.oMf[model.getFrameId("gripper")].translation
+    )
 
 
 def test_valid_inputs_still_pass(dual):
