@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
@@ -10,7 +11,34 @@ import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import DimensionError
-from harvest_qp.validation import as_configuration
+from harvest_qp.validation import as_configuration, check_limit_rows
+
+#: Limits defined in this package: their rows' sizes come from the checked model.
+_BUILT_IN_PREFIX = "harvest_qp.limits."
+
+
+def _checked_compute(compute):
+    """Wrap a user ``compute`` so its rows are size-checked before the solver's kernels see them."""
+
+    @functools.wraps(compute)
+    def checked(
+        self: Limit, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None
+    ) -> LimitRows:
+        rows = compute(self, configuration, dt, previous_qdot)
+        if not isinstance(rows, LimitRows):
+            raise DimensionError(f"{type(self).__name__}.compute must return LimitRows, got {type(rows).__name__}")
+        nv = as_configuration(configuration, f"{type(self).__name__} configuration").nv
+        check_limit_rows(self, rows.G, rows.h, nv)
+        for side, value in (("lower", rows.lower), ("upper", rows.upper)):
+            if value is not None and getattr(value, "shape", None) != (nv,):
+                raise DimensionError(
+                    f"{type(self).__name__}.compute returned a box {side} of shape "
+                    f"{getattr(value, 'shape', type(value).__name__)}, expected ({nv},) (one entry per joint)"
+                )
+        return rows
+
+    checked._size_checked = True
+    return checked
 
 
 @dataclass
@@ -44,6 +72,14 @@ class Limit(ABC):
     has_box: bool = False
     #: The pinocchio model this limit was last checked against (None: not yet).
     _model: pin.Model | None = None
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        # The solver's compiled kernels index G by the model's nv without bounds checks: a
+        # limit defined outside this package gets its rows checked as they are computed.
+        own = cls.__dict__.get("compute")
+        if own is not None and not cls.__module__.startswith(_BUILT_IN_PREFIX) and not hasattr(own, "_size_checked"):
+            cls.compute = _checked_compute(own)
 
     def check_configuration(self, configuration: Configuration) -> None:
         """Raise unless this limit can run on ``configuration``'s model.

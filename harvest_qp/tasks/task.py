@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -20,6 +21,22 @@ from harvest_qp.validation import (
 
 #: Level of hard tasks: they become equality constraints of every QP in the stack.
 HARD = 0
+
+#: Tasks defined in this package: their ``compute_rows`` sizes come from the checked model.
+_BUILT_IN_PREFIX = "harvest_qp.tasks."
+
+
+def _checked_compute_rows(compute_rows):
+    """Wrap a user override of ``compute_rows`` so its rows are size-checked before the solver's kernels."""
+
+    @functools.wraps(compute_rows)
+    def checked(self: Task, configuration: Configuration, dt: float) -> tuple[np.ndarray | None, np.ndarray]:
+        J, v = compute_rows(self, configuration, dt)
+        check_task_rows(self, J, v, as_configuration(configuration, f"{self._label()} configuration").nv)
+        return J, v
+
+    checked._size_checked = True
+    return checked
 
 
 class Task(ABC):
@@ -45,6 +62,14 @@ class Task(ABC):
         level: priority level, 0 (hard), 1 (highest soft), 2, ...
         gain: feedback gain [1/s] of tasks that correct an error.
     """
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        # The solver's compiled kernels index by the rows' sizes without bounds checks; a
+        # subclass outside this package that overrides compute_rows gets its rows checked.
+        own = cls.__dict__.get("compute_rows")
+        if own is not None and not cls.__module__.startswith(_BUILT_IN_PREFIX) and not hasattr(own, "_size_checked"):
+            cls.compute_rows = _checked_compute_rows(own)
 
     def __init__(self, dim: int, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0) -> None:
         self._dim = as_integer(dim, f"{type(self).__name__} dim", minimum=1)

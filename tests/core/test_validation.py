@@ -283,6 +283,44 @@ def test_user_task_returning_wrong_shape_raises_dimension_error(dual, monkeypatc
     assert "accumulate_task" not in calls
 
 
+def test_user_task_overriding_compute_rows_is_checked_too(dual, monkeypatch):
+    """Catches the fast path (``compute_rows`` with ``J = None`` meaning identity) handing
+    ``accumulate_diagonal`` a 13-entry weight for a 12x12 Hessian from user code."""
+
+    class Joints(Task):
+        def compute(self, configuration, dt):
+            return np.eye(self.dim), np.zeros(self.dim)
+
+        def compute_rows(self, configuration, dt):
+            return None, np.zeros(self.dim)
+
+    calls = _spy_on_solver_kernels(monkeypatch)
+    with pytest.raises(DimensionError, match=r"J = None \(identity\) needs weight and v of shape \(12,\)"):
+        Solver().solve(dual, [Joints(13)])
+    assert "accumulate_diagonal" not in calls
+    assert Solver().solve(dual, [Joints(12)]).qdot.shape == (12,)
+
+
+def test_user_limit_rows_of_wrong_width_raise(dual):
+    """Catches user inequality rows with 11 columns reaching the feasibility kernel,
+    which reads ``G[r, i]`` for every ``i < nv`` without bounds checks."""
+
+    class Narrow(Limit):
+        def compute(self, configuration, dt, previous_qdot=None):
+            return LimitRows(G=np.ones((1, 11)), h=np.ones(1))
+
+    class Wrong(Limit):
+        has_box = True
+
+        def compute(self, configuration, dt, previous_qdot=None):
+            return LimitRows(lower=-np.ones(11), upper=np.ones(11))
+
+    with pytest.raises(DimensionError, match=r"Narrow.*\(1, 11\).*\(m, 12\)"):
+        Solver().solve(dual, [DampingTask(12)], [Narrow()])
+    with pytest.raises(DimensionError, match=r"Wrong.*lower of shape \(11,\), expected \(12,\)"):
+        Solver().solve(dual, [DampingTask(12)], [Wrong()])
+
+
 def test_limits_sized_for_another_model_raise(dual, single):
     """Catches a limit built for the 6-joint model read past its end on the 12-joint model
     (``position_limit_bounds`` indexes its limits by ``len(q)`` without bounds checks)."""
