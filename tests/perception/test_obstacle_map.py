@@ -549,7 +549,7 @@ def test_feed_gives_the_limit_the_closest_cells_named_by_key_with_the_maps_dista
     assert feed.update() > 0  # the gripper point is 12.5 cm from the wall, its capsule within d_i
     assert feed.cells.shape[0] > 0
     w0, w1 = feed.capsule_world()
-    query = m.closest_cells(w0, w1, feed._radii, max_distance=limit.influence_distance + feed.margin,
+    query = m.closest_cells(w0, w1, feed.radii, max_distance=limit.influence_distance + feed.margin,
                             per_capsule=feed.per_capsule, min_separation=feed.min_separation)  # fmt: skip
     expected_keys = {tuple(k) for c in range(len(w0)) for k in query.keys[c, : query.counts[c]]}
     names = limit.pair_names()
@@ -575,14 +575,14 @@ def test_map_rows_keep_the_gripper_off_a_wall_seen_only_by_the_camera():
         closest = np.inf
         for _ in range(1000):  # 2 s at 0.1 m/s: 20 cm, past the wall
             if feed is not None:
-                feed.update()
+                feed.update(q)
             step = controller.step(q)
             assert step.ok, step.status
             q = q + step.qdot * 0.002
             config.update(q)
             w0, w1 = caps.capsule_world()
             assert np.all(np.isfinite(step.qdot))
-            d = m.closest_cells(w0, w1, caps._radii, max_distance=0.2, per_capsule=1).distances[:, 0]
+            d = m.closest_cells(w0, w1, caps.radii, max_distance=0.2, per_capsule=1).distances[:, 0]
             closest = min(closest, float(d.min()))
         results[with_map] = closest
     assert results[False] < 0.0
