@@ -61,7 +61,7 @@ def lab_frames(robot: SimRobot, downsample: int, n: int) -> list:
     target = scene.stem_base + np.array([0.05, 0.0, -0.08])
     rng = np.random.default_rng(0)
     frames = []
-    for k in range(n):
+    for _ in range(n):
         azimuth = np.pi + rng.uniform(-0.9, 0.9)  # from the robot's side, as the camera arm sees it
         elevation = rng.uniform(-0.2, 0.5)
         eye = target + rng.uniform(0.3, 0.6) * np.array(
@@ -75,7 +75,7 @@ def time_updates(frames: list, exclude, repeats: int) -> tuple[float, float, dic
     m = ObstacleMap()
     m.update(frames[0], exclude=exclude)  # compile and warm up
     wall, cpu = [], []
-    for r in range(repeats):
+    for _ in range(repeats):
         for f in frames:
             t0, c0 = time.perf_counter(), time.process_time()
             stats = m.update(f, exclude=exclude)

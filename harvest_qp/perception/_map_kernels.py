@@ -35,7 +35,8 @@ N_OUTSIDE = 4  # obstacle points outside the grid
 N_STEM_ERASED = 5  # occupied cells forgotten because a stem point fell in them
 N_RAYS = 6  # clearing rays traced
 N_CELLS_CLEARED = 7  # cells that got a miss
-N_COUNTERS = 8
+N_NO_RETURN_RAYS = 8  # clearing rays traced for pixels without a return
+N_COUNTERS = 9
 
 
 @njit(cache=True, inline="always")
@@ -214,15 +215,18 @@ def _clip_to_box(ox, oy, oz, px, py, pz, lo, hi):
 
 @njit(cache=True)
 def integrate_frame(
-    points, labels, pixels, origin, regions, stride, phase_row, phase_col, min_range, max_range,
-    res, lo_key, dims, nby, nbz, log_odds, stamp, frame, hit, miss, clamp_min, clamp_max,
-    dirty, dirty_list, n_dirty, counters,
+    points, labels, pixels, origin, rotation, regions, stride, phase_row, phase_col, min_range, max_range,
+    no_return, nr_stride, nr_phase_row, nr_phase_col, intrinsics, returned, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, hit, miss,
+    clamp_min, clamp_max, dirty, dirty_list, n_dirty, counters,
 ):
     """One camera frame into the map (see ``ObstacleMap.update`` for the rules).
 
     Pass 1 inserts the obstacle points (one hit per cell), pass 2 erases the cells the stem
     points fall in, pass 3 traces the clearing rays of the pixels on the ``stride`` grid
-    (one miss per cell, none where pass 1 or 2 acted this frame).
+    (one miss per cell, none where pass 1 or 2 acted this frame); pass 4, when
+    ``no_return[1] > no_return[0]``, traces the pixels of the ``nr_stride`` grid without any point from
+    ``no_return[0]`` to ``no_return[1]`` [m] along the pinhole rays of ``intrinsics``
+    ``(f, cx, cy)`` [pixels] (camera rotation ``rotation``; ``returned`` is an (h, w) scratch).
     """
     n = points.shape[0]
     ox, oy, oz = origin[0], origin[1], origin[2]
@@ -306,6 +310,40 @@ def integrate_frame(
             sx, sy, sz, px, py, pz, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
             dirty, dirty_list, n_dirty,
         )
+    if no_return[1] <= no_return[0]:
+        return
+    # Pixels without a return (nothing within the camera's range, as the empty space behind
+    # a leaf that moved away): clear along their rays from no_return[0] to no_return[1].
+    h, w = returned.shape
+    returned[:, :] = False
+    for i in range(n):
+        r, c = pixels[i, 0], pixels[i, 1]
+        if 0 <= r < h and 0 <= c < w:
+            returned[r, c] = True  # any point, valid or not: that pixel saw something
+    for r in range(h):
+        if nr_stride > 1 and (r - nr_phase_row) % nr_stride != 0:
+            continue
+        for c in range(w):
+            if returned[r, c] or (nr_stride > 1 and (c - nr_phase_col) % nr_stride != 0):
+                continue
+            xc = (c + 0.5 - intrinsics[1]) / intrinsics[0]
+            yc = (r + 0.5 - intrinsics[2]) / intrinsics[0]
+            norm = np.sqrt(xc * xc + yc * yc + 1.0)
+            dx = (rotation[0, 0] * xc + rotation[0, 1] * yc + rotation[0, 2]) / norm
+            dy = (rotation[1, 0] * xc + rotation[1, 1] * yc + rotation[1, 2]) / norm
+            dz = (rotation[2, 0] * xc + rotation[2, 1] * yc + rotation[2, 2]) / norm
+            ax, ay, az = ox + no_return[0] * dx, oy + no_return[0] * dy, oz + no_return[0] * dz
+            bx, by, bz = ox + no_return[1] * dx, oy + no_return[1] * dy, oz + no_return[1] * dz
+            t0, t1 = _clip_to_box(ax, ay, az, bx, by, bz, lo_in, hi_in)
+            if t0 > t1:
+                continue
+            if t0 > 0.0:
+                ax, ay, az = ax + t0 * (bx - ax), ay + t0 * (by - ay), az + t0 * (bz - az)
+            counters[N_NO_RETURN_RAYS] += 1
+            counters[N_CELLS_CLEARED] += _trace_ray(
+                ax, ay, az, bx, by, bz, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
+                dirty, dirty_list, n_dirty,
+            )
 
 
 @njit(cache=True)

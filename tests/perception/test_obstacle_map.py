@@ -118,6 +118,40 @@ def test_moved_leaf_is_cleared_after_nine_frames():
     assert m.is_occupied(cells_of(WALL)).mean() > 0.95
 
 
+def test_pixels_without_return_clear_only_when_asked():
+    """A leaf in front of nothing (no return behind it) then gone: OctoMap's rule keeps it
+    (no ray passes through); with ``no_return_range`` the empty pixels clear it in 9 frames.
+
+    Catches no-return rays that are never traced, traced along wrong directions (a wrong
+    pinhole fit: the leaf's cells would not be crossed) or traced by default.
+    """
+    leaf = leaf_at(0.5)
+    maps = {None: ObstacleMap(bounds=SMALL), (0.1, 1.0): ObstacleMap(bounds=SMALL, no_return_range=(0.1, 1.0))}
+    for m in maps.values():
+        for _ in range(20):
+            m.update(cast(CAM, [leaf]))
+        assert m.is_occupied(cells_of(leaf)).all()
+    gone = leaf_at(0.5, y=2.0)
+    for frame in range(1, 10):
+        for key, m in maps.items():
+            stats = m.update(cast(CAM, [gone]))
+            assert (stats.no_return_rays > 0) == (key is not None)
+        if frame < 9:
+            assert maps[(0.1, 1.0)].is_occupied(cells_of(leaf)).any()
+    assert maps[None].is_occupied(cells_of(leaf)).all()
+    assert not maps[(0.1, 1.0)].is_occupied(cells_of(leaf)).any()
+    # Cells nearer than the start of the no-return range are kept (an object too close for
+    # the camera returns nothing either).
+    near_leaf = ([0.055, 0.005, 1.005], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01], OBSTACLE)
+    m = ObstacleMap(bounds=SMALL, no_return_range=(0.1, 1.0))
+    for _ in range(3):
+        m.update(cast(CAM, [near_leaf, WALL]))
+    assert m.is_occupied(cells_of(near_leaf)).all()
+    for _ in range(10):
+        m.update(cast(CAM, []))
+    assert m.is_occupied(cells_of(near_leaf)).all()
+
+
 def test_noise_point_is_cleared_after_three_frames():
     """A single spurious point in free space: one hit (0.85), cleared by the 3rd miss (-0.41 each)."""
     m = ObstacleMap(bounds=SMALL, clear_stride=1)
