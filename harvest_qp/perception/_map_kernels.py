@@ -216,7 +216,8 @@ def _clip_to_box(ox, oy, oz, px, py, pz, lo, hi):
 @njit(cache=True)
 def integrate_frame(
     points, labels, pixels, origin, rotation, regions, stride, phase_row, phase_col, min_range, max_range,
-    no_return, nr_stride, nr_phase_row, nr_phase_col, intrinsics, returned, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, hit, miss,
+    no_return, nr_stride, nr_phase_row, nr_phase_col, intrinsics, returned, res, lo_key, dims, nby, nbz,
+    log_odds, stamp, frame, hit, miss,
     clamp_min, clamp_max, dirty, dirty_list, n_dirty, counters,
 ):
     """One camera frame into the map (see ``ObstacleMap.update`` for the rules).

@@ -225,20 +225,22 @@ class ObstacleMap:
         max_range: points farther than this from the camera are ignored [m].
         min_range: points closer than this to the camera are ignored [m].
         prob_hit, prob_miss: occupancy probability of a hit / a miss (OctoMap's defaults).
-        clamp_min, clamp_max: probability clamps (OctoMap's defaults), so a cell at
-            ``clamp_max`` is cleared after ``ceil((logit(clamp_max)) / -logit(prob_miss))``
-            = 9 frames of misses, a new hit makes an unknown or once-cleared cell occupied.
+        clamp_min, clamp_max: probability clamps (OctoMap's defaults): a cell at
+            ``clamp_max`` (log-odds 3.51) is free after 9 frames of misses (-0.405 each);
+            an unknown cell is occupied after 1 hit (+0.847), a cell cleared down to
+            ``clamp_min`` (-2.0) after 3.
         clear_stride: pixel stride of the clearing rays (their phase turns every frame);
             None: the nearest integer to ``sqrt(pixels / clear_rays)``.
         clear_rays: target number of clearing rays per frame when ``clear_stride`` is None.
         no_return_range: ``(start, end)`` [m]: pixels of the clearing grid with no point in
             the cloud (nothing within the camera's depth range) clear their ray from
             ``start`` to ``end`` (on a pixel grid twice as coarse as ``clear_stride``), so
-            a leaf that moved away from an empty background disappears too. Off (None) by default, as in OctoMap: a missing return also
-            comes from dropout, dark or specular surfaces and objects nearer than the
-            camera's minimum depth. The rays follow a pinhole fitted to the cloud's
-            pixels and points (kept per image size for frames that cannot be fitted: too
-            few points or worse than 0.5 pixel RMS).
+            a leaf that moved away from an empty background disappears too. Off (None)
+            by default, as in OctoMap: a missing return also comes from dropout, dark or
+            specular surfaces and objects nearer than the camera's minimum depth. The
+            rays follow a pinhole fitted to the cloud's pixels and points (kept per image
+            size for frames that cannot be fitted: too few points or worse than 0.5 pixel
+            RMS).
         erase_excluded: at each update, erase the cells inside the exclusion regions.
 
     Distances: a cell counts as the sphere of radius ``sqrt(3)/2 * resolution`` around its
