@@ -553,7 +553,7 @@ def test_stem_never_enters_the_map_in_the_lab(lab):
 
 
 def _controller(with_map: bool):
-    """Gripper driven at 0.1 m/s towards a wall 12 cm ahead of it (the wall known only from a cloud)."""
+    """Gripper driven at 0.1 m/s towards a wall 10.5 cm ahead of it (its capsule 6 cm from it) (the wall known only from a cloud)."""
     from harvest_qp import Configuration, TaskController
     from harvest_qp.limits import CollisionAvoidance
     from harvest_qp.robot import description as desc
@@ -567,7 +567,7 @@ def _controller(with_map: bool):
     controller = TaskController(config, tasks, [limit], dt=0.002)
     m = ObstacleMap()
     g = config.frame_position("gripper")
-    wall = ([g[0] + 0.125, g[1], g[2]], [0.0, 0.25, 0.0], [0.0, 0.0, 0.2], OBSTACLE)
+    wall = ([g[0] + 0.105, g[1], g[2]], [0.0, 0.25, 0.0], [0.0, 0.0, 0.2], OBSTACLE)
     pose = look_at(g + [-0.25, 0.02, 0.15], g + [0.2, 0.0, 0.0])
     for _ in range(3):
         m.update(cast(pose, [wall], size=(160, 220)))
@@ -580,7 +580,7 @@ def test_feed_gives_the_limit_the_closest_cells_named_by_key_with_the_maps_dista
     and the limit's own distance for each (capsule, cell) pair equals the map's query distance."""
     config, controller, limit, m, feed = _controller(True)
     config.update(config.q)
-    assert feed.update() > 0  # the gripper point is 12.5 cm from the wall, its capsule within d_i
+    assert feed.update() > 0  # the gripper point is 10.5 cm from the wall, its capsule (tip 5 mm short, r 45 mm) 6 cm: within d_i
     assert feed.cells.shape[0] > 0
     w0, w1 = feed.capsule_world()
     query = m.closest_cells(w0, w1, feed.radii, max_distance=limit.influence_distance + feed.margin,
