@@ -81,11 +81,15 @@ def test_magnitude_is_bounded_and_resolution_independent(frames_at_two_resolutio
 
 @pytest.fixture(scope="module")
 def lab():
-    return LabCamera()
+    """The lab scene with the stem hidden along the whole straight approach
+    (``occluder_coverage = 1``; the paper's default scene hides only part of it)."""
+    from harvest_qp.sim.scene import VineSceneParams
+
+    return LabCamera(VineSceneParams(occluder_coverage=1.0))
 
 
 def test_stem_hidden_along_the_whole_approach_is_unveiled_only_by_the_extension(lab):
-    """The lab's default scene (VineSceneParams()), camera from its home pose, ROI on the grape
+    """The lab scene with a stem hidden along the whole approach, camera from its home pose, ROI on the grape
     (FINDINGS: V_cr alone reaches 1.01 r and sees 0 stem points).  The paper's law alone
     (Unveiling without predicted points: n_S = 0 keeps V_cu = 0) sees 0 points for 10 s; with the
     predicted stem points the next-best-view step sees >= 10 within 6 s (measured 3.8 s) and
