@@ -290,9 +290,9 @@ class SimRobot(RobotInterface):
             raise SimulationError("the simulation diverged earlier; call reset() to start again")
         for _ in range(self._substeps):
             self._physics_step()
+            self._check_tear()  # every physics step: the tension may not overshoot for a whole tick
         self._check_physics()
         self._ticks += 1
-        self._check_tear()
         self._force.update(self.data, self.control_period)
         self._maybe_capture()
         if self._viewer is not None and self._ticks % self._viewer_every == 0:
