@@ -191,8 +191,9 @@ class VineSceneParams:
             every point of the straight approach from ``camera_start`` (to the stem base
             and to the cluster) down to :data:`HIDDEN_APPROACH_MIN` from the stem base.
         grasp_offset: distance from the gripper point up to the stem end [m].
-        camera_start: position [m] the occluding leaf hides the stem from; None = the
-            camera position at ``HOME_Q``.
+        camera_start: camera position [m] the straight approach starts from (the
+            occluder and the lines of sight kept clear refer to it); None = the camera
+            position at ``HOME_Q``.
         stem_break_force: stem tension beyond which the stem tears [N] (well above the
             paper's 2 f_d = 6 N force limit, so a working force loop never tears it).
     """
