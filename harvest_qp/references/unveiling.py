@@ -309,6 +309,10 @@ class Unveiling:
             collision row held the arm 20 s aiming at an unreachable viewpoint).
         memory_radius: non-stem points within this of the ROI centre are remembered as 1 cm
             voxels for the viewpoint search [m] (0.45, as in the lab measurements).
+        memory_lifetime: a voxel not seen again for this long is forgotten [s] (5 s; ``inf``:
+            never).  Leaves are static, but the gripper and the crop move in the bimanual phase
+            and would leave stale obstacles; the hidden-stem flights first see the stem within
+            3.5-4.4 s, inside the lifetime.
         nbv_period: the next-best-view step plans at most this often [s] (0.1: 10 Hz, as
             measured in the lab; frames in between keep its last twist), which keeps its
             average cost per 30 Hz frame at a third of one step's (~6 ms at 283x160).
@@ -350,6 +354,7 @@ class Unveiling:
         min_distance: float = 0.25,
         stall_time: float = 1.5,
         memory_radius: float = 0.45,
+        memory_lifetime: float = 5.0,
         nbv_period: float = 0.1,
         frame_period: float = 1.0 / 30.0,
         max_stem_points: int | None = 300,
@@ -386,6 +391,9 @@ class Unveiling:
         self.min_distance = as_positive_scalar(min_distance, "min_distance", allow_zero=True)
         self.stall_time = as_positive_scalar(stall_time, "stall_time")
         self.memory_radius = as_positive_scalar(memory_radius, "memory_radius")
+        self.memory_lifetime = (
+            math.inf if memory_lifetime == math.inf else as_positive_scalar(memory_lifetime, "memory_lifetime")
+        )
         self.frame_period = as_positive_scalar(frame_period, "frame_period")
         self.nbv_period = as_positive_scalar(nbv_period, "nbv_period", allow_zero=True)
         for name, value in (("max_stem_points", max_stem_points), ("max_obstacle_points", max_obstacle_points)):
@@ -404,6 +412,7 @@ class Unveiling:
             min_distance=self.min_distance,
             stall_time=self.stall_time,
             memory_radius=self.memory_radius,
+            memory_lifetime=self.memory_lifetime,
         )
         self.reset()
 

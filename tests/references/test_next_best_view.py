@@ -166,3 +166,15 @@ def test_step_plans_at_most_every_nbv_period():
     np.testing.assert_array_equal(law.raw, moving)  # not re-planned yet
     law.observe(far, [], [[0.5, 0.5, 0.5]], predicted_stem_points=STEM, roi_centre=ROI, timestamp=0.1)
     assert law.clear_fraction == 1.0 and not law.raw.any()  # re-planned: clear, stop
+
+
+def test_voxel_memory_forgets_what_it_no_longer_sees():
+    """With a 5 s lifetime a voxel seen at t = 0 and not since is gone at t = 5.1 s; one seen
+    again at t = 3 s stays.  Catches: refresh times not updated (both would go) or no expiry."""
+    memory = VoxelMemory(0.01, lifetime=5.0)
+    memory.add(np.array([[0.001, 0.0, 0.0], [0.101, 0.0, 0.0]]), 0.0)
+    memory.add(np.array([[0.102, 0.001, 0.0]]), 3.0)
+    memory.add(np.zeros((0, 3)), 5.1)
+    np.testing.assert_allclose(memory.points, [[0.105, 0.005, 0.005]])
+    memory.add(np.zeros((0, 3)), 8.1)
+    assert memory.points.shape == (0, 3)
