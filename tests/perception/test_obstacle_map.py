@@ -318,6 +318,21 @@ def test_bad_arguments_raise_the_package_error_naming_them():
 # --------------------------------------------------------------------------- query
 
 
+def test_a_cell_counts_as_the_sphere_that_covers_it():
+    """Hand-computed: one occupied cell, a capsule beside it: distance = centre distance - capsule
+    radius - sqrt(3)/2 * 1 cm. Catches a cell radius that does not cover the cell (unsafe rows)."""
+    m = ObstacleMap(bounds=SMALL)
+    tiny = ([0.5053, 0.0052, 1.0051], [0.0, 0.001, 0.0], [0.0, 0.0, 0.001], OBSTACLE)
+    m.update(cast(CAM, [tiny]))
+    assert np.array_equal(m.occupied_keys(), [[50, 0, 100]])
+    centre = np.array([0.505, 0.005, 1.005])
+    p0, p1 = centre + [0.0, 0.1, -0.05], centre + [0.0, 0.1, 0.05]  # segment 10 cm beside the cell, along z
+    q = m.closest_cells(p0[None], p1[None], 0.04, max_distance=0.2)
+    assert q.counts[0] == 1
+    assert q.distances[0, 0] == pytest.approx(0.1 - 0.04 - 0.5 * math.sqrt(3) * 0.01, abs=1e-12)
+    np.testing.assert_allclose(q.centres[0, 0], centre, atol=1e-12)
+
+
 @pytest.mark.parametrize("separation", [0.0, 0.03])
 def test_closest_cells_match_a_brute_force_search(separation):
     """The block-pruned query returns the same cells and distances as numpy over all cells.
