@@ -571,7 +571,7 @@ class MapCollisionFeed:
     ``limit.pair_names()`` and the logged active pairs) are ``cell[kx,ky,kz]``, the cell's
     integer key ``floor(x / resolution)``; unused slots are ``free_slot``.
 
-    The limit gets a fixed number of obstacle slots (``per_capsule`` per capsule) once, and
+    The limit gets a fixed number of obstacle slots (``max_cells``) once, and
     each update writes the cells into them in place, because
     ``CollisionAvoidance.set_obstacle_spheres`` rebuilds the pair arrays (~55 us a call,
     measured); unused slots are parked far below the world with radius 0, so the limit's
@@ -586,6 +586,9 @@ class MapCollisionFeed:
         min_separation: a capsule's cells at least this far apart [m] (see
             :data:`DEFAULT_MIN_SEPARATION`).
         margin: extra query distance [m] beyond the limit's influence distance.
+        max_cells: obstacle slots given to the limit; when the capsules' cells are more, the
+            closest ones are kept. Every slot is paired with all 15 moving capsules by the
+            limit, and it keeps at most ``max_pairs`` (24) rows anyway.
         capsules: the robot capsules to query (``CapsuleGeometry`` attached to frames);
             default: the 15 moving capsules of :func:`harvest_qp.robot.description.collision_bodies`.
     """
@@ -601,6 +604,7 @@ class MapCollisionFeed:
         per_capsule: int = 4,
         min_separation: float = DEFAULT_MIN_SEPARATION,
         margin: float = 0.01,
+        max_cells: int = 24,
         capsules: Sequence | None = None,
     ) -> None:
         from harvest_qp.collision import kernels as collision_kernels
@@ -653,7 +657,9 @@ class MapCollisionFeed:
         self._scratch_i = np.zeros(m, dtype=np.int64)
         self._scratch_d = np.zeros(m)
         self._names: dict[int, str] = {}
-        self.slots = n * self.per_capsule
+        if isinstance(max_cells, bool) or int(max_cells) != max_cells or max_cells < 1:
+            raise InvalidInputError(f"max_cells must be a positive integer, got {max_cells!r}")
+        self.slots = min(n * self.per_capsule, int(max_cells))
         self._centres = np.tile(self._PARK, (self.slots, 1))
         limit.set_obstacle_spheres(self._centres, 0.0)
         self._first = len(limit.capsule_names) - self.slots
@@ -696,7 +702,13 @@ class MapCollisionFeed:
             w0, w1, self.radii, self.limit.influence_distance + self.margin, self.min_separation,
             self._scratch_i, self._scratch_d, self._index, self._dist, self._count,
         )  # fmt: skip
-        cells = np.unique(self._index[self._index >= 0])
+        valid = self._index >= 0
+        cells = np.unique(self._index[valid])
+        if cells.shape[0] > self.slots:  # keep the closest cells (each at its closest capsule)
+            idx, dist = self._index[valid], self._dist[valid]
+            order = np.argsort(dist, kind="stable")
+            _, first = np.unique(idx[order], return_index=True)
+            cells = np.sort(idx[order][np.sort(first)[: self.slots]])
         if cells.shape == self._last.shape and np.array_equal(cells, self._last):
             return int(cells.shape[0])  # same cells: the limit already has them
         n = cells.shape[0]

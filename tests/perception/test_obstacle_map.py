@@ -636,3 +636,24 @@ def test_map_rows_keep_the_gripper_off_a_wall_seen_only_by_the_camera():
         results[with_map] = closest
     assert results[False] < 0.0
     assert results[True] >= 0.01 - 1e-3  # d_s of the limit, within the damper's discretisation (0.1 mm)
+
+
+def test_feed_keeps_the_closest_cells_when_they_exceed_its_slots():
+    """With fewer slots than cells, the fed cells are the closest ones (each at its closest capsule)."""
+    from harvest_qp.limits import CollisionAvoidance
+
+    config, controller, limit, m, feed = _controller(True)
+    config.update(config.q)
+    feed.update()
+    w0, w1 = feed.capsule_world()
+    query = m.closest_cells(w0, w1, feed.radii, max_distance=limit.influence_distance + feed.margin,
+                            per_capsule=feed.per_capsule, min_separation=feed.min_separation)  # fmt: skip
+    best: dict[int, float] = {}
+    for c in range(len(w0)):
+        for j in range(query.counts[c]):
+            i = int(query.indices[c, j])
+            best[i] = min(best.get(i, np.inf), float(query.distances[c, j]))
+    assert len(best) >= 3
+    small = MapCollisionFeed(CollisionAvoidance.dual_ur5e(config), m, config, max_cells=2)
+    assert small.update() == 2
+    assert set(small.cells.tolist()) == set(sorted(best, key=best.get)[:2])
