@@ -67,9 +67,10 @@ __all__ = [
 #: map's capsule distance is within sqrt(3) cells of the truth (see ObstacleMap), 1.7 cm
 #: here; 2 cm cells would make it 3.5 cm, a third of the 10 cm influence distance.
 DEFAULT_RESOLUTION = 0.01
-#: Grid bounds [m] (lower corner, upper corner): the space the two arms (bases at
-#: (0, +-0.36, 0.8), 0.85 m reach plus their tools) and their 10 cm influence distance
-#: can reach in front of the stand; 6.9 M cells, 41 MB at 1 cm.
+#: Grid bounds [m] (lower corner, upper corner): where the arms work (bases at (0, +-0.36, 0.8),
+#: the vine at x ~0.4-0.9 m), from just behind the stand to 1.2 m in front of it, +-1.2 m
+#: sideways, 0.2-2.0 m high; obstacle points outside are not mapped. 7.1 M cells at 1 cm,
+#: 57 MB (log-odds, frame stamps, per-block lists of occupied cells).
 DEFAULT_BOUNDS = ((-0.4, -1.2, 0.2), (1.2, 1.2, 2.0))
 #: Cells of one capsule's rows at least this far apart [m] (MapCollisionFeed): the 4 closest
 #: cells of a wall are neighbours whose damper rows are nearly parallel, and daqp then
@@ -418,6 +419,8 @@ class ObstacleMap:
         origin = np.ascontiguousarray(cloud.camera_pose[:3, 3], dtype=float)
         if not np.all(np.isfinite(cloud.camera_pose)):
             return self._stats("camera_pose is not finite", counters, 0)
+        if np.abs(origin).max() > 1e6:  # keeps every key computation far from integer overflow
+            return self._stats(f"camera position {origin.tolist()} is more than 1000 km away", counters, 0)
         region_erased = 0
         if self.erase_excluded and regions.shape[0]:
             region_erased = K.erase_regions(

@@ -288,6 +288,12 @@ def test_empty_frame_and_non_finite_pose_leave_the_map_unchanged():
                           cloud.image_size)  # fmt: skip
     assert "camera_pose" in m.update(bad_pose).frame_rejected
     assert np.array_equal(m.log_odds, before)
+    far_pose = CAM.copy()
+    far_pose[:3, 3] = 1e300
+    far_cloud = PointCloud(cloud.points + 1e300, cloud.labels, cloud.colors, far_pose, 0.0, cloud.depth,
+                           cloud.pixels, cloud.image_size)  # fmt: skip
+    assert "camera position" in m.update(far_cloud).frame_rejected
+    assert np.array_equal(m.log_odds, before)
     # Points outside the grid: counted, not inserted, no crash.
     far = cast(look_at([0.0, 0.0, 1.0], [-1.0, 0.0, 1.0]), [([-1.5, 0, 1.0], [0, 0.3, 0], [0, 0, 0.2], OBSTACLE)])
     assert m.update(far).outside_grid == len(far)
