@@ -299,6 +299,22 @@ def test_empty_frame_and_non_finite_pose_leave_the_map_unchanged():
     assert m.update(far).outside_grid == len(far)
 
 
+def test_frame_stamps_wrapping_around_change_nothing():
+    """The per-cell frame stamps are 16-bit: across the wrap the map evolves exactly as without it."""
+    a, b = ObstacleMap(bounds=SMALL), ObstacleMap(bounds=SMALL)
+    b._frame = np.iinfo(np.uint16).max - 2
+    b._stamp[:] = 1  # stamps left by frame 1, 65,535 frames ago: must not block frame 1 after the wrap
+    away = look_at([0.0, 0.0, 1.0], [0.0, -1.0, 1.0])
+    side_wall = ([0.0, -0.305, 1.005], [0.3, 0.0, 0.0], [0.0, 0.0, 0.25], OBSTACLE)
+    # The 3rd frame (the first after the wrap) looks at cells the first two never touched.
+    frames = [cast(CAM, [WALL, leaf_at(0.5)])] * 2 + [cast(away, [side_wall])] + [cast(CAM, [WALL])] * 6
+    for f in frames:
+        a.update(f)
+        b.update(f)
+        assert np.array_equal(a.log_odds, b.log_odds)
+    assert b._frame < 10
+
+
 def test_bad_arguments_raise_the_package_error_naming_them():
     with pytest.raises(InvalidInputError, match="resolution"):
         ObstacleMap(resolution=0.0)
