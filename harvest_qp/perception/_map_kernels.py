@@ -527,3 +527,44 @@ def occupied_indices(block_cells, block_count, out):
             out[n] = (b << 9) | block_cells[b, j]
             n += 1
     return n
+
+
+@njit(cache=True)
+def gather_cells(index, distance, max_cells, res, lo_key, nby, nbz, out_cells, out_centres):
+    """Union of the capsules' cells (``index[c, j] >= 0``), at most ``max_cells`` of them.
+
+    When there are more, the ones closest to any capsule are kept. The kept cells are
+    written sorted into ``out_cells`` with their centres [m] in ``out_centres``; returns
+    how many.
+    """
+    n_all = index.shape[0] * index.shape[1]
+    cells = np.empty(n_all, np.int64)
+    best = np.empty(n_all)
+    n = 0
+    for c in range(index.shape[0]):
+        for j in range(index.shape[1]):
+            idx = index[c, j]
+            if idx < 0:
+                continue
+            found = -1
+            for i in range(n):
+                if cells[i] == idx:
+                    found = i
+                    break
+            if found < 0:
+                cells[n] = idx
+                best[n] = distance[c, j]
+                n += 1
+            elif distance[c, j] < best[found]:
+                best[found] = distance[c, j]
+    if n > max_cells:
+        order = np.argsort(best[:n], kind="mergesort")
+        kept = np.sort(cells[:n][order[:max_cells]])
+        n = max_cells
+        cells[:n] = kept
+    else:
+        cells[:n] = np.sort(cells[:n])
+    for i in range(n):
+        out_cells[i] = cells[i]
+    cell_centres(out_cells[:n], res, lo_key, nby, nbz, out_centres)
+    return n

@@ -664,6 +664,7 @@ class MapCollisionFeed:
             raise InvalidInputError(f"max_cells must be a positive integer, got {max_cells!r}")
         self.slots = min(n * self.per_capsule, int(max_cells))
         self._centres = np.tile(self._PARK, (self.slots, 1))
+        self._cells = np.zeros(self.slots, dtype=np.int64)
         limit.set_obstacle_spheres(self._centres, 0.0)
         self._first = len(limit.capsule_names) - self.slots
         self._in_place = self._layout_ok()
@@ -705,19 +706,15 @@ class MapCollisionFeed:
             w0, w1, self.radii, self.limit.influence_distance + self.margin, self.min_separation,
             self._scratch_i, self._scratch_d, self._index, self._dist, self._count,
         )  # fmt: skip
-        valid = self._index >= 0
-        cells = np.unique(self._index[valid])
-        if cells.shape[0] > self.slots:  # keep the closest cells (each at its closest capsule)
-            idx, dist = self._index[valid], self._dist[valid]
-            order = np.argsort(dist, kind="stable")
-            _, first = np.unique(idx[order], return_index=True)
-            cells = np.sort(idx[order][np.sort(first)[: self.slots]])
-        if cells.shape == self._last.shape and np.array_equal(cells, self._last):
-            return int(cells.shape[0])  # same cells: the limit already has them
-        n = cells.shape[0]
         m = self.map
         self._centres[:] = self._PARK
-        K.cell_centres(cells, m.resolution, m.lo_key, m._nby, m._nbz, self._centres)
+        n = K.gather_cells(
+            self._index, self._dist, self.slots, m.resolution, m.lo_key, m._nby, m._nbz, self._cells, self._centres
+        )
+        cells = self._cells[:n]
+        if n == self._last.shape[0] and np.array_equal(cells, self._last):
+            return n  # same cells: the limit already has them
+        cells = cells.copy()
         radii = np.zeros(self.slots)
         radii[:n] = m.cell_radius
         for j, idx in enumerate(cells):
