@@ -445,13 +445,18 @@ class ObstacleMap:
         rotation = np.ascontiguousarray(cloud.camera_pose[:3, :3], dtype=float)
         no_return = np.zeros(2)
         intrinsics = np.zeros(3)
-        if self.no_return_range is not None:
-            # The camera's pinhole, fitted on this frame or remembered from an earlier one
-            # of the same image size (a frame that sees nothing cannot be fitted).
+        # The camera's pinhole, fitted once per image size (the first frame that allows it).
+        fit = self._pinhole.get((h, w))
+        if fit is None and (stride > 1 or self.no_return_range is not None):
             fit = _fit_pinhole(points, pixels, cloud.camera_pose)
             if fit is not None:
                 self._pinhole[(h, w)] = fit
-            fit = self._pinhole.get((h, w))
+        near_skip = 0.0
+        if fit is not None and stride > 1:
+            # Rays of the 2 * stride grid are 2 * stride / f rad apart: up to this range they
+            # are at most 0.6 cell apart, so they alone cross every cell there.
+            near_skip = 0.6 * self.resolution * fit[0] / (2 * stride)
+        if self.no_return_range is not None:
             if fit is not None:
                 no_return[:] = self.no_return_range
                 intrinsics[:] = fit
@@ -459,7 +464,7 @@ class ObstacleMap:
                     self._returned = np.zeros((h, w), dtype=np.bool_)
         K.integrate_frame(
             points, np.ascontiguousarray(cloud.labels, dtype=np.int8), pixels, origin, rotation, regions,
-            stride, phase // stride, phase % stride, self.min_range, self.max_range, no_return,
+            stride, phase // stride, phase % stride, near_skip, self.min_range, self.max_range, no_return,
             nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
             self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
             self._stamp, self._frame, self.hit, self.miss, self.clamp_min, self.clamp_max,

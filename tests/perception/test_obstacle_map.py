@@ -152,6 +152,32 @@ def test_pixels_without_return_clear_only_when_asked():
     assert m.is_occupied(cells_of(near_leaf)).all()
 
 
+def test_near_the_camera_the_coarser_clearing_grid_still_clears_moved_leaves_in_nine_frames():
+    """With a pixel stride (here 2), rays off the twice coarser grid start near_skip (~0.4 m)
+    from the camera. Leaves 0.25 m away (in that zone) and 0.95 m away (beyond it) are both
+    cleared in 9 frames, and the map equals the one traced with all rays of the stride grid.
+
+    Catches a near_skip so long that the coarse rays alone, too sparse there, leave cells
+    uncrossed (the far leaf would stay)."""
+    size = (192, 256)
+    near, far = leaf_at(0.25, y=-0.05), leaf_at(0.95, y=0.15)  # side by side in the image
+    back = ([1.3, 0.0, 1.0], [0.0, 0.6, 0.0], [0.0, 0.0, 0.5], OBSTACLE)  # beyond the grid: rays only
+    maps = [ObstacleMap(bounds=SMALL), ObstacleMap(bounds=SMALL)]
+    for _ in range(20):
+        for m in maps:
+            m.update(cast(CAM, [back, near, far], size=size))
+    assert maps[0].is_occupied(np.vstack([cells_of(near), cells_of(far)])).all()
+    maps[1]._pinhole[size] = (1e-9, 0.0, 0.0)  # a focal length that makes near_skip ~0: full rays
+    for frame in range(1, 10):
+        for m in maps:
+            m.update(cast(CAM, [back], size=size))
+        if frame < 9:
+            assert maps[0].is_occupied(cells_of(near)).any() and maps[0].is_occupied(cells_of(far)).any()
+    for m in maps:
+        assert not m.is_occupied(np.vstack([cells_of(near), cells_of(far)])).any()
+    assert np.array_equal(maps[0].occupied_keys(), maps[1].occupied_keys())
+
+
 def test_noise_point_is_cleared_after_three_frames():
     """A single spurious point in free space: one hit (0.85), cleared by the 3rd miss (-0.41 each)."""
     m = ObstacleMap(bounds=SMALL, clear_stride=1)
