@@ -36,6 +36,15 @@ obstacle spheres before each QP step: for each arm capsule, its closest occupied
 within the influence distance, each a sphere covering its cell (radius sqrt(3)/2 times
 the resolution), so each becomes a velocity-damper row with the limit's own d_s / d_i /
 gain, and its pair name tells the cell (``cell[kx,ky,kz]``, the cell's integer key).
+
+Typical use in a control loop::
+
+    obstacle_map = ObstacleMap()
+    feed = MapCollisionFeed(collision_limit, obstacle_map, controller.configuration)
+    # every tick, before controller.step(q):
+    if new_cloud is not None:
+        obstacle_map.update(new_cloud, exclude=[held_cluster_region])
+    feed.update(q)
 """
 
 from __future__ import annotations
@@ -189,6 +198,12 @@ def _fit_pinhole(points, pixels, pose) -> tuple[float, float, float] | None:
     return float(sol[0]), float(sol[1]), float(sol[2])
 
 
+def _positive_int(value, name: str) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InvalidInputError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
 def _as_regions(exclude) -> NDArray[np.float64]:
     """Exclusion regions as an ``(n, 7)`` array ``(x0, y0, z0, x1, y1, z1, radius)``."""
     if exclude is None:
@@ -288,13 +303,8 @@ class ObstacleMap:
         self.miss = _logodds(prob_miss)
         self.clamp_min = _logodds(clamp_min)
         self.clamp_max = _logodds(clamp_max)
-        if clear_stride is not None and (isinstance(clear_stride, bool) or int(clear_stride) != clear_stride
-                                         or clear_stride < 1):  # fmt: skip
-            raise InvalidInputError(f"clear_stride must be a positive integer or None, got {clear_stride!r}")
-        self.clear_stride = None if clear_stride is None else int(clear_stride)
-        if isinstance(clear_rays, bool) or int(clear_rays) != clear_rays or clear_rays < 1:
-            raise InvalidInputError(f"clear_rays must be a positive integer, got {clear_rays!r}")
-        self.clear_rays = int(clear_rays)
+        self.clear_stride = None if clear_stride is None else _positive_int(clear_stride, "clear_stride")
+        self.clear_rays = _positive_int(clear_rays, "clear_rays")
         self.erase_excluded = bool(erase_excluded)
         if no_return_range is not None:
             try:
@@ -542,13 +552,12 @@ class ObstacleMap:
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(r >= 0)):
             raise InvalidInputError("capsule end points must be finite and radii finite and >= 0 [m]")
         max_distance = as_positive_scalar(max_distance, "max_distance", allow_zero=True)
-        if isinstance(per_capsule, bool) or int(per_capsule) != per_capsule or per_capsule < 1:
-            raise InvalidInputError(f"per_capsule must be a positive integer, got {per_capsule!r}")
+        per_capsule = _positive_int(per_capsule, "per_capsule")
         min_separation = as_positive_scalar(min_separation, "min_separation", allow_zero=True)
         n, k = a.shape[0], int(per_capsule)
         if candidates is None:
             candidates = 8 * k if min_separation > 0 else k
-        if isinstance(candidates, bool) or int(candidates) != candidates or candidates < k:
+        if _positive_int(candidates, "candidates") < k:
             raise InvalidInputError(f"candidates must be an integer >= per_capsule ({k}), got {candidates!r}")
         index = np.full((n, k), -1, dtype=np.int64)
         dist = np.full((n, k), np.inf)
@@ -628,8 +637,7 @@ class MapCollisionFeed:
             raise InvalidInputError(f"obstacle_map must be an ObstacleMap, got {type(obstacle_map).__name__}")
         if not hasattr(limit, "set_obstacle_spheres") or not hasattr(limit, "influence_distance"):
             raise InvalidInputError(f"limit must be a CollisionAvoidance, got {type(limit).__name__}")
-        if isinstance(per_capsule, bool) or int(per_capsule) != per_capsule or per_capsule < 1:
-            raise InvalidInputError(f"per_capsule must be a positive integer, got {per_capsule!r}")
+        per_capsule = _positive_int(per_capsule, "per_capsule")
         self.limit = limit
         self.map = obstacle_map
         self.configuration = configuration
@@ -670,9 +678,7 @@ class MapCollisionFeed:
         self._scratch_i = np.zeros(m, dtype=np.int64)
         self._scratch_d = np.zeros(m)
         self._names: dict[int, str] = {}
-        if isinstance(max_cells, bool) or int(max_cells) != max_cells or max_cells < 1:
-            raise InvalidInputError(f"max_cells must be a positive integer, got {max_cells!r}")
-        self.slots = min(n * self.per_capsule, int(max_cells))
+        self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
         self._centres = np.tile(self._PARK, (self.slots, 1))
         self._cells = np.zeros(self.slots, dtype=np.int64)
         limit.set_obstacle_spheres(self._centres, 0.0)

@@ -350,6 +350,10 @@ def test_bad_arguments_raise_the_package_error_naming_them():
         ObstacleMap(prob_hit=1.5)
     with pytest.raises(InvalidInputError, match="clear_stride"):
         ObstacleMap(clear_stride=0)
+    with pytest.raises(InvalidInputError, match="clear_rays"):
+        ObstacleMap(clear_rays="many")
+    with pytest.raises(InvalidInputError, match="no_return_range"):
+        ObstacleMap(no_return_range=(1.0, 0.5))
     m = ObstacleMap(bounds=SMALL)
     with pytest.raises(InvalidInputError, match="PointCloud"):
         m.update(np.zeros((3, 3)))
