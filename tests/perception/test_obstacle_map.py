@@ -824,3 +824,30 @@ def test_lab_camera_arm_driven_at_a_leaf_stops_short_of_it_with_the_map(lab):
     assert without < 0.002
     assert closest >= 0.01 - 1e-3
     assert rows >= 3
+
+
+def test_held_cluster_is_kept_out_of_the_map_in_the_lab(lab):
+    """Lab frames that see the held cluster: with the exclusion capsule along the gripper's y
+    axis, no occupied cell touches a berry; without it, berries fill cells. Catches an
+    exclusion test in the wrong frame or a capsule that does not cover the cluster."""
+    import mujoco
+
+    robot, scene, cam = lab
+    G = robot.site_pose("gripper")
+    y, p = G[:3, 1], G[:3, 3]
+    params = scene.params
+    held = ExclusionRegion(tuple(p - 0.03 * y), tuple(p + (params.cluster_length + 0.05) * y),
+                           params.cluster_radius + 0.02)  # fmt: skip
+    model, data = robot.model, robot.data
+    berries = [g for g in range(model.ngeom) if model.geom_bodyid[g] == scene.ids["cluster"]
+               and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_SPHERE]  # fmt: skip
+    touching = {}
+    for name, exclude in (("with", [held]), ("without", None)):
+        m = ObstacleMap()
+        for pose in lab_views(scene, 6, seed=8):
+            m.update(cam.capture(data, pose, 0.0), exclude=exclude)
+        centres = m.occupied_centres()
+        gaps = [np.linalg.norm(centres - data.geom_xpos[g], axis=1) - model.geom_size[g, 0] for g in berries]
+        touching[name] = int((np.min(gaps, axis=0) < 0.5 * math.sqrt(3) * RES).sum())
+    assert touching["without"] > 50
+    assert touching["with"] == 0
