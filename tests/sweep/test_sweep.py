@@ -1,0 +1,417 @@
+"""Sweep engine: rows, resume, crash isolation, worker/engine independence, statistics, figures.
+
+The episodes below are deterministic functions of the seed; the expected rows are computed
+independently of the sweep code (by hand-flattening the same formula), so a sweep that mixes
+up seeds, drops rows, mis-writes values or lets a crash leak into another row fails.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import math
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.sweep import (
+    MissingDependencyError,
+    parse_seeds,
+    plot_sweep,
+    read_rows,
+    run_sweep,
+    summarize,
+    wilson_interval,
+)
+from harvest_qp.sweep.engines import WORKER_DIED_MESSAGE
+from harvest_qp.sweep.results import SweepStore
+
+SEEDS = list(range(10))
+RAISING_SEED = 4
+DYING_SEED = 7
+HANGING_SEED = 2
+
+
+# ---------------------------------------------------------------------------------------------
+# Episodes (module level, so spawned workers and Ray workers import them by name)
+# ---------------------------------------------------------------------------------------------
+
+
+def pure_episode(seed: int) -> dict:
+    """A metrics dict shaped like the closed loop's, a pure function of the seed (numpy types included)."""
+    success = seed % 3 != 0
+    return {
+        "seed": seed,
+        "success": np.bool_(success),
+        "phase_reached": "pre_cut" if success else "bimanual",
+        "abort_reason": None if success else ("collision" if seed % 2 else "timeout"),
+        "final_distance_to_roi_center": np.float64(0.01 * seed + 0.1 / 3),
+        "final_theta_deg": float(seed) * 1.5 - 2.0,
+        "t_bimanual_start": 1.25 + seed / 7,
+        "qp_failures": np.int64(seed % 4),
+        "contacts": {"arm_arm": seed % 2, "arm_vine": 0},
+        "stem_torn": bool(seed == 9),
+        "q_final": np.array([seed, 0.5]),
+    }
+
+
+def expected_row(seed: int) -> dict:
+    """The row ``pure_episode`` must produce, written out by hand (flattened, plain Python types)."""
+    success = seed % 3 != 0
+    row = {
+        "seed": seed,
+        "status": "ok",
+        "success": success,
+        "phase_reached": "pre_cut" if success else "bimanual",
+        "final_distance_to_roi_center": 0.01 * seed + 0.1 / 3,
+        "final_theta_deg": float(seed) * 1.5 - 2.0,
+        "t_bimanual_start": 1.25 + seed / 7,
+        "qp_failures": seed % 4,
+        "contacts.arm_arm": seed % 2,
+        "contacts.arm_vine": 0,
+        "stem_torn": seed == 9,
+        "q_final": [float(seed), 0.5],
+    }
+    if not success:
+        row["abort_reason"] = "collision" if seed % 2 else "timeout"
+    return row
+
+
+def faulty_episode(seed: int, *, marker_dir: str | None = None) -> dict:
+    """``pure_episode``, except that one seed raises and one kills its process; leaves a marker per call."""
+    if marker_dir is not None:
+        Path(marker_dir, f"seed{seed}-pid{os.getpid()}-{time.monotonic_ns()}").touch()
+    if seed == RAISING_SEED:
+        raise ValueError(f"bad scene {seed}\nsecond line")
+    if seed == DYING_SEED:
+        os._exit(3)
+    return pure_episode(seed)
+
+
+def hanging_episode(seed: int) -> dict:
+    if seed == HANGING_SEED:
+        time.sleep(120)
+    return pure_episode(seed)
+
+
+def expected_rows(seeds) -> list[dict]:
+    rows = []
+    for seed in seeds:
+        if seed == RAISING_SEED:
+            rows.append({"seed": seed, "status": "error", "error": "ValueError: bad scene 4 / second line"})
+        elif seed == DYING_SEED:
+            rows.append({"seed": seed, "status": "died", "error": WORKER_DIED_MESSAGE})
+        else:
+            rows.append(expected_row(seed))
+    return rows
+
+
+def without_wall_time(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "wall_time_s"} for row in rows]
+
+
+def markers(marker_dir: Path) -> list[int]:
+    return sorted(int(p.name.split("-")[0][4:]) for p in marker_dir.iterdir())
+
+
+@pytest.fixture(scope="module")
+def local_sweep(tmp_path_factory):
+    """One 10-seed sweep on 2 local processes (seed 4 raises, seed 7 calls os._exit)."""
+    base = tmp_path_factory.mktemp("local")
+    marker_dir = base / "markers"
+    marker_dir.mkdir()
+    episode = functools.partial(faulty_episode, marker_dir=str(marker_dir))
+    result = run_sweep(episode, SEEDS, out_dir=base / "out", workers=2, progress=False)
+    return result, episode, marker_dir
+
+
+# ---------------------------------------------------------------------------------------------
+# Local engine
+# ---------------------------------------------------------------------------------------------
+
+
+def test_local_sweep_rows_are_exact(local_sweep):
+    """Each row equals the episode's metrics for its own seed (catches seed mix-ups, lost or mangled values)."""
+    result, _, _ = local_sweep
+    assert without_wall_time(result.rows) == expected_rows(SEEDS)
+    # the file on disk, read back by the sweep's reader and by the csv module directly
+    assert without_wall_time(read_rows(result.csv_path)) == expected_rows(SEEDS)
+    with open(result.csv_path, newline="") as handle:
+        raw = list(csv.DictReader(handle))
+    assert [int(r["seed"]) for r in raw] == SEEDS
+    assert raw[5]["final_distance_to_roi_center"] == repr(0.01 * 5 + 0.1 / 3)  # floats round-trip exactly
+    assert raw[3]["abort_reason"] == "collision" and raw[1]["abort_reason"] == ""
+    ok = [r for r in raw if r["status"] == "ok"]
+    assert all(float(r["wall_time_s"]) >= 0 for r in ok)
+    assert list(raw[0])[:4] == ["seed", "status", "error", "wall_time_s"]
+
+
+def test_crash_isolation(local_sweep):
+    """An episode that raises and one whose process dies are recorded; every other seed still runs.
+
+    Catches: a dead worker breaking the pool (as ProcessPoolExecutor does) or a crash being
+    recorded against the wrong seed.
+    """
+    result, _, marker_dir = local_sweep
+    statuses = {row["seed"]: row["status"] for row in result.rows}
+    assert statuses == {s: ("error" if s == RAISING_SEED else "died" if s == DYING_SEED else "ok") for s in SEEDS}
+    assert sorted(result.ran) == SEEDS and result.skipped == []
+    assert markers(marker_dir) == SEEDS  # each seed ran exactly once (no retry of the dying seed)
+    traceback_text = (result.out_dir / "errors" / f"seed_{RAISING_SEED}.txt").read_text()
+    assert "ValueError: bad scene 4" in traceback_text and "faulty_episode" in traceback_text
+
+
+def test_resume_runs_only_new_seeds(local_sweep, tmp_path):
+    """Re-running skips seeds already in sweep.csv (catches a resume that reruns or loses rows)."""
+    result, _, _ = local_sweep
+    out_dir = tmp_path / "out"
+    shutil.copytree(result.out_dir, out_dir)  # the module's sweep stays untouched for the other tests
+    marker_dir = tmp_path / "markers"
+    marker_dir.mkdir()
+    episode = functools.partial(faulty_episode, marker_dir=str(marker_dir))
+    again = run_sweep(episode, SEEDS, out_dir=out_dir, workers=2, progress=False)
+    assert again.ran == [] and again.skipped == SEEDS
+    assert markers(marker_dir) == []  # nothing was run: no episode call at all
+    assert again.rows == result.rows
+    more = run_sweep(episode, range(12), out_dir=out_dir, workers=2, progress=False)
+    assert sorted(more.ran) == [10, 11] and more.skipped == SEEDS
+    assert markers(marker_dir) == [10, 11]
+    assert without_wall_time(more.rows) == expected_rows(range(12))
+    retried = run_sweep(episode, range(12), out_dir=out_dir, workers=2, progress=False, retry_failed=True)
+    assert sorted(retried.ran) == [RAISING_SEED, DYING_SEED]
+    assert markers(marker_dir) == [RAISING_SEED, DYING_SEED, 10, 11]
+    assert without_wall_time(retried.rows) == expected_rows(range(12))
+
+
+def test_worker_count_does_not_change_rows(local_sweep, tmp_path):
+    """One worker gives the same rows as two (catches per-worker seeding or order-dependent results)."""
+    result, _, _ = local_sweep
+    single = run_sweep(faulty_episode, SEEDS, out_dir=tmp_path, workers=1, progress=False)
+    assert without_wall_time(single.rows) == without_wall_time(result.rows)
+
+
+def test_episode_timeout_stops_only_that_episode(tmp_path):
+    """A hanging episode is stopped and recorded; its worker is replaced and the next seed still runs."""
+    result = run_sweep(
+        hanging_episode, [HANGING_SEED, 5], out_dir=tmp_path, workers=1, episode_timeout=1.5, progress=False
+    )
+    assert result.rows[0] == {
+        "seed": HANGING_SEED,
+        "status": "timeout",
+        "error": "Timeout: the episode ran longer than 1.5 s and its process was stopped",
+    }
+    assert without_wall_time(result.rows[1:]) == [expected_row(5)]
+
+
+def test_torn_last_line_is_dropped(tmp_path):
+    """A sweep killed mid-write leaves a cut line; it is dropped (that seed runs again), never half-read."""
+    (tmp_path / "sweep.csv").write_text("seed,status,final_x\n0,ok,0.125\n1,ok,0.12")
+    store = SweepStore(tmp_path)
+    assert store.sorted_rows() == [{"seed": 0, "status": "ok", "final_x": 0.125}]
+    assert (tmp_path / "sweep.csv").read_text() == "seed,status,final_x\n0,ok,0.125\n"
+
+
+def test_progress_line(tmp_path):
+    """The progress line counts episodes and successes (catches a miscounted or missing progress report)."""
+
+    class Stream:
+        text = ""
+
+        def write(self, s):
+            self.text += s
+
+        def flush(self):
+            pass
+
+    stream = Stream()
+    run_sweep(pure_episode, [1, 2, 3], out_dir=tmp_path, workers=2, progress=stream)
+    last = stream.text.strip().splitlines()[-1]
+    assert last.startswith("sweep: 3/3 episodes done, 2 successes (67 %), 0 failed to run")
+    assert "ETA 0s" in last
+
+
+# ---------------------------------------------------------------------------------------------
+# Report and statistics
+# ---------------------------------------------------------------------------------------------
+
+
+def test_wilson_interval_hand_computed_and_scipy():
+    """8/10: Wilson 95 % = (0.4902, 0.9433) by hand; also against scipy's binomtest (catches Wald or wrong z)."""
+    import scipy.stats  # here, not at the top: sweep workers import this module for its episodes
+
+    low, high = wilson_interval(8, 10)
+    z = 1.959963984540054
+    p, n = 0.8, 10
+    center = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    assert (low, high) == pytest.approx((center - half, center + half), abs=1e-12)
+    assert (low, high) == pytest.approx((0.49016, 0.94332), abs=1e-5)
+    for k, n in [(0, 10), (10, 10), (37, 100), (1, 3)]:
+        ci = scipy.stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+        assert wilson_interval(k, n) == pytest.approx((ci.low, ci.high), abs=1e-9)
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))
+    with pytest.raises(InvalidInputError, match="successes"):
+        wilson_interval(11, 10)
+
+
+def test_report_counts_and_medians(local_sweep):
+    """sweep.md: success count, Wilson interval, failure reasons and medians match values computed here."""
+    result, _, _ = local_sweep
+    ok = [s for s in SEEDS if s not in (RAISING_SEED, DYING_SEED)]
+    successes = [s for s in ok if s % 3 != 0]
+    summary = result.summary
+    assert summary.episodes == 10 and summary.successes == len(successes) == 4
+    assert summary.interval == pytest.approx(wilson_interval(4, 10))
+    # seeds 0, 6 -> timeout, 3, 9 -> collision, 4 raised, 7 died
+    assert dict(summary.failure_reasons) == {
+        "timeout": 2,
+        "collision": 2,
+        "error: ValueError": 1,
+        "worker died": 1,
+    }
+    medians = {m.name: m for m in summary.medians}
+    theta = [float(s) * 1.5 - 2.0 for s in ok]
+    assert medians["final_theta_deg"].median == pytest.approx(float(np.median(theta)))
+    assert medians["final_theta_deg"].count == len(ok)
+    assert "success" not in medians and summary.fractions["stem_torn"] == (1, len(ok))
+    text = result.report_path.read_text()
+    assert "**Success: 4 / 10 episodes = 40.0 %**" in text
+    low, high = wilson_interval(4, 10)
+    assert f"95 % Wilson interval {100 * low:.1f} % to {100 * high:.1f} %" in text
+    assert "| error: ValueError | 1 |" in text and "| worker died | 1 |" in text
+    assert summarize(read_rows(result.out_dir)).failure_reasons == summary.failure_reasons
+
+
+def test_figures_plot_present_metrics_and_skip_missing(local_sweep, tmp_path):
+    """The figures plot exactly the per-seed values of the metrics present; missing ones are skipped."""
+    result, _, _ = local_sweep
+    ok = [s for s in SEEDS if s not in (RAISING_SEED, DYING_SEED)]
+    assert set(result.figures.paths) == {"sweep_final_errors", "sweep_times"}
+    assert result.figures.plotted["final_distance_to_roi_center"] == [0.01 * s + 0.1 / 3 for s in ok]
+    assert result.figures.plotted["t_bimanual_start"] == [1.25 + s / 7 for s in ok]
+    for path in result.figures.paths.values():
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    figures = plot_sweep(
+        result.rows, tmp_path, error_metrics=["final_theta_deg", "final_alignment_deg"], time_metrics=["t_precut"]
+    )
+    assert list(figures.plotted) == ["final_theta_deg"]
+    assert figures.skipped == ["final_alignment_deg", "t_precut"]
+    assert list(figures.paths) == ["sweep_final_errors"] and not (tmp_path / "sweep_times.png").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Input checks
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("spec", "seeds"),
+    [
+        ("0:5", [0, 1, 2, 3, 4]),
+        ("3", [3]),
+        ("1,2,5", [1, 2, 5]),
+        ("0:10:2", [0, 2, 4, 6, 8]),
+        (" 7:9 , 20", [7, 8, 20]),
+    ],
+)
+def test_parse_seeds(spec, seeds):
+    assert parse_seeds(spec) == seeds
+
+
+@pytest.mark.parametrize(
+    ("spec", "match"),
+    [
+        ("", "must not be empty"),
+        ("-1", "'-1' in '-1' is not a non-negative integer"),
+        ("a:5", "'a'"),
+        ("5:5", "is empty"),
+        ("9:3", "is empty"),
+        ("0:10:0", "step 0"),
+        ("1:2:3:4", "4 fields"),
+        ("1,1", "seed 1 appears more than once"),
+        ("1.5", "'1.5'"),
+        ("1,,2", "''"),
+    ],
+)
+def test_parse_seeds_rejects_bad_input(spec, match):
+    with pytest.raises(InvalidInputError, match=match):
+        parse_seeds(spec)
+
+
+def test_run_sweep_rejects_bad_arguments(tmp_path):
+    with pytest.raises(InvalidInputError, match="engine must be one of"):
+        run_sweep(pure_episode, [0], out_dir=tmp_path, engine="dask")
+    with pytest.raises(InvalidInputError, match="workers must be a positive integer"):
+        run_sweep(pure_episode, [0], out_dir=tmp_path, workers=0)
+    with pytest.raises(InvalidInputError, match="address is for engine='ray'"):
+        run_sweep(pure_episode, [0], out_dir=tmp_path, address="10.0.0.1:6379")
+    with pytest.raises(InvalidInputError, match="episode must be picklable"):
+        run_sweep(lambda seed: {}, [0], out_dir=tmp_path)
+    with pytest.raises(InvalidInputError, match="seed 3 appears more than once"):
+        run_sweep(pure_episode, [3, 3], out_dir=tmp_path)
+    assert not (tmp_path / "sweep.csv").exists()
+
+
+def test_other_experiment_in_folder_is_refused(tmp_path):
+    """A folder holding a sweep of another config is not resumed into (catches mixed experiments)."""
+    run_sweep(pure_episode, [1], out_dir=tmp_path, workers=1, progress=False, fingerprint={"config": "a.yaml"})
+    with pytest.raises(InvalidInputError, match="another experiment"):
+        run_sweep(pure_episode, [1], out_dir=tmp_path, workers=1, progress=False, fingerprint={"config": "b.yaml"})
+
+
+def test_ray_missing_names_the_extra(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "ray", None)  # makes `import ray` raise ImportError
+    with pytest.raises(MissingDependencyError, match=r'pip install -e "\.\[cluster\]"'):
+        run_sweep(pure_episode, [0], out_dir=tmp_path, engine="ray")
+    assert not (tmp_path / "sweep.csv").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Ray
+# ---------------------------------------------------------------------------------------------
+
+
+def _processes_with_env_value(value: str) -> list[int]:
+    """PIDs whose initial environment contains ``value`` (the local Ray instance's token)."""
+    needle = value.encode()
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if needle in (entry / "environ").read_bytes():
+                    found.append(int(entry.name))
+            except OSError:  # gone, or not ours to read
+                pass
+    return found
+
+
+def test_ray_sweep_matches_local_row_for_row(local_sweep, tmp_path):
+    """The same seeds as Ray tasks on a private local instance give the local rows, crash rows included.
+
+    Catches: Ray retrying the dying seed, an engine-dependent row, an episode exception escaping,
+    and a local instance that leaves its processes, its session folder or ``~/.ray/auth_token`` behind.
+    """
+    from harvest_qp.sweep import engines
+
+    result, _, _ = local_sweep
+    token_file = Path.home() / ".ray" / "auth_token"
+    had_token_file = token_file.exists()
+    temp_before = set(Path(tempfile.gettempdir()).glob("hqray-*"))
+    assert "RAY_AUTH_TOKEN" not in os.environ  # else the instance would use the caller's token
+    ray_result = run_sweep(faulty_episode, SEEDS, out_dir=tmp_path, engine="ray", workers=2, progress=False)
+    assert without_wall_time(ray_result.rows) == without_wall_time(result.rows)
+    assert ray_result.summary.failure_reasons == result.summary.failure_reasons
+    assert token_file.exists() == had_token_file
+    assert set(Path(tempfile.gettempdir()).glob("hqray-*")) == temp_before
+    assert "RAY_AUTH_TOKEN" not in os.environ and "RAY_AUTH_MODE" not in os.environ
+    deadline = time.monotonic() + 15.0
+    while _processes_with_env_value(engines._LOCAL_RAY_TOKEN) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _processes_with_env_value(engines._LOCAL_RAY_TOKEN) == []
