@@ -13,6 +13,7 @@ Example::
     print(result.summary.success_rate, result.summary.interval)
 """
 
+from harvest_qp.sweep.command import CommandEpisode, EpisodeCommandError
 from harvest_qp.sweep.engines import MissingDependencyError, SweepEngineError, run_episode
 from harvest_qp.sweep.report import SweepFigures, plot_sweep, render_markdown
 from harvest_qp.sweep.results import normalize_metrics, read_rows
@@ -21,6 +22,8 @@ from harvest_qp.sweep.seeds import check_seeds, parse_seeds
 from harvest_qp.sweep.stats import MetricSummary, SweepSummary, failure_reason, summarize, wilson_interval
 
 __all__ = [
+    "CommandEpisode",
+    "EpisodeCommandError",
     "MetricSummary",
     "MissingDependencyError",
     "SweepEngineError",

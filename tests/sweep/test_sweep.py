@@ -22,6 +22,7 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.sweep import (
+    CommandEpisode,
     MissingDependencyError,
     parse_seeds,
     plot_sweep,
@@ -237,6 +238,68 @@ def test_progress_line(tmp_path):
     assert "ETA 0s" in last
 
 
+FAKE_RUN = """
+import argparse, json, pathlib, sys
+parser = argparse.ArgumentParser()
+parser.add_argument("config")
+parser.add_argument("--seed", type=int)
+parser.add_argument("--out")
+args = parser.parse_args()
+if args.seed == 2:
+    sys.exit("scene 2: the stem is out of reach")
+out = pathlib.Path(args.out)
+out.mkdir(parents=True, exist_ok=True)
+if args.seed != 3:
+    (out / "metrics.json").write_text(json.dumps({"success": args.seed % 2 == 0, "config": args.config,
+                                                  "final_position_error": args.seed / 100}))
+"""
+
+
+def test_command_episode_runs_one_process_per_seed(tmp_path):
+    """harvest-qp run as a command: its metrics.json becomes the row; a failing command is that seed's error."""
+    script = tmp_path / "fake_run.py"
+    script.write_text(FAKE_RUN)
+    episode = CommandEpisode((sys.executable, str(script), "paper.yaml"), runs_dir=str(tmp_path / "runs"))
+    result = run_sweep(episode, [0, 1, 2, 3], out_dir=tmp_path / "out", workers=2, progress=False)
+    rows = without_wall_time(result.rows)
+    assert rows[:2] == [
+        {"seed": 0, "status": "ok", "success": True, "config": "paper.yaml", "final_position_error": 0.0},
+        {"seed": 1, "status": "ok", "success": False, "config": "paper.yaml", "final_position_error": 0.01},
+    ]
+    assert rows[2]["status"] == "error" and rows[2]["error"].startswith("EpisodeCommandError: ")
+    assert rows[2]["error"].endswith("exited with code 1: scene 2: the stem is out of reach")
+    assert rows[3]["status"] == "error" and "wrote no readable" in rows[3]["error"]
+    assert (tmp_path / "runs" / "seed_1" / "metrics.json").exists()
+
+
+def pure_factory(config, runs_dir):
+    """An episode factory for ``sweep_main`` (the CLI's default runs ``harvest-qp run`` per seed)."""
+    return pure_episode
+
+
+def test_cli_sweep_subcommand(tmp_path, capsys):
+    """`harvest-qp sweep CONFIG --seeds 0:4 --workers 2 --out DIR` as the CLI will mount it."""
+    import argparse
+
+    from harvest_qp.sweep.cli import add_sweep_parser, sweep_main
+
+    parser = argparse.ArgumentParser(prog="harvest-qp")
+    add_sweep_parser(parser.add_subparsers(dest="command"))
+    config = tmp_path / "paper.yaml"
+    config.write_text("episode: {duration: 1.0}\n")
+    argv = ["sweep", str(config), "--seeds", "0:4", "--workers", "2", "--out", str(tmp_path / "out"), "--quiet"]
+    assert sweep_main(parser.parse_args(argv), episode_for=pure_factory) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("2/4 episodes succeeded (50.0 %, 95 % CI ")  # seeds 1 and 2 succeed
+    assert "ran 4, skipped 0 already done" in out
+    assert without_wall_time(read_rows(tmp_path / "out")) == [expected_row(s) for s in range(4)]
+    config.write_text("episode: {duration: 2.0}\n")  # another experiment: refused, not mixed in
+    with pytest.raises(InvalidInputError, match="another experiment"):
+        sweep_main(parser.parse_args(argv), episode_for=pure_factory)
+    with pytest.raises(InvalidInputError, match="is not a file"):
+        sweep_main(parser.parse_args(["sweep", str(tmp_path / "missing.yaml")]), episode_for=pure_factory)
+
+
 # ---------------------------------------------------------------------------------------------
 # Report and statistics
 # ---------------------------------------------------------------------------------------------
@@ -405,8 +468,12 @@ def test_ray_sweep_matches_local_row_for_row(local_sweep, tmp_path):
     had_token_file = token_file.exists()
     temp_before = set(Path(tempfile.gettempdir()).glob("hqray-*"))
     assert "RAY_AUTH_TOKEN" not in os.environ  # else the instance would use the caller's token
-    ray_result = run_sweep(faulty_episode, SEEDS, out_dir=tmp_path, engine="ray", workers=2, progress=False)
+    marker_dir = tmp_path / "markers"
+    marker_dir.mkdir()
+    episode = functools.partial(faulty_episode, marker_dir=str(marker_dir))
+    ray_result = run_sweep(episode, SEEDS, out_dir=tmp_path / "out", engine="ray", workers=2, progress=False)
     assert without_wall_time(ray_result.rows) == without_wall_time(result.rows)
+    assert markers(marker_dir) == SEEDS  # each seed ran once: the dying seed was not retried
     assert ray_result.summary.failure_reasons == result.summary.failure_reasons
     assert token_file.exists() == had_token_file
     assert set(Path(tempfile.gettempdir()).glob("hqray-*")) == temp_before
