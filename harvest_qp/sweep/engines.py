@@ -190,9 +190,9 @@ def run_local(
                 if pending:
                     alive.append(_Worker(context, episode_bytes))
             pool = alive
-    finally:
+    finally:  # also on Ctrl-C or an engine error: a worker still running an episode is killed at once
         for worker in pool:
-            worker.stop()
+            worker.stop(kill=worker.seed is not None)
 
 
 def _process_context(episode: Callable[..., Any]) -> Any:

@@ -164,6 +164,7 @@ def plot_sweep(
             median = float(np.median(data))
             ax.axvline(median, color="k", linestyle="--", linewidth=1, label=f"median {median:.4g}")
             ax.set_ylim(-top * 0.25, top * 1.05)
+            ax.set_yticks([t for t in ax.get_yticks() if 0 <= t <= top * 1.05])  # the strip below 0 has no count
             ax.set_xlabel(metric)
             ax.set_ylabel("episodes")
             ax.legend(fontsize=7, loc="upper right")

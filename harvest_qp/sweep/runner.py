@@ -203,7 +203,8 @@ def run_sweep(
         if manifest is not None and wanted is not None and manifest.get("fingerprint") not in (None, wanted):
             raise InvalidInputError(
                 f"out_dir: {str(out_dir)!r} holds a sweep of another experiment (fingerprint "
-                f"{manifest.get('fingerprint')!r}, this one {wanted!r}); use another --out folder"
+                f"{manifest.get('fingerprint')!r}, this one {wanted!r}); use another --out folder "
+                "(or delete its sweep.json to add to it anyway)"
             )
         store = SweepStore(out_dir)
         if manifest is None or (wanted is not None and manifest.get("fingerprint") is None):

@@ -211,6 +211,43 @@ def test_episode_timeout_stops_only_that_episode(tmp_path):
     assert without_wall_time(result.rows[1:]) == [expected_row(5)]
 
 
+def test_ctrl_c_keeps_finished_rows_and_leaves_no_process(tmp_path):
+    """Ctrl-C on a sweep: finished rows stay in sweep.csv and no worker (not even a hung one) survives.
+
+    Catches: workers orphaned by an interrupted sweep, rows lost on interrupt.
+    """
+    import signal
+    import subprocess
+
+    token = f"harvest-qp-sweep-test-{os.getpid()}-{time.monotonic_ns()}"
+    out_dir = tmp_path / "out"
+    script = (
+        "from harvest_qp.sweep import run_sweep\n"
+        "from tests.sweep.test_sweep import hanging_episode\n"
+        f"run_sweep(hanging_episode, [0, 1, {HANGING_SEED}, 3], out_dir={str(out_dir)!r}, workers=2, progress=False)\n"
+    )
+    env = {**os.environ, "HARVEST_QP_TEST_TOKEN": token, "PYTHONPATH": os.pathsep.join(sys.path)}
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and proc.poll() is None:
+            csv_path = out_dir / "sweep.csv"
+            if csv_path.exists() and len(csv_path.read_text().splitlines()) == 4:  # header + seeds 0, 1, 3
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None, "the sweep ended although seed 2 hangs"
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole process group
+        assert proc.wait(timeout=30) != 0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert [row["seed"] for row in read_rows(out_dir)] == [0, 1, 3]
+    deadline = time.monotonic() + 10.0
+    while _processes_with_env_value(token) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _processes_with_env_value(token) == []
+
+
 def test_torn_last_line_is_dropped(tmp_path):
     """A sweep killed mid-write leaves a cut line; it is dropped (that seed runs again), never half-read."""
     (tmp_path / "sweep.csv").write_text("seed,status,final_x\n0,ok,0.125\n1,ok,0.12")
