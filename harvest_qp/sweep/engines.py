@@ -320,7 +320,7 @@ def ray_session(
         try:
             ray.init(address=address, **kwargs)
         except Exception as exc:
-            raise SweepEngineError(f"address: cannot connect to the Ray cluster at {address!r}: {exc}") from exc
+            raise SweepEngineError(_connect_error_message(address, exc)) from exc
         try:
             yield ray
         finally:
@@ -347,6 +347,23 @@ def ray_session(
                 ray.shutdown()
     finally:
         shutil.rmtree(temp_dir, ignore_errors=True)
+
+
+def _connect_error_message(address: str, exc: BaseException) -> str:
+    """Why ``ray.init(address=...)`` failed, with the fix for the common case of token authentication."""
+    causes = [exc]
+    while causes[-1].__cause__ is not None and len(causes) < 5:
+        causes.append(causes[-1].__cause__)
+    text = " <- ".join(str(c).strip().splitlines()[0] if str(c).strip() else type(c).__name__ for c in causes)
+    message = f"address: cannot connect to the Ray cluster at {address!r}: {text}"
+    if any("InvalidAuthToken" in str(c) or type(c).__name__ == "AuthenticationError" for c in causes):
+        message += (
+            ". The cluster uses token authentication and Ray turns it on by itself only for address='auto': "
+            "set RAY_AUTH_MODE=token and RAY_AUTH_TOKEN (or ~/.ray/auth_token) to the cluster's token"
+        )
+    elif "Failed to connect" in text:
+        message += ". Use the address `ray start --head` printed (the node's IP, which may not be 127.0.0.1)"
+    return message
 
 
 def run_ray(
