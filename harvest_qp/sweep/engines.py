@@ -142,7 +142,7 @@ def run_local(
     episode_timeout: float | None = None,
     log: Callable[[str], None] = lambda _: None,
 ) -> None:
-    """Run ``seeds`` in ``workers`` spawned processes, calling ``on_outcome`` as each finishes.
+    """Run ``seeds`` in ``workers`` worker processes, calling ``on_outcome`` as each finishes.
 
     The parent hands one seed at a time to each idle worker, so it always knows which seed a
     worker is running: a worker that dies (``os._exit``, a segfault, the OOM killer) is recorded
@@ -380,7 +380,8 @@ def run_ray(
     """Run ``seeds`` as Ray tasks (one CPU each, never retried), calling ``on_outcome`` as each finishes.
 
     ``workers`` caps the tasks in flight (on a cluster: how many CPUs the sweep may take);
-    without it every seed is submitted at once and Ray schedules them on the CPUs it has.
+    without it, the cluster's CPU count when the sweep starts. ``episode_timeout`` counts from a
+    task's submission, which is then close to its start (plus a worker's start-up on first use).
     A task whose worker dies is recorded like a dead local worker. Retries are off
     (``max_retries=0``): a seed that kills its worker would do it again.
     """
@@ -391,7 +392,8 @@ def run_ray(
         episode_ref = ray.put(episode)
         pending = deque(seeds)
         in_flight: dict[Any, tuple[int, float]] = {}
-        limit = workers or len(seeds)
+        # No more tasks in flight than CPUs: a queued task would otherwise use up its timeout waiting.
+        limit = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
         while pending or in_flight:
             while pending and len(in_flight) < limit:
                 seed = pending.popleft()
