@@ -48,7 +48,7 @@ class SweepResult:
 
 
 class _Progress:
-    """``sweep: 37/100 done (this run), 30 successes, 1 failed to run, 1m12s elapsed, ETA 2m03s`` on stderr.
+    """``sweep: 37/100 episodes done, 30 succeeded (81 %), 1 failed to run, 1m12s elapsed, ETA 2m03s`` on stderr.
 
     Redrawn in place on a terminal; elsewhere (CI logs, files) one line at most every
     ``interval`` seconds, and always the last one.
@@ -80,7 +80,7 @@ class _Progress:
         elapsed = now - self.start
         eta = elapsed / self.done * (self.total - self.done)
         line = (
-            f"sweep: {self.done}/{self.total} episodes done, {self.successes} successes"
+            f"sweep: {self.done}/{self.total} episodes done, {self.successes} succeeded"
             f" ({100 * self.successes / self.done:.0f} %), {self.lost} failed to run,"
             f" {_duration(elapsed)} elapsed, ETA {_duration(eta)}"
         )

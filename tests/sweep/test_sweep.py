@@ -271,7 +271,7 @@ def test_progress_line(tmp_path):
     stream = Stream()
     run_sweep(pure_episode, [1, 2, 3], out_dir=tmp_path, workers=2, progress=stream)
     last = stream.text.strip().splitlines()[-1]
-    assert last.startswith("sweep: 3/3 episodes done, 2 successes (67 %), 0 failed to run")
+    assert last.startswith("sweep: 3/3 episodes done, 2 succeeded (67 %), 0 failed to run")
     assert "ETA 0s" in last
 
 
