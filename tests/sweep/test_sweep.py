@@ -219,8 +219,8 @@ def sim_episode(seed: int) -> dict:
 def test_mujoco_episodes_in_workers_match_this_process(tmp_path):
     """MuJoCo episodes run in sweep workers give bit-identical metrics to the same calls in this process.
 
-    Catches: a worker start method that corrupts MuJoCo/BLAS state (e.g. a plain fork of a threaded
-    parent), or a seed not reaching the scene (the scenes must differ between seeds).
+    Catches: workers whose MuJoCo/numpy state differs from a fresh process (start method, preloading),
+    and a seed that does not reach the scene (the scenes must differ between seeds).
     """
     seeds = [0, 1, 2, 3]
     result = run_sweep(sim_episode, seeds, out_dir=tmp_path, workers=2, progress=False)
