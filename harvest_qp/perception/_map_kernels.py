@@ -215,7 +215,7 @@ def _clip_to_box(ox, oy, oz, px, py, pz, lo, hi):
 
 @njit(cache=True)
 def integrate_frame(
-    points, labels, pixels, origin, rotation, regions, stride, phase_row, phase_col, min_range, max_range,
+    points, labels, pixels, origin, rotation, regions, stride, phase_row, phase_col, near_skip, min_range, max_range,
     no_return, nr_stride, nr_phase_row, nr_phase_col, intrinsics, returned, res, lo_key, dims, nby, nbz,
     log_odds, stamp, frame, hit, miss,
     clamp_min, clamp_max, dirty, dirty_list, n_dirty, counters,
@@ -224,7 +224,8 @@ def integrate_frame(
 
     Pass 1 inserts the obstacle points (one hit per cell), pass 2 erases the cells the stem
     points fall in, pass 3 traces the clearing rays of the pixels on the ``stride`` grid
-    (one miss per cell, none where pass 1 or 2 acted this frame); pass 4, when
+    (one miss per cell, none where pass 1 or 2 acted this frame; those off the twice coarser
+    grid start ``near_skip`` [m] from the camera when it is > 0); pass 4, when
     ``no_return[1] > no_return[0]``, traces the pixels of the ``nr_stride`` grid without any point from
     ``no_return[0]`` to ``no_return[1]`` [m] along the pinhole rays of ``intrinsics``
     ``(f, cx, cy)`` [pixels] (camera rotation ``rotation``; ``returned`` is an (h, w) scratch).
@@ -297,11 +298,20 @@ def integrate_frame(
     for i in range(n):
         if not valid[i]:
             continue
-        if stride > 1 and ((pixels[i, 0] - phase_row) % stride != 0 or (pixels[i, 1] - phase_col) % stride != 0):
+        dr = pixels[i, 0] - phase_row
+        dc = pixels[i, 1] - phase_col
+        if stride > 1 and (dr % stride != 0 or dc % stride != 0):
             continue
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         sx, sy, sz = ox, oy, oz
         t0, t1 = _clip_to_box(ox, oy, oz, px, py, pz, lo_in, hi_in)
+        if near_skip > 0.0 and (dr % (2 * stride) != 0 or dc % (2 * stride) != 0):
+            # Within near_skip of the camera the rays of the twice coarser grid are close
+            # enough to cross every cell: the others start there (half the ray steps).
+            rng = np.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2)
+            if rng <= near_skip:
+                continue
+            t0 = max(t0, near_skip / rng)
         if t0 > t1:
             continue
         if t0 > 0.0:
@@ -526,4 +536,45 @@ def occupied_indices(block_cells, block_count, out):
         for j in range(block_count[b]):
             out[n] = (b << 9) | block_cells[b, j]
             n += 1
+    return n
+
+
+@njit(cache=True)
+def gather_cells(index, distance, max_cells, res, lo_key, nby, nbz, out_cells, out_centres):
+    """Union of the capsules' cells (``index[c, j] >= 0``), at most ``max_cells`` of them.
+
+    When there are more, the ones closest to any capsule are kept. The kept cells are
+    written sorted into ``out_cells`` with their centres [m] in ``out_centres``; returns
+    how many.
+    """
+    n_all = index.shape[0] * index.shape[1]
+    cells = np.empty(n_all, np.int64)
+    best = np.empty(n_all)
+    n = 0
+    for c in range(index.shape[0]):
+        for j in range(index.shape[1]):
+            idx = index[c, j]
+            if idx < 0:
+                continue
+            found = -1
+            for i in range(n):
+                if cells[i] == idx:
+                    found = i
+                    break
+            if found < 0:
+                cells[n] = idx
+                best[n] = distance[c, j]
+                n += 1
+            elif distance[c, j] < best[found]:
+                best[found] = distance[c, j]
+    if n > max_cells:
+        order = np.argsort(best[:n], kind="mergesort")
+        kept = np.sort(cells[:n][order[:max_cells]])
+        n = max_cells
+        cells[:n] = kept
+    else:
+        cells[:n] = np.sort(cells[:n])
+    for i in range(n):
+        out_cells[i] = cells[i]
+    cell_centres(out_cells[:n], res, lo_key, nby, nbz, out_centres)
     return n

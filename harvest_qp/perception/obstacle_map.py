@@ -27,7 +27,8 @@ What is inserted (the rules of the harvester, not of OctoMap):
 The grid is dense and bounded (``bounds``, the space the arms can reach) and the
 work is done by numba kernels (:mod:`._map_kernels`); clearing rays are traced for the
 pixels of a ``clear_stride`` grid whose phase turns every frame, so every pixel clears
-once every ``clear_stride**2`` frames. Measured speeds and the choice of the defaults:
+once every ``clear_stride**2`` frames, and near the camera, where rays crowd, only those
+of the twice coarser grid (see :class:`ObstacleMap`). Measured speeds and the choice of the defaults:
 ``benchmarks/bench_map.py`` and the module constants below.
 
 :class:`MapCollisionFeed` turns the map into :class:`~harvest_qp.limits.CollisionAvoidance`
@@ -35,6 +36,15 @@ obstacle spheres before each QP step: for each arm capsule, its closest occupied
 within the influence distance, each a sphere covering its cell (radius sqrt(3)/2 times
 the resolution), so each becomes a velocity-damper row with the limit's own d_s / d_i /
 gain, and its pair name tells the cell (``cell[kx,ky,kz]``, the cell's integer key).
+
+Typical use in a control loop::
+
+    obstacle_map = ObstacleMap()
+    feed = MapCollisionFeed(collision_limit, obstacle_map, controller.configuration)
+    # every tick, before controller.step(q):
+    if new_cloud is not None:
+        obstacle_map.update(new_cloud, exclude=[held_cluster_region])
+    feed.update(q)
 """
 
 from __future__ import annotations
@@ -67,9 +77,10 @@ __all__ = [
 #: map's capsule distance is within sqrt(3) cells of the truth (see ObstacleMap), 1.7 cm
 #: here; 2 cm cells would make it 3.5 cm, a third of the 10 cm influence distance.
 DEFAULT_RESOLUTION = 0.01
-#: Grid bounds [m] (lower corner, upper corner): the space the two arms (bases at
-#: (0, +-0.36, 0.8), 0.85 m reach plus their tools) and their 10 cm influence distance
-#: can reach in front of the stand; 6.9 M cells, 41 MB at 1 cm.
+#: Grid bounds [m] (lower corner, upper corner): where the arms work (bases at (0, +-0.36, 0.8),
+#: the vine at x ~0.4-0.9 m), from just behind the stand to 1.2 m in front of it, +-1.2 m
+#: sideways, 0.2-2.0 m high; obstacle points outside are not mapped. 7.1 M cells at 1 cm,
+#: 57 MB (log-odds, frame stamps, per-block lists of occupied cells).
 DEFAULT_BOUNDS = ((-0.4, -1.2, 0.2), (1.2, 1.2, 2.0))
 #: Cells of one capsule's rows at least this far apart [m] (MapCollisionFeed): the 4 closest
 #: cells of a wall are neighbours whose damper rows are nearly parallel, and daqp then
@@ -187,6 +198,12 @@ def _fit_pinhole(points, pixels, pose) -> tuple[float, float, float] | None:
     return float(sol[0]), float(sol[1]), float(sol[2])
 
 
+def _positive_int(value, name: str) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InvalidInputError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
 def _as_regions(exclude) -> NDArray[np.float64]:
     """Exclusion regions as an ``(n, 7)`` array ``(x0, y0, z0, x1, y1, z1, radius)``."""
     if exclude is None:
@@ -232,6 +249,10 @@ class ObstacleMap:
         clear_stride: pixel stride of the clearing rays (their phase turns every frame);
             None: the nearest integer to ``sqrt(pixels / clear_rays)``.
         clear_rays: target number of clearing rays per frame when ``clear_stride`` is None.
+            With a stride > 1, within ``0.6 * resolution * f / (2 * stride)`` of the camera
+            (f: focal length [pixels] fitted once to the cloud; 0.33 m for the D415 at
+            283x160 and 848x480), where the rays of the twice coarser grid are 0.6 cell
+            apart, only those clear; the others start there (-25 % CPU, measured).
         no_return_range: ``(start, end)`` [m]: pixels of the clearing grid with no point in
             the cloud (nothing within the camera's depth range) clear their ray from
             ``start`` to ``end`` (on a pixel grid twice as coarse as ``clear_stride``), so
@@ -282,13 +303,8 @@ class ObstacleMap:
         self.miss = _logodds(prob_miss)
         self.clamp_min = _logodds(clamp_min)
         self.clamp_max = _logodds(clamp_max)
-        if clear_stride is not None and (isinstance(clear_stride, bool) or int(clear_stride) != clear_stride
-                                         or clear_stride < 1):  # fmt: skip
-            raise InvalidInputError(f"clear_stride must be a positive integer or None, got {clear_stride!r}")
-        self.clear_stride = None if clear_stride is None else int(clear_stride)
-        if isinstance(clear_rays, bool) or int(clear_rays) != clear_rays or clear_rays < 1:
-            raise InvalidInputError(f"clear_rays must be a positive integer, got {clear_rays!r}")
-        self.clear_rays = int(clear_rays)
+        self.clear_stride = None if clear_stride is None else _positive_int(clear_stride, "clear_stride")
+        self.clear_rays = _positive_int(clear_rays, "clear_rays")
         self.erase_excluded = bool(erase_excluded)
         if no_return_range is not None:
             try:
@@ -418,6 +434,8 @@ class ObstacleMap:
         origin = np.ascontiguousarray(cloud.camera_pose[:3, 3], dtype=float)
         if not np.all(np.isfinite(cloud.camera_pose)):
             return self._stats("camera_pose is not finite", counters, 0)
+        if np.abs(origin).max() > 1e6:  # keeps every key computation far from integer overflow
+            return self._stats(f"camera position {origin.tolist()} is more than 1000 km away", counters, 0)
         region_erased = 0
         if self.erase_excluded and regions.shape[0]:
             region_erased = K.erase_regions(
@@ -442,13 +460,18 @@ class ObstacleMap:
         rotation = np.ascontiguousarray(cloud.camera_pose[:3, :3], dtype=float)
         no_return = np.zeros(2)
         intrinsics = np.zeros(3)
-        if self.no_return_range is not None:
-            # The camera's pinhole, fitted on this frame or remembered from an earlier one
-            # of the same image size (a frame that sees nothing cannot be fitted).
+        # The camera's pinhole, fitted once per image size (the first frame that allows it).
+        fit = self._pinhole.get((h, w))
+        if fit is None and (stride > 1 or self.no_return_range is not None):
             fit = _fit_pinhole(points, pixels, cloud.camera_pose)
             if fit is not None:
                 self._pinhole[(h, w)] = fit
-            fit = self._pinhole.get((h, w))
+        near_skip = 0.0
+        if fit is not None and stride > 1:
+            # Rays of the 2 * stride grid are 2 * stride / f rad apart: up to this range they
+            # are at most 0.6 cell apart, so they alone cross every cell there.
+            near_skip = 0.6 * self.resolution * fit[0] / (2 * stride)
+        if self.no_return_range is not None:
             if fit is not None:
                 no_return[:] = self.no_return_range
                 intrinsics[:] = fit
@@ -456,7 +479,7 @@ class ObstacleMap:
                     self._returned = np.zeros((h, w), dtype=np.bool_)
         K.integrate_frame(
             points, np.ascontiguousarray(cloud.labels, dtype=np.int8), pixels, origin, rotation, regions,
-            stride, phase // stride, phase % stride, self.min_range, self.max_range, no_return,
+            stride, phase // stride, phase % stride, near_skip, self.min_range, self.max_range, no_return,
             nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
             self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
             self._stamp, self._frame, self.hit, self.miss, self.clamp_min, self.clamp_max,
@@ -529,13 +552,12 @@ class ObstacleMap:
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(r >= 0)):
             raise InvalidInputError("capsule end points must be finite and radii finite and >= 0 [m]")
         max_distance = as_positive_scalar(max_distance, "max_distance", allow_zero=True)
-        if isinstance(per_capsule, bool) or int(per_capsule) != per_capsule or per_capsule < 1:
-            raise InvalidInputError(f"per_capsule must be a positive integer, got {per_capsule!r}")
+        per_capsule = _positive_int(per_capsule, "per_capsule")
         min_separation = as_positive_scalar(min_separation, "min_separation", allow_zero=True)
         n, k = a.shape[0], int(per_capsule)
         if candidates is None:
             candidates = 8 * k if min_separation > 0 else k
-        if isinstance(candidates, bool) or int(candidates) != candidates or candidates < k:
+        if _positive_int(candidates, "candidates") < k:
             raise InvalidInputError(f"candidates must be an integer >= per_capsule ({k}), got {candidates!r}")
         index = np.full((n, k), -1, dtype=np.int64)
         dist = np.full((n, k), np.inf)
@@ -571,7 +593,7 @@ class MapCollisionFeed:
     ``limit.pair_names()`` and the logged active pairs) are ``cell[kx,ky,kz]``, the cell's
     integer key ``floor(x / resolution)``; unused slots are ``free_slot``.
 
-    The limit gets a fixed number of obstacle slots (``per_capsule`` per capsule) once, and
+    The limit gets a fixed number of obstacle slots (``max_cells``) once, and
     each update writes the cells into them in place, because
     ``CollisionAvoidance.set_obstacle_spheres`` rebuilds the pair arrays (~55 us a call,
     measured); unused slots are parked far below the world with radius 0, so the limit's
@@ -586,6 +608,9 @@ class MapCollisionFeed:
         min_separation: a capsule's cells at least this far apart [m] (see
             :data:`DEFAULT_MIN_SEPARATION`).
         margin: extra query distance [m] beyond the limit's influence distance.
+        max_cells: obstacle slots given to the limit; when the capsules' cells are more, the
+            closest ones are kept. Every slot is paired with all 15 moving capsules by the
+            limit, and it keeps at most ``max_pairs`` (24) rows anyway.
         capsules: the robot capsules to query (``CapsuleGeometry`` attached to frames);
             default: the 15 moving capsules of :func:`harvest_qp.robot.description.collision_bodies`.
     """
@@ -601,6 +626,7 @@ class MapCollisionFeed:
         per_capsule: int = 4,
         min_separation: float = DEFAULT_MIN_SEPARATION,
         margin: float = 0.01,
+        max_cells: int = 24,
         capsules: Sequence | None = None,
     ) -> None:
         from harvest_qp.collision import kernels as collision_kernels
@@ -611,8 +637,7 @@ class MapCollisionFeed:
             raise InvalidInputError(f"obstacle_map must be an ObstacleMap, got {type(obstacle_map).__name__}")
         if not hasattr(limit, "set_obstacle_spheres") or not hasattr(limit, "influence_distance"):
             raise InvalidInputError(f"limit must be a CollisionAvoidance, got {type(limit).__name__}")
-        if isinstance(per_capsule, bool) or int(per_capsule) != per_capsule or per_capsule < 1:
-            raise InvalidInputError(f"per_capsule must be a positive integer, got {per_capsule!r}")
+        per_capsule = _positive_int(per_capsule, "per_capsule")
         self.limit = limit
         self.map = obstacle_map
         self.configuration = configuration
@@ -653,8 +678,9 @@ class MapCollisionFeed:
         self._scratch_i = np.zeros(m, dtype=np.int64)
         self._scratch_d = np.zeros(m)
         self._names: dict[int, str] = {}
-        self.slots = n * self.per_capsule
+        self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
         self._centres = np.tile(self._PARK, (self.slots, 1))
+        self._cells = np.zeros(self.slots, dtype=np.int64)
         limit.set_obstacle_spheres(self._centres, 0.0)
         self._first = len(limit.capsule_names) - self.slots
         self._in_place = self._layout_ok()
@@ -696,13 +722,15 @@ class MapCollisionFeed:
             w0, w1, self.radii, self.limit.influence_distance + self.margin, self.min_separation,
             self._scratch_i, self._scratch_d, self._index, self._dist, self._count,
         )  # fmt: skip
-        cells = np.unique(self._index[self._index >= 0])
-        if cells.shape == self._last.shape and np.array_equal(cells, self._last):
-            return int(cells.shape[0])  # same cells: the limit already has them
-        n = cells.shape[0]
         m = self.map
         self._centres[:] = self._PARK
-        K.cell_centres(cells, m.resolution, m.lo_key, m._nby, m._nbz, self._centres)
+        n = K.gather_cells(
+            self._index, self._dist, self.slots, m.resolution, m.lo_key, m._nby, m._nbz, self._cells, self._centres
+        )
+        cells = self._cells[:n]
+        if n == self._last.shape[0] and np.array_equal(cells, self._last):
+            return n  # same cells: the limit already has them
+        cells = cells.copy()
         radii = np.zeros(self.slots)
         radii[:n] = m.cell_radius
         for j, idx in enumerate(cells):

@@ -152,6 +152,32 @@ def test_pixels_without_return_clear_only_when_asked():
     assert m.is_occupied(cells_of(near_leaf)).all()
 
 
+def test_near_the_camera_the_coarser_clearing_grid_still_clears_moved_leaves_in_nine_frames():
+    """With a pixel stride (here 2), rays off the twice coarser grid start near_skip (~0.4 m)
+    from the camera. Leaves 0.25 m away (in that zone) and 0.95 m away (beyond it) are both
+    cleared in 9 frames, and the map equals the one traced with all rays of the stride grid.
+
+    Catches a near_skip so long that the coarse rays alone, too sparse there, leave cells
+    uncrossed (the far leaf would stay)."""
+    size = (192, 256)
+    near, far = leaf_at(0.25, y=-0.05), leaf_at(0.95, y=0.15)  # side by side in the image
+    back = ([1.3, 0.0, 1.0], [0.0, 0.6, 0.0], [0.0, 0.0, 0.5], OBSTACLE)  # beyond the grid: rays only
+    maps = [ObstacleMap(bounds=SMALL), ObstacleMap(bounds=SMALL)]
+    for _ in range(20):
+        for m in maps:
+            m.update(cast(CAM, [back, near, far], size=size))
+    assert maps[0].is_occupied(np.vstack([cells_of(near), cells_of(far)])).all()
+    maps[1]._pinhole[size] = (1e-9, 0.0, 0.0)  # a focal length that makes near_skip ~0: full rays
+    for frame in range(1, 10):
+        for m in maps:
+            m.update(cast(CAM, [back], size=size))
+        if frame < 9:
+            assert maps[0].is_occupied(cells_of(near)).any() and maps[0].is_occupied(cells_of(far)).any()
+    for m in maps:
+        assert not m.is_occupied(np.vstack([cells_of(near), cells_of(far)])).any()
+    assert np.array_equal(maps[0].occupied_keys(), maps[1].occupied_keys())
+
+
 def test_noise_point_is_cleared_after_three_frames():
     """A single spurious point in free space: one hit (0.85), cleared by the 3rd miss (-0.41 each)."""
     m = ObstacleMap(bounds=SMALL, clear_stride=1)
@@ -288,9 +314,31 @@ def test_empty_frame_and_non_finite_pose_leave_the_map_unchanged():
                           cloud.image_size)  # fmt: skip
     assert "camera_pose" in m.update(bad_pose).frame_rejected
     assert np.array_equal(m.log_odds, before)
+    far_pose = CAM.copy()
+    far_pose[:3, 3] = 1e300
+    far_cloud = PointCloud(cloud.points + 1e300, cloud.labels, cloud.colors, far_pose, 0.0, cloud.depth,
+                           cloud.pixels, cloud.image_size)  # fmt: skip
+    assert "camera position" in m.update(far_cloud).frame_rejected
+    assert np.array_equal(m.log_odds, before)
     # Points outside the grid: counted, not inserted, no crash.
     far = cast(look_at([0.0, 0.0, 1.0], [-1.0, 0.0, 1.0]), [([-1.5, 0, 1.0], [0, 0.3, 0], [0, 0, 0.2], OBSTACLE)])
     assert m.update(far).outside_grid == len(far)
+
+
+def test_frame_stamps_wrapping_around_change_nothing():
+    """The per-cell frame stamps are 16-bit: across the wrap the map evolves exactly as without it."""
+    a, b = ObstacleMap(bounds=SMALL), ObstacleMap(bounds=SMALL)
+    b._frame = np.iinfo(np.uint16).max - 2
+    b._stamp[:] = 1  # stamps left by frame 1, 65,535 frames ago: must not block frame 1 after the wrap
+    away = look_at([0.0, 0.0, 1.0], [0.0, -1.0, 1.0])
+    side_wall = ([0.0, -0.305, 1.005], [0.3, 0.0, 0.0], [0.0, 0.0, 0.25], OBSTACLE)
+    # The 3rd frame (the first after the wrap) looks at cells the first two never touched.
+    frames = [cast(CAM, [WALL, leaf_at(0.5)])] * 2 + [cast(away, [side_wall])] + [cast(CAM, [WALL])] * 6
+    for f in frames:
+        a.update(f)
+        b.update(f)
+        assert np.array_equal(a.log_odds, b.log_odds)
+    assert b._frame < 10
 
 
 def test_bad_arguments_raise_the_package_error_naming_them():
@@ -302,6 +350,10 @@ def test_bad_arguments_raise_the_package_error_naming_them():
         ObstacleMap(prob_hit=1.5)
     with pytest.raises(InvalidInputError, match="clear_stride"):
         ObstacleMap(clear_stride=0)
+    with pytest.raises(InvalidInputError, match="clear_rays"):
+        ObstacleMap(clear_rays="many")
+    with pytest.raises(InvalidInputError, match="no_return_range"):
+        ObstacleMap(no_return_range=(1.0, 0.5))
     m = ObstacleMap(bounds=SMALL)
     with pytest.raises(InvalidInputError, match="PointCloud"):
         m.update(np.zeros((3, 3)))
@@ -316,6 +368,21 @@ def test_bad_arguments_raise_the_package_error_naming_them():
 
 
 # --------------------------------------------------------------------------- query
+
+
+def test_a_cell_counts_as_the_sphere_that_covers_it():
+    """Hand-computed: one occupied cell, a capsule beside it: distance = centre distance - capsule
+    radius - sqrt(3)/2 * 1 cm. Catches a cell radius that does not cover the cell (unsafe rows)."""
+    m = ObstacleMap(bounds=SMALL)
+    tiny = ([0.5053, 0.0052, 1.0051], [0.0, 0.001, 0.0], [0.0, 0.0, 0.001], OBSTACLE)
+    m.update(cast(CAM, [tiny]))
+    assert np.array_equal(m.occupied_keys(), [[50, 0, 100]])
+    centre = np.array([0.505, 0.005, 1.005])
+    p0, p1 = centre + [0.0, 0.1, -0.05], centre + [0.0, 0.1, 0.05]  # segment 10 cm beside the cell, along z
+    q = m.closest_cells(p0[None], p1[None], 0.04, max_distance=0.2)
+    assert q.counts[0] == 1
+    assert q.distances[0, 0] == pytest.approx(0.1 - 0.04 - 0.5 * math.sqrt(3) * 0.01, abs=1e-12)
+    np.testing.assert_allclose(q.centres[0, 0], centre, atol=1e-12)
 
 
 @pytest.mark.parametrize("separation", [0.0, 0.03])
@@ -486,7 +553,7 @@ def test_map_distances_match_the_lab_geometry_within_one_cell(lab):
     shapes = _vine_shapes(robot, scene)
     rng = np.random.default_rng(7)
     centre = scene.stem_base + np.array([0.0, 0.0, -0.08])
-    req, res = coal.DistanceRequest(), coal.DistanceResult()
+    req = coal.DistanceRequest()  # a fresh DistanceResult per call: coal keeps a past penetration in it
     errors, n_checked = [], 0
     while n_checked < 150:
         mid = centre + rng.uniform(-0.15, 0.15, 3)
@@ -499,7 +566,7 @@ def test_map_distances_match_the_lab_geometry_within_one_cell(lab):
         x /= np.linalg.norm(x)
         R = np.column_stack([x, np.cross(z, x), z])
         capsule, T = coal.Capsule(radius, 2 * half), coal.Transform3s(R, mid)
-        true = min(coal.distance(capsule, T, s, Ts, req, res) for s, Ts in shapes)
+        true = min(coal.distance(capsule, T, s, Ts, req, coal.DistanceResult()) for s, Ts in shapes)
         if not 0.005 < true < 0.1:
             continue
         n_checked += 1
@@ -509,6 +576,42 @@ def test_map_distances_match_the_lab_geometry_within_one_cell(lab):
     assert errors.max() <= 1e-9 + 0.0, errors.max()  # never farther than the seen surface
     assert errors.min() >= -math.sqrt(3) * RES - 1e-9, errors.min()
     assert np.median(errors) < -0.002  # conservative by about half a cell diagonal, as designed
+
+
+def test_distances_against_coals_octree_of_the_same_cells(lab):
+    """coal's exact capsule-to-octree distance (the cells as boxes, as MoveIt/FCL check them)
+    bounds the map's: between the box distance minus (sqrt(3) - 1)/2 res and the box distance.
+    Catches cells at the wrong place (an off-by-half-cell centre) and a wrong sphere radius."""
+    import coal
+
+    robot, scene, cam = lab
+    m = ObstacleMap()
+    for pose in lab_views(scene, 4, seed=4):
+        m.update(cam.capture(robot.data, pose, 0.0))
+    tree = coal.makeOctree(m.occupied_centres(), RES)
+    rng = np.random.default_rng(11)
+    req = coal.DistanceRequest()  # a fresh DistanceResult per call: coal keeps a past penetration in it
+    centre = scene.stem_base + np.array([0.0, 0.0, -0.08])
+    gaps = []
+    for _ in range(60):  # about 40 % of random capsules near the vine touch an occupied cell
+        mid = centre + rng.uniform(-0.2, 0.2, 3)
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        half, radius = rng.uniform(0.02, 0.1), rng.uniform(0.02, 0.06)
+        x = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
+        x /= np.linalg.norm(x)
+        R = np.column_stack([x, np.cross(axis, x), axis])
+        capsule = coal.Capsule(radius, 2 * half)
+        box = coal.distance(capsule, coal.Transform3s(R, mid), tree, coal.Transform3s(), req, coal.DistanceResult())
+        got = m.closest_cells((mid - half * axis)[None], (mid + half * axis)[None], radius, max_distance=1.0,
+                              per_capsule=1).distances[0, 0]  # fmt: skip
+        if box <= 0:
+            continue  # coal reports penetration depth differently; compare separated capsules only
+        gaps.append(box - got)
+    gaps = np.array(gaps)
+    assert gaps.shape[0] >= 25
+    assert gaps.min() >= -1e-9
+    assert gaps.max() <= 0.5 * (math.sqrt(3) - 1) * RES + 1e-9
 
 
 def test_stem_never_enters_the_map_in_the_lab(lab):
@@ -531,12 +634,13 @@ def test_stem_never_enters_the_map_in_the_lab(lab):
     keys = np.unique(m.keys(stem_pts), axis=0)
     centres = (keys + 0.5) * RES
     shapes = _vine_shapes(robot, scene)
-    req, res = coal.DistanceRequest(), coal.DistanceResult()
+    req = coal.DistanceRequest()  # a fresh DistanceResult per call: coal keeps a past penetration in it
     probe = coal.Sphere(1e-9)
     pure = []
     for c in centres:
         T = coal.Transform3s(np.eye(3), c)
-        pure.append(min(coal.distance(probe, T, s, Ts, req, res) for s, Ts in shapes) > 0.5 * math.sqrt(3) * RES)
+        gap = min(coal.distance(probe, T, s, Ts, req, coal.DistanceResult()) for s, Ts in shapes)
+        pure.append(gap > 0.5 * math.sqrt(3) * RES)
     pure = np.array(pure)
     assert pure.sum() >= 3
     # From 0.9 m the camera labels the stem OBSTACLE (past its 0.7 m stem range): it is mapped ...
@@ -621,3 +725,129 @@ def test_map_rows_keep_the_gripper_off_a_wall_seen_only_by_the_camera():
         results[with_map] = closest
     assert results[False] < 0.0
     assert results[True] >= 0.01 - 1e-3  # d_s of the limit, within the damper's discretisation (0.1 mm)
+
+
+def test_feed_keeps_the_closest_cells_when_they_exceed_its_slots():
+    """With fewer slots than cells, the fed cells are the closest ones (each at its closest capsule)."""
+    from harvest_qp.limits import CollisionAvoidance
+
+    config, controller, limit, m, feed = _controller(True)
+    config.update(config.q)
+    feed.update()
+    w0, w1 = feed.capsule_world()
+    query = m.closest_cells(w0, w1, feed.radii, max_distance=limit.influence_distance + feed.margin,
+                            per_capsule=feed.per_capsule, min_separation=feed.min_separation)  # fmt: skip
+    best: dict[int, float] = {}
+    for c in range(len(w0)):
+        for j in range(query.counts[c]):
+            i = int(query.indices[c, j])
+            best[i] = min(best.get(i, np.inf), float(query.distances[c, j]))
+    assert len(best) >= 3
+    small = MapCollisionFeed(CollisionAvoidance.dual_ur5e(config), m, config, max_cells=2)
+    assert small.update() == 2
+    assert set(small.cells.tolist()) == set(sorted(best, key=best.get)[:2])
+
+
+def _lab_approach(scene, with_map: bool, duration: float = 3.6) -> tuple[float, int]:
+    """The camera arm driven at 0.15 m/s at the nearest obstacle point of its first frame,
+    in the MuJoCo lab with its camera, the gripper holding the cluster (excluded from the map).
+
+    Returns the smallest true distance [m] (MuJoCo) between a camera-arm geom and a vine geom
+    other than the held cluster and stem, and the most map rows active at once.
+    """
+    import mujoco
+
+    from harvest_qp import Configuration, TaskController
+    from harvest_qp.episodes import environment_capsules
+    from harvest_qp.limits import CollisionAvoidance
+    from harvest_qp.sim import SimRobot
+    from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
+
+    robot = SimRobot(scene)
+    q = robot.joint_positions()
+    config = Configuration.dual_ur5e(q)
+    first = robot.capture_cloud()
+    obstacles = first.points[first.labels == OBSTACLE]
+    ranges = np.linalg.norm(obstacles - first.camera_position, axis=1)
+    direction = (obstacles[np.argmin(ranges)] - first.camera_position) / ranges.min()
+    camera = FrameTwistTask("camera", weight=1.0)
+    camera.set_reference(np.concatenate([0.15 * direction, np.zeros(3)]))
+    gripper = FrameTwistTask("gripper", weight=1.0)
+    gripper.set_reference(np.zeros(6))
+    # The scene's rigid branch and cane as environment capsules, as the CLI's configs do.
+    limit = CollisionAvoidance.dual_ur5e(
+        config, environment=environment_capsules(robot.model, robot.data, ["branch", "cane"])
+    )
+    tasks = [camera, gripper, PostureTask(q, weight=1e-3), DampingTask(config.nv)]
+    controller = TaskController(config, tasks, [limit], dt=robot.control_period)
+    m = ObstacleMap()
+    feed = MapCollisionFeed(limit, m, config) if with_map else None
+    model, data = robot.model, robot.data
+    arm = [g for g in range(model.ngeom) if scene.geom_labels[g] == ROBOT
+           and model.body(model.geom_bodyid[g]).name.startswith("cam_")]  # fmt: skip
+    vine = [g for g in range(model.ngeom) if scene.geom_labels[g] == OBSTACLE
+            and model.geom_type[g] != mujoco.mjtGeom.mjGEOM_PLANE and model.geom_bodyid[g] != scene.ids["cluster"]]
+    closest, rows = np.inf, 0
+    for k in range(int(round(duration / robot.control_period))):
+        q = robot.joint_positions()
+        cloud = robot.camera_cloud()
+        if cloud is not None and with_map:
+            G = config.frame_pose("gripper")
+            y, p = G.rotation[:, 1], G.translation
+            m.update(cloud, exclude=[ExclusionRegion(tuple(p - 0.03 * y), tuple(p + 0.22 * y), 0.08)])
+        if feed is not None:
+            feed.update(q)
+        step = controller.step(q)
+        assert step.ok, step.status
+        assert np.all(np.isfinite(step.qdot))
+        if feed is not None:
+            names = limit.pair_names()
+            rows = max(rows, sum(names[i][1].startswith("cell[") for i in limit.active_pairs))
+        robot.send_joint_velocities(step.qdot)
+        robot.step()
+        if k % 5 == 0:
+            for a in arm:
+                for b in vine:
+                    closest = min(closest, mujoco.mj_geomDistance(model, data, a, b, 0.1, None))
+    return closest, rows
+
+
+def test_lab_camera_arm_driven_at_a_leaf_stops_short_of_it_with_the_map(lab):
+    """In the lab, with the camera's frames mapped and fed before each QP step, the camera arm
+    driven at the nearest leaf it sees keeps the collision limit's d_s (1 cm) from every true
+    vine geom; without the map it reaches the leaf (5.7 cm into it while leaves do not collide
+    in MuJoCo; touching it once they do). Catches a map that does not reach the QP from real
+    frames (labels, exclusion of the held cluster, feed, timing)."""
+    _, scene, _ = lab
+    without, _ = _lab_approach(scene, with_map=False)
+    closest, rows = _lab_approach(scene, with_map=True)
+    assert without < 0.002
+    assert closest >= 0.01 - 1e-3
+    assert rows >= 3
+
+
+def test_held_cluster_is_kept_out_of_the_map_in_the_lab(lab):
+    """Lab frames that see the held cluster: with the exclusion capsule along the gripper's y
+    axis, no occupied cell touches a berry; without it, berries fill cells. Catches an
+    exclusion test in the wrong frame or a capsule that does not cover the cluster."""
+    import mujoco
+
+    robot, scene, cam = lab
+    G = robot.site_pose("gripper")
+    y, p = G[:3, 1], G[:3, 3]
+    params = scene.params
+    held = ExclusionRegion(tuple(p - 0.03 * y), tuple(p + (params.cluster_length + 0.05) * y),
+                           params.cluster_radius + 0.02)  # fmt: skip
+    model, data = robot.model, robot.data
+    berries = [g for g in range(model.ngeom) if model.geom_bodyid[g] == scene.ids["cluster"]
+               and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_SPHERE]  # fmt: skip
+    touching = {}
+    for name, exclude in (("with", [held]), ("without", None)):
+        m = ObstacleMap()
+        for pose in lab_views(scene, 6, seed=8):
+            m.update(cam.capture(data, pose, 0.0), exclude=exclude)
+        centres = m.occupied_centres()
+        gaps = [np.linalg.norm(centres - data.geom_xpos[g], axis=1) - model.geom_size[g, 0] for g in berries]
+        touching[name] = int((np.min(gaps, axis=0) < 0.5 * math.sqrt(3) * RES).sum())
+    assert touching["without"] > 50
+    assert touching["with"] == 0
