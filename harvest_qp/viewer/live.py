@@ -48,6 +48,7 @@ class LiveViewer:
         self._latest: tuple[Any, ...] | None = None
         self._wake = threading.Event()
         self._stop = False
+        self._busy = False
         self.error: BaseException | None = None
         self.frames_drawn = 0
         self.observed = 0
@@ -77,6 +78,17 @@ class LiveViewer:
         self.observed += 1
         self._wake.set()
 
+    def flush(self, timeout: float = 10.0) -> bool:
+        """Wait until the latest observation is drawn (or drawing failed); False on timeout [s]."""
+        deadline = time.perf_counter() + timeout
+        while self._latest is not None or self._busy:
+            if self.error is not None or not self._thread.is_alive():
+                return False
+            if time.perf_counter() > deadline:
+                return False
+            time.sleep(0.002)
+        return self.error is None
+
     def _run(self) -> None:
         next_draw = 0.0
         while True:
@@ -87,6 +99,7 @@ class LiveViewer:
             if wait > 0 and not self._stop:
                 time.sleep(wait)
             self._wake.clear()
+            self._busy = True
             latest, self._latest = self._latest, None
             if latest is not None and self.error is None:
                 try:
@@ -98,6 +111,7 @@ class LiveViewer:
                     self.frames_drawn += 1
                 except BaseException as error:  # never reaches the control loop
                     self.error = error
+            self._busy = False
             next_draw = time.perf_counter() + self.period
             if self._stop and self._latest is None:
                 return

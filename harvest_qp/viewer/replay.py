@@ -96,6 +96,7 @@ def replay(
     port: int = 7000,
     vine: Any = "log",
     verbose: bool = True,
+    **viewer_kwargs: Any,
 ) -> MeshcatViewer:
     """Load a saved episode into a viewer as an animation; returns the viewer (close it when done).
 
@@ -106,12 +107,13 @@ def replay(
         play: start playing when a browser connects.
         vine: ``"log"`` (from the log's metadata), or anything :class:`MeshcatViewer` accepts.
         verbose: print the URL.
+        **viewer_kwargs: more :class:`MeshcatViewer` arguments for a new viewer.
     """
     log = load_log(run)
     frames = frames_from_log(log, fps=fps)
     if viewer is None:
         vine_arg = vine_params_from_log(log) if isinstance(vine, str) and vine == "log" else vine
-        viewer = MeshcatViewer(vine_arg, host=host, port=port, verbose=verbose)
+        viewer = MeshcatViewer(vine_arg, host=host, port=port, verbose=verbose, **viewer_kwargs)
     try:
         viewer.load_animation(frames, play=play)
     except BaseException:
@@ -127,6 +129,7 @@ def export_episode_html(
     fps: float = 30.0,
     play: bool = True,
     vine: Any = "log",
+    **viewer_kwargs: Any,
 ) -> Path:
     """Write a saved episode as one self-contained HTML file that plays offline.
 
@@ -138,6 +141,8 @@ def export_episode_html(
         fps: animation frames per second of episode time.
         play: start playing when the page opens.
         vine: ``"log"`` or anything :class:`MeshcatViewer` accepts.
+        **viewer_kwargs: more :class:`MeshcatViewer` arguments (``view_center``, ``camera_offset``,
+            ``point_size``, ``show_capsules``, ...).
     """
     html_path = Path(html_path)
     if html_path.suffix.lower() not in (".html", ".htm"):
@@ -145,7 +150,7 @@ def export_episode_html(
     log = load_log(run)
     vine_arg = vine_params_from_log(log) if isinstance(vine, str) and vine == "log" else vine
     with ViewerServer("127.0.0.1", free_port(), verbose=False) as server:
-        viewer = MeshcatViewer(vine_arg, server=server)
+        viewer = MeshcatViewer(vine_arg, server=server, **viewer_kwargs)
         try:
             viewer.load_animation(frames_from_log(log, fps=fps), play=play)
             return viewer.export_html(html_path)
