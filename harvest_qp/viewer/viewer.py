@@ -293,7 +293,7 @@ class MeshcatViewer:
         host: str = "127.0.0.1",
         port: int = 7000,
         show_capsules: bool = False,
-        max_cloud_points: int = 20000,
+        max_cloud_points: int = 10000,
         point_size: float = 0.006,
         velocity_scale: float = 1.0,
         force_scale: float = 0.02,
@@ -467,14 +467,16 @@ class MeshcatViewer:
 
     def _build_markers(self, b: _Batch) -> None:
         m = f"{ROOT}/markers"
-        b.object(f"{m}/roi", _mesh_object(mg.Sphere(1.0), COLORS["roi"], opacity=0.15))
+        # Objects sit one level below the node that moves: meshcat's exported HTML does not
+        # animate a node that carries an object itself (measured in headless Chromium).
+        b.object(f"{m}/roi/shape", _mesh_object(mg.Sphere(1.0), COLORS["roi"], opacity=0.15))
         for name, radius in (("p_r", 0.012), ("p_sb", 0.01), ("p_gd", 0.012)):
-            b.object(f"{m}/{name}", _mesh_object(mg.Sphere(radius), COLORS[name]))
+            b.object(f"{m}/{name}/shape", _mesh_object(mg.Sphere(radius), COLORS[name]))
         for k in range(4):
             self._unit_rod(b, f"{m}/stem_segment_{k}", 0.004, COLORS["stem_segment"])
         self._unit_rod(b, f"{m}/closest_pair/line", 0.003, COLORS["closest_pair"])
         for k in range(2):
-            b.object(f"{m}/closest_pair/end{k}", _mesh_object(mg.Sphere(0.008), COLORS["closest_pair"]))
+            b.object(f"{m}/closest_pair/end{k}/shape", _mesh_object(mg.Sphere(0.008), COLORS["closest_pair"]))
         for name in ("v_c", "v_g", "force"):
             self._unit_rod(b, f"{m}/{name}/shaft", 0.006, COLORS[name])
             b.object(f"{m}/{name}/head/cone", _mesh_object(mg.Cylinder(0.04, radiusTop=0.0, radiusBottom=0.016),
@@ -489,7 +491,7 @@ class MeshcatViewer:
             segments += [np.zeros(3), corners[k], corners[k], corners[(k + 1) % 4]]
         frustum = mg.LineSegments(mg.PointsGeometry(np.array(segments, np.float32).T),
                                   mg.LineBasicMaterial(color=COLORS["frustum"]))  # fmt: skip
-        b.object(f"{m}/frustum", frustum.lower())
+        b.object(f"{m}/frustum/shape", frustum.lower())
         for name in self.MARKERS:
             b.property(f"{m}/{name}", "visible", False)
         b.property(f"{ROOT}/text", "visible", False)
@@ -569,7 +571,7 @@ class MeshcatViewer:
             return
         if self._changed("points:" + path, key):
             stride = max(1, int(math.ceil(len(points) / self.max_cloud_points)))
-            b.object(path, _points_object(np.asarray(points)[::stride], color, self.point_size))
+            b.object(f"{path}/shape", _points_object(np.asarray(points)[::stride], color, self.point_size))
         self._visible(b, path, True)
 
     def draw(self, frame: ViewerFrame, *, wall_time: float | None = None) -> int:
@@ -726,10 +728,15 @@ class MeshcatViewer:
     ) -> None:
         """Load ``frames`` as a meshcat animation (time slider and play button in the viewer).
 
-        Transforms and visibility are animated; meshcat cannot animate geometry, so point
-        clouds and text panels become snapshots (at most one per ``cloud_interval`` /
-        ``text_interval`` seconds of episode time, clouds thinned to ``max_cloud_points``)
-        switched on and off by the animation. The scene shows the first frame until played.
+        Transforms are animated; meshcat cannot animate geometry, so point clouds and text
+        panels become snapshots (at most one per ``cloud_interval`` / ``text_interval``
+        seconds of episode time, clouds thinned to ``max_cloud_points``) switched on and off
+        by the animation. Showing and hiding is animated as a scale of 1 or 1e-6: meshcat's
+        ``visible`` tracks stop working in exported HTML once a node's visibility was set as
+        a property (measured in headless Chromium), and the viewer sets it for every marker.
+        A paused scene shows the first frame; a playing one starts as soon as the page has
+        the animation (possibly before every mesh is loaded: use the viewer's Animations
+        menu, reset and play, to watch again).
 
         Args:
             frames: the frames, in time order (e.g. :func:`frames_from_log`).
@@ -743,41 +750,34 @@ class MeshcatViewer:
         times = np.array([f.time for f in frames], float)
         if np.any(np.diff(times) < 0):
             raise InvalidInputError("frames must be in time order")
-        t0 = times[0]
-        tracks: dict[str, dict[str, list]] = {}
-
-        def key(path: str, prop: str, jstype: str, t: float, value: Any) -> None:
-            track = tracks.setdefault(path, {}).setdefault(prop, [jstype, []])
-            track[1].append({"time": float(t - t0), "value": value})
+        t0 = float(times[0])
+        # path -> list of (time, own transform, shown); transforms and visibility carried forward
+        history: dict[str, list[tuple[float, NDArray[np.float64], bool]]] = {}
+        current: dict[str, list[Any]] = {}
 
         b = _Batch()
         b.delete(f"{ROOT}/replay")
-        saved_max = self.max_cloud_points
-        self.max_cloud_points = max_cloud_points
-        cloud_snaps: list[tuple[float, str]] = []
-        text_snaps: list[tuple[float, str]] = []
-        last_cloud_key, last_cloud_t, last_text, last_text_t = object(), -math.inf, None, -math.inf
-        # Forget the visibility sent so far: the first frame then gives every marker a key at t0
-        # (before its first key an animation track holds that key's value).
+        # Forget the visibility sent so far so the first frame states every marker's.
         self._state = {k: v for k, v in self._state.items() if not k.startswith("visible:")}
-        self._state["animating"] = True  # capsule tracks too, so the toggle works in the replay
+        self._state["animating"] = True  # capsule poses too, so the toggle works in the replay
+        cloud_snaps: list[tuple[float, str, NDArray[np.float64]]] = []
+        text_snaps: list[tuple[float, str, NDArray[np.float64]]] = []
+        last_cloud_key, last_cloud_t, last_text, last_text_t = object(), -math.inf, None, -math.inf
         try:
-            for i, frame in enumerate(frames):
+            for frame in frames:
                 fb = _Batch()
-                # Draw the frame into a scratch batch to reuse the marker logic, then turn its
-                # transforms and visibility changes into animation keys.
                 self.frame_commands(fb, _without_geometry(frame), wall_time=None, text=False)
-                if i == 0:
-                    b.messages.extend(m for m in fb.messages if m[0] != b"set_object")
                 for command, path, data in fb.messages:
-                    msg = umsgpack.unpackb(data)
                     p = path.decode()
+                    entry = current.setdefault(p, [np.eye(4), True])
                     if command == b"set_transform":
-                        M = np.array(msg["matrix"], float).reshape(4, 4).T
-                        _transform_keys(key, p, frame.time, M)
-                    elif command == b"set_property" and msg["property"] == "visible":
-                        key(p, "visible", "boolean", frame.time, bool(msg["value"]))
-                # point cloud snapshots
+                        entry[0] = np.array(umsgpack.unpackb(data)["matrix"], float).reshape(4, 4).T
+                    elif command == b"set_property":
+                        msg = umsgpack.unpackb(data)
+                        if msg["property"] == "visible":
+                            entry[1] = bool(msg["value"])
+                for p, (M, shown) in current.items():
+                    history.setdefault(p, []).append((frame.time, M, shown))
                 if frame.cloud_points is not None:
                     ck = frame.cloud_key if frame.cloud_key is not None else id(frame.cloud_points)
                     if ck != last_cloud_key and frame.time - last_cloud_t >= cloud_interval - 1e-9:
@@ -789,41 +789,53 @@ class MeshcatViewer:
                         for value, name in _CLOUD_LABELS:
                             b.object(f"{path}/{name}", _points_object(pts[lab == value], COLORS[f"cloud_{name}"],
                                                                       self.point_size))  # fmt: skip
-                        cloud_snaps.append((frame.time, path))
+                        cloud_snaps.append((frame.time, path, np.eye(4)))
                 lines = frame.text_lines()
                 if lines != last_text and frame.time - last_text_t >= text_interval - 1e-9:
                     last_text, last_text_t = lines, frame.time
                     path = f"{ROOT}/replay/text_{len(text_snaps)}"
-                    b.object(path, self._text_object(lines, compress_level=6))
-                    b.transform(path, self._text_transform(len(lines)))
-                    text_snaps.append((frame.time, path))
+                    b.object(f"{path}/panel", self._text_object(lines, compress_level=6))
+                    text_snaps.append((frame.time, path, self._text_transform(len(lines))))
         finally:
-            self.max_cloud_points = saved_max
             self._state["animating"] = False
+        for snaps in (cloud_snaps, text_snaps):
+            for j, (t, path, M) in enumerate(snaps):
+                entries = [(t0, M, j == 0)]
+                if j > 0:
+                    entries.append((t, M, True))
+                if j + 1 < len(snaps):
+                    entries.append((snaps[j + 1][0], M, False))
+                history[path] = entries
         b.property(f"{ROOT}/text", "visible", False)
         for _, name in _CLOUD_LABELS:
             b.property(f"{ROOT}/cloud/{name}", "visible", False)
-        for snaps in (cloud_snaps, text_snaps):
-            for j, (t, path) in enumerate(snaps):
-                b.property(path, "visible", j == 0)
-                if len(snaps) > 1:
-                    if j > 0:
-                        key(path, "visible", "boolean", t0, False)
-                    key(path, "visible", "boolean", t, True)
-                    if j + 1 < len(snaps):
-                        key(path, "visible", "boolean", snaps[j + 1][0], False)
+
         animations = []
-        for path, props in tracks.items():
-            clip_tracks = []
-            for prop, (jstype, keys) in props.items():
-                if len(keys) < 2 and prop != "visible":
-                    continue
-                keys = _dedupe(keys)
-                clip_tracks.append({"name": "." + prop, "type": jstype, "keys": keys})
-            if clip_tracks:
-                animations.append({"path": path, "clip": {"fps": 1, "name": "default", "tracks": clip_tracks}})
+        for path, entries in history.items():
+            hides = any(not shown for _, _, shown in entries)
+            moves = any(not np.array_equal(M, entries[0][1]) for _, M, _ in entries)
+            if not hides and not moves:
+                continue
+            keys: dict[str, list[dict]] = {"position": [], "quaternion": [], "scale": []}
+            previous = None
+            for t, M, shown in entries:
+                if previous is not None and previous[2] != shown:
+                    # a key just before the switch keeps showing/hiding discrete
+                    _transform_keys(keys, previous[1], previous[2], max(t - t0 - 1e-4, previous[0] - t0))
+                _transform_keys(keys, M, shown, t - t0)
+                previous = (t, M, shown)
+            # A paused page shows the first key. A playing one must not get static transforms: the
+            # exported HTML applies its commands asynchronously (fetch of data URLs), and a static
+            # transform applied after a short animation has finished would undo its last frame.
+            if not play:
+                first = entries[0]
+                b.transform(path, _scaled(first[1], first[2]))
+            b.property(path, "visible", True)
+            tracks = [{"name": "." + prop, "type": "quaternion" if prop == "quaternion" else "vector3",
+                       "keys": _dedupe(k)} for prop, k in keys.items()]  # fmt: skip
+            animations.append({"path": path, "clip": {"fps": 1, "name": "default", "tracks": tracks}})
         b.animation(animations, play=play, repetitions=repetitions)
-        self._state = {k: v for k, v in self._state.items() if not k.startswith(("points:", "cloud"))}
+        self._state = {k: v for k, v in self._state.items() if not k.startswith(("points:", "cloud", "visible:"))}
         self.connection.send(b.messages)
 
     def close(self) -> None:
@@ -851,14 +863,23 @@ def _without_geometry(frame: ViewerFrame) -> ViewerFrame:
                                samples_removed=None)  # fmt: skip
 
 
-def _transform_keys(key, path: str, t: float, M: NDArray[np.float64]) -> None:
-    """Animation keys (position, quaternion, scale) of a transform."""
+def _scaled(M: NDArray[np.float64], shown: bool) -> NDArray[np.float64]:
+    """``M``, shrunk to 1e-6 of its size when hidden."""
+    if shown:
+        return M
+    out = M.copy()
+    out[:3, :3] *= 1e-6
+    return out
+
+
+def _transform_keys(keys: dict[str, list[dict]], M: NDArray[np.float64], shown: bool, t: float) -> None:
+    """Animation keys (position, quaternion as x y z w, scale) of a transform at time ``t`` [s]."""
     scale = np.linalg.norm(M[:3, :3], axis=0)
     R = M[:3, :3] / np.where(scale > 0, scale, 1.0)
-    quat = pin.Quaternion(R)  # x, y, z, w as three.js expects
-    key(path, "position", "vector3", t, M[:3, 3].tolist())
-    key(path, "quaternion", "quaternion", t, [quat.x, quat.y, quat.z, quat.w])
-    key(path, "scale", "vector3", t, scale.tolist())
+    quat = pin.Quaternion(R)
+    keys["position"].append({"time": float(t), "value": M[:3, 3].tolist()})
+    keys["quaternion"].append({"time": float(t), "value": [quat.x, quat.y, quat.z, quat.w]})
+    keys["scale"].append({"time": float(t), "value": (scale * (1.0 if shown else 1e-6)).tolist()})
 
 
 def _dedupe(keys: list[dict]) -> list[dict]:

@@ -24,41 +24,10 @@ INSTALL_HINT = (
 
 
 def chromium() -> str:
-    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    path = shutil.which("chromium") or shutil.which("chromium-browser")  # Debian / Ubuntu names
     if path is None:
         raise AssertionError(INSTALL_HINT)
     return path
-
-
-def screenshot(url: str, out: Path, *, budget_ms: int = 8000, attempts: int = 3) -> np.ndarray:
-    """Screenshot ``url`` (http:// or file://) into ``out`` (PNG); returns the RGB image (H, W, 3) uint8.
-
-    Headless Chromium 156 with a virtual time budget occasionally never exits (seen once in
-    about ten runs on a loaded 2-core machine, on the live page and not on our side: the
-    server kept answering); a hung attempt is killed after 60 s and retried.
-    """
-    from PIL import Image
-
-    out = Path(out)
-    errors = []
-    for _ in range(attempts):
-        out.unlink(missing_ok=True)
-        with tempfile.TemporaryDirectory() as profile:
-            cmd = [
-                chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync", "--no-first-run", "--enable-unsafe-swiftshader",
-                f"--virtual-time-budget={budget_ms}", f"--user-data-dir={profile}",
-                f"--window-size={WIDTH},{HEIGHT}", f"--screenshot={out}", url,
-            ]  # fmt: skip
-            try:
-                result = subprocess.run(cmd, capture_output=True, timeout=60)
-            except subprocess.TimeoutExpired:
-                errors.append("timed out after 60 s")
-                continue
-        if out.is_file():
-            return np.asarray(Image.open(out).convert("RGB"))
-        errors.append(f"exit {result.returncode}: {result.stderr[-1000:]!r}")
-    raise AssertionError(f"chromium wrote no screenshot of {url} in {attempts} attempts: {errors}")
 
 
 def project(points, view_center, camera_offset, *, width: int = WIDTH, height: int = HEIGHT) -> np.ndarray:
@@ -132,3 +101,103 @@ def cyan_pixels(img: np.ndarray) -> np.ndarray:
 def magenta_pixels(img: np.ndarray) -> np.ndarray:
     r, g, b = (img[..., k].astype(int) for k in range(3))
     return (r > 180) & (g < 110) & (b > 180)
+
+
+def p_gd_pixels(img: np.ndarray) -> np.ndarray:
+    """The p_gd marker's blue (0x2979FF, shaded)."""
+    r, g, b = (img[..., k].astype(int) for k in range(3))
+    return (b > 150) & (b - r > 120) & (b - g > 40)
+
+
+def screenshot(url: str, out: Path, *, settle_s: float = 3.0, timeout_s: float = 120.0) -> np.ndarray:
+    """Screenshot ``url`` (http:// or file://) into ``out`` (PNG); returns the RGB image (H, W, 3) uint8.
+
+    STACK_NOTES' ``chromium --headless --virtual-time-budget=8000 --screenshot`` sometimes
+    never exits on the live page (1 to 2 of 3 runs with a 10k-point cloud, 1 in ~10 with
+    2k points), so Chromium runs with a DevTools port instead: it loads the page, waits in
+    real time until the scene has arrived, ``settle_s`` more seconds to draw it, and
+    captures the screen. Uses tornado's websocket client (a meshcat dependency).
+    """
+    import asyncio
+    import base64
+    import json
+    import re
+    import time
+    import urllib.request
+
+    from PIL import Image
+    from tornado.websocket import websocket_connect
+
+    out = Path(out)
+    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as profile:
+        cmd = [
+            chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync", "--no-first-run", "--enable-unsafe-swiftshader",
+            f"--user-data-dir={profile}", f"--window-size={WIDTH},{HEIGHT}", "--remote-debugging-port=0",
+            "about:blank",
+        ]  # fmt: skip
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        try:
+            deadline = time.monotonic() + 30
+            port = None
+            while port is None and time.monotonic() < deadline:
+                line = proc.stderr.readline().decode(errors="replace")
+                match = re.search(r"DevTools listening on ws://127\.0\.0\.1:(\d+)/", line)
+                if match:
+                    port = int(match.group(1))
+                elif not line and proc.poll() is not None:
+                    break
+            assert port is not None, "chromium did not open its DevTools port"
+            pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
+            ws_url = next(p["webSocketDebuggerUrl"] for p in pages if p.get("type") == "page")
+
+            async def capture() -> bytes:
+                ws = await websocket_connect(ws_url, max_message_size=64 * 2**20)
+                counter = 0
+
+                async def call(method: str, **params):
+                    nonlocal counter
+                    counter += 1
+                    ws.write_message(json.dumps({"id": counter, "method": method, "params": params}))
+                    while True:
+                        reply = json.loads(await ws.read_message())
+                        if reply.get("id") == counter:
+                            assert "error" not in reply, reply
+                            return reply.get("result", {})
+
+                await call("Emulation.setDeviceMetricsOverride", width=WIDTH, height=HEIGHT, deviceScaleFactor=1,
+                           mobile=False)  # fmt: skip
+                await call("Page.enable")
+                await call("Page.navigate", url=url)
+                # Wait for the page, then (live page) until the scene has arrived: meshcat counts
+                # the websocket messages it handled; when the count has stopped growing for 1 s,
+                # let it render. A file:// page runs its commands itself once loaded.
+                start, last, since = time.monotonic(), -1, time.monotonic()
+                live = url.startswith("http")
+                expression = "viewer.num_messages_received" if live else "document.readyState"
+                while time.monotonic() - start < 60:
+                    state = await call("Runtime.evaluate", expression=expression)
+                    value = state.get("result", {}).get("value", -1)
+                    if not live:
+                        if value == "complete":
+                            break
+                    elif value != last:
+                        last, since = value, time.monotonic()
+                    elif value > 0 and time.monotonic() - since > 1.0:
+                        break
+                    await asyncio.sleep(0.1)
+                await asyncio.sleep(settle_s)
+                shot = await call("Page.captureScreenshot", format="png")
+                ws.close()
+                return base64.b64decode(shot["data"])
+
+            png = asyncio.run(asyncio.wait_for(capture(), timeout_s))
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    out.write_bytes(png)
+    return np.asarray(Image.open(out).convert("RGB"))

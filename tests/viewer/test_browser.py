@@ -32,6 +32,16 @@ from harvest_qp.viewer.viewer import CAMERA_OFFSET, VIEW_CENTER
 from . import _browser as br
 
 POINT_SIZE = 0.012  # [m], large enough for a few pixels per point
+P_GD_START, P_GD_END = np.array([0.6, -0.35, 1.55]), np.array([0.6, 0.15, 1.55])  # a moving marker [m]
+
+
+def check_marker(img, position, other, where: str) -> None:
+    """The p_gd marker is drawn at ``position`` and not at ``other`` (its other end)."""
+    blue = br.p_gd_pixels(img)
+    near = br.region([position], VIEW_CENTER, CAMERA_OFFSET, dilate_px=12)
+    away = br.region([other], VIEW_CENTER, CAMERA_OFFSET, dilate_px=12)
+    assert (blue & near).sum() >= 20, f"{where}: no p_gd marker at {position}"
+    assert (blue & away).sum() == 0, f"{where}: p_gd marker drawn at {other}"
 
 
 @pytest.fixture(scope="module")
@@ -186,6 +196,7 @@ def synthetic_log(scene, rng) -> tuple[dict[str, np.ndarray], dict[str, np.ndarr
         "cloud_labels": np.concatenate([labels] * 3),
         "cloud_offsets": np.arange(4) * len(points),
         "meta/scene_params": np.array(json.dumps(dataclasses.asdict(scene.params))),
+        "p_gd": np.linspace(P_GD_START, P_GD_END, n),
     }  # fmt: skip
     return log, parts
 
@@ -208,4 +219,26 @@ def test_replay_html_in_chromium(scene, shots, tmp_path):
         img, q=log["q"][0], q_other=log["q"][-1], scene=scene, cloud_parts=parts, view_center=VIEW_CENTER,
         camera_offset=CAMERA_OFFSET, where="replay",
     )  # fmt: skip
+    check_marker(img, P_GD_START, P_GD_END, "replay")
     print("replay pixel counts", counts, "html size [MB]", html.stat().st_size / 1e6)
+
+
+def test_replay_html_plays_to_the_last_frame(scene, shots, tmp_path):
+    """Opened with ``play=True``, the offline HTML runs the animation and stops on the last frame.
+
+    Catches: an animation that does not play (robot still at q[0]: the moved-region check
+    fails), keys in the wrong time unit (a 0.5 s episode stretched to minutes would still be
+    near its start after the 8 s of browser time), a final frame not held (clamping), static
+    transforms in the HTML that undo the animation once it has finished (the p_gd marker,
+    read from the log's ``p_gd`` key, back at its start: this failed before the fix).
+    """
+    rng = np.random.default_rng(4)
+    log, parts = synthetic_log(scene, rng)
+    html = export_episode_html(log, tmp_path / "episode_play.html", play=True, point_size=POINT_SIZE)
+    img = br.screenshot(html.resolve().as_uri(), shots / "viewer_replay_end.png")
+    counts = check_scene(
+        img, q=log["q"][-1], q_other=log["q"][0], scene=scene, cloud_parts=parts, view_center=VIEW_CENTER,
+        camera_offset=CAMERA_OFFSET, where="replay end",
+    )  # fmt: skip
+    check_marker(img, P_GD_END, P_GD_START, "replay end")
+    print("replay end pixel counts", counts)

@@ -183,8 +183,12 @@ def test_animation_tracks_follow_the_frames(viewer):
     for k, key in enumerate(keys):
         expected = Configuration.dual_ur5e(qs[k]).frame_position("cam_forearm_link")
         np.testing.assert_allclose(key["value"], expected, atol=1e-12)
-    visible = clips[f"{ROOT}/replay/cloud_1"][".visible"]["keys"]
-    assert [(k["time"], k["value"]) for k in visible] == [(0.0, False), (0.5, True), (1.0, False)]
+    # snapshots are shown by scale 1 and hidden by scale 1e-6, switching within 0.1 ms
+    scale = clips[f"{ROOT}/replay/cloud_1"][".scale"]["keys"]
+    times = np.array([k["time"] for k in scale])
+    values = np.array([k["value"][0] for k in scale])
+    for t, shown in ((0.0, False), (0.4998, False), (0.5, True), (0.9998, True), (1.0, False)):
+        assert np.interp(t, times, values) == pytest.approx(1.0 if shown else 1e-6, abs=1e-3), t
     assert animation["options"]["play"] is False
 
 
