@@ -13,7 +13,7 @@ Observing only: nothing in the control path imports this package. Entry points:
 """
 
 from harvest_qp.viewer.frame import LOG_KEYS, ViewerFrame, frame_from_observation, frames_from_log
-from harvest_qp.viewer.live import LiveViewer, RealTimePacer, ViewedController
+from harvest_qp.viewer.live import LiveViewer, RealTimePacer, ViewedController, wait_for_interrupt
 from harvest_qp.viewer.replay import export_episode_html, load_log, replay, vine_params_from_log
 from harvest_qp.viewer.server import Connection, ViewerError, ViewerPortInUseError, ViewerServer
 from harvest_qp.viewer.viewer import COLORS, MeshcatViewer
@@ -36,4 +36,5 @@ __all__ = [
     "load_log",
     "replay",
     "vine_params_from_log",
+    "wait_for_interrupt",
 ]

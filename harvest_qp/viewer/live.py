@@ -22,7 +22,7 @@ import numpy as np
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.viewer.frame import ViewerFrame, frame_from_observation
 
-__all__ = ["LiveViewer", "ViewedController", "RealTimePacer"]
+__all__ = ["LiveViewer", "ViewedController", "RealTimePacer", "wait_for_interrupt"]
 
 
 class LiveViewer:
@@ -175,7 +175,8 @@ class ViewedController:
     Args:
         controller: any object with ``reset(robot)`` and ``step(obs)``.
         viewer: the live viewer.
-        extras: optional callable ``(obs, command) -> mapping`` of :class:`ViewerFrame` fields.
+        extras: optional callable ``(obs, command) -> mapping`` of :class:`ViewerFrame` fields;
+            by default the wrapped controller's ``viewer_extras()`` method if it has one.
         pacer: a :class:`RealTimePacer` for real-time display, or None (as fast as possible).
     """
 
@@ -189,6 +190,12 @@ class ViewedController:
     ) -> None:
         if not callable(getattr(controller, "step", None)) or not callable(getattr(controller, "reset", None)):
             raise InvalidInputError(f"controller must have reset(robot) and step(obs), got {type(controller).__name__}")
+        if extras is None and callable(getattr(controller, "viewer_extras", None)):
+            method = controller.viewer_extras
+
+            def extras(obs: Any, command: Any) -> Mapping[str, Any]:
+                return method()
+
         self.controller, self.viewer, self.extras, self.pacer = controller, viewer, extras, pacer
 
     def reset(self, robot: Any) -> None:
@@ -203,3 +210,23 @@ class ViewedController:
 
     def __getattr__(self, name: str) -> Any:  # expose the wrapped controller's attributes
         return getattr(self.controller, name)
+
+
+def wait_for_interrupt(message: str) -> None:
+    """Print ``message`` and block until Ctrl-C or SIGTERM (for a command that keeps a viewer open)."""
+    import signal
+
+    print(message, flush=True)
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def stop(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -191,3 +191,32 @@ def test_viewed_controller_observes_every_tick_and_paces():
     assert [t for t, _ in recorder.times] == pytest.approx(list(result.log["t"]))
     assert recorder.times[0][1] == {"status": "ok"}
     assert elapsed >= 0.098 - 0.002, "the pacer let the episode run faster than real time"
+
+
+def test_viewed_controller_uses_viewer_extras_and_wait_for_interrupt_returns_on_sigterm():
+    import os
+    import signal
+
+    from harvest_qp.viewer import wait_for_interrupt
+
+    class WithExtras(Hold):
+        def viewer_extras(self):
+            return {"phase": "grasp"}
+
+    seen = []
+
+    class Recorder:
+        def observe(self, obs, extras=None):
+            seen.append(extras)
+
+    wrapped = ViewedController(WithExtras(), Recorder())
+    wrapped.step(observation(0))
+    assert seen == [{"phase": "grasp"}]
+
+    before = signal.getsignal(signal.SIGTERM)
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM))
+    timer.start()
+    start = time.perf_counter()
+    wait_for_interrupt("waiting")
+    assert time.perf_counter() - start < 5.0
+    assert signal.getsignal(signal.SIGTERM) is before
