@@ -1,8 +1,9 @@
 """Live viewing of a running episode without slowing the control loop.
 
 :meth:`LiveViewer.observe` only stores the latest observation (a few microseconds); a worker
-thread turns the latest one into a :class:`ViewerFrame` and draws it, at most ``max_rate``
-times per second. Ticks that arrive while a frame is being drawn are skipped, never queued,
+thread turns the latest one into a :class:`ViewerFrame` and has it drawn (by default in a
+child process, :mod:`harvest_qp.viewer._drawer`), at most ``max_rate`` times per second.
+Ticks that arrive while a frame is being drawn are skipped, never queued,
 so a slow browser or server cannot hold the loop back. A drawing error (the server died)
 stops the drawing and is kept in :attr:`LiveViewer.error`; it is never raised into the loop.
 
@@ -29,21 +30,32 @@ class LiveViewer:
     """Observer of a control loop that draws into a :class:`~harvest_qp.viewer.MeshcatViewer`.
 
     Args:
-        viewer: the viewer to draw into (a new one with ``viewer_kwargs`` when None; closed
-            with this object only in that case).
+        viewer: the viewer to draw into, from this process's worker thread (None: a new one
+            with ``viewer_kwargs``, closed with this object).
         max_rate: frames drawn per second at most [Hz] (default 30).
+        process: with ``viewer=None``, draw in a child process (default): the worker thread
+            here only pickles the frame (and a new cloud, thinned) and waits, so the viewer's
+            Python work (kinematics, packing, text panel) does not compete with the control
+            loop for the GIL. False: draw in the worker thread.
         **viewer_kwargs: arguments of :class:`MeshcatViewer` (``vine``, ``host``, ``port``, ...).
 
     Use as a context manager, or call :meth:`close` (it draws the last observation first).
     """
 
-    def __init__(self, viewer=None, *, max_rate: float = 30.0, **viewer_kwargs: Any) -> None:
+    def __init__(self, viewer=None, *, max_rate: float = 30.0, process: bool = True, **viewer_kwargs: Any) -> None:
         if not isinstance(max_rate, (int, float)) or not np.isfinite(max_rate) or max_rate <= 0:
             raise InvalidInputError(f"max_rate must be a finite rate > 0 [Hz], got {max_rate!r}")
         from harvest_qp.viewer.viewer import MeshcatViewer
 
         self._own = viewer is None
-        self.viewer = MeshcatViewer(**viewer_kwargs) if viewer is None else viewer
+        if viewer is not None:
+            self.viewer = viewer
+        elif process:
+            from harvest_qp.viewer._drawer import ProcessDrawer
+
+            self.viewer = ProcessDrawer(viewer_kwargs)
+        else:
+            self.viewer = MeshcatViewer(**viewer_kwargs)
         self.period = 1.0 / float(max_rate)
         self._latest: tuple[Any, ...] | None = None
         self._wake = threading.Event()

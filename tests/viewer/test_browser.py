@@ -25,7 +25,7 @@ from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.robot import description as desc
 from harvest_qp.runner import Observation
 from harvest_qp.sim import VineSceneParams, build_vine_scene
-from harvest_qp.viewer import LiveViewer, MeshcatViewer, export_episode_html
+from harvest_qp.viewer import LiveViewer, export_episode_html
 from harvest_qp.viewer.replay import free_port
 from harvest_qp.viewer.viewer import CAMERA_OFFSET, VIEW_CENTER
 
@@ -150,7 +150,8 @@ def check_scene(img, *, q, q_other, scene, cloud_parts, view_center, camera_offs
 
 
 def test_live_viewer_in_chromium(scene, shots):
-    """A live viewer fed by observe() shows the last tick's robot, the vine's stem and the cloud.
+    """A live viewer fed by observe() shows the last tick's robot, the vine's stem and the cloud
+    (drawn by the child process of the default LiveViewer).
 
     Catches: meshes placed with the wrong frames or the wrong q (robot pixels off the arms'
     capsules, checked by hand with HOME_Q instead of q), a cloud drawn with the wrong label
@@ -159,22 +160,19 @@ def test_live_viewer_in_chromium(scene, shots):
     rng = np.random.default_rng(3)
     points, labels, parts = synthetic_cloud(scene, rng)
     qs = trajectory(150)
-    viewer = MeshcatViewer(scene.model, port=free_port(), point_size=POINT_SIZE, verbose=False)
-    try:
-        with LiveViewer(viewer) as live:
-            cloud = None
-            for k, q in enumerate(qs):
-                t = 0.002 * k
-                if k % 50 == 0:
-                    cloud = make_cloud(points, labels, scene.camera_home, t)
-                obs = Observation(time=t, q=q, qdot=np.zeros(12), force=np.array([0.0, 0.0, -3.0]), cloud=cloud,
-                                  new_cloud=k % 50 == 0)  # fmt: skip
-                live.observe(obs, {"phase": "approach", "theta": 0.2})
-            assert live.flush(20.0), f"the live viewer did not draw: {live.error!r}"
-            assert live.frames_drawn >= 1
-        img = br.screenshot(viewer.url, shots / "viewer_live.png")
-    finally:
-        viewer.close()
+    # The default LiveViewer: drawing in a child process that owns the viewer and its server.
+    with LiveViewer(vine=scene.model, port=free_port(), point_size=POINT_SIZE, verbose=False) as live:
+        cloud = None
+        for k, q in enumerate(qs):
+            t = 0.002 * k
+            if k % 50 == 0:
+                cloud = make_cloud(points, labels, scene.camera_home, t)
+            obs = Observation(time=t, q=q, qdot=np.zeros(12), force=np.array([0.0, 0.0, -3.0]), cloud=cloud,
+                              new_cloud=k % 50 == 0)  # fmt: skip
+            live.observe(obs, {"phase": "approach", "theta": 0.2})
+        assert live.flush(30.0), f"the live viewer did not draw: {live.error!r}"
+        assert live.frames_drawn >= 1
+        img = br.screenshot(live.url, shots / "viewer_live.png")
     counts = check_scene(
         img, q=qs[-1], q_other=qs[0], scene=scene, cloud_parts=parts, view_center=VIEW_CENTER,
         camera_offset=CAMERA_OFFSET, where="live",

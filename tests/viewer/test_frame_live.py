@@ -220,3 +220,23 @@ def test_viewed_controller_uses_viewer_extras_and_wait_for_interrupt_returns_on_
     wait_for_interrupt("waiting")
     assert time.perf_counter() - start < 5.0
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_control_path_does_not_import_the_viewer():
+    """The controller, runner, simulation and CLI load neither harvest_qp.viewer nor meshcat.
+
+    Catches: an eager ``import harvest_qp.viewer`` in the control path (the CLI must import it
+    only under ``--viewer meshcat`` / ``replay``).
+    """
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import sys, harvest_qp, harvest_qp.runner, harvest_qp.controller, harvest_qp.sim, harvest_qp.cli\n"
+        "bad = sorted(m for m in sys.modules if m.startswith(('harvest_qp.viewer', 'meshcat')))\n"
+        "assert not bad, bad\n"
+    )
+    repo = Path(__file__).resolve().parents[2]
+    result = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]

@@ -156,3 +156,78 @@ def test_dead_server_gives_an_error_not_a_hang():
         with pytest.raises(ViewerError, match="did not answer"):
             viewer.draw(ViewerFrame(time=0.0, q=np.array(HOME_Q) + 0.1))
         viewer.close()
+
+
+def test_live_viewer_draws_in_a_child_process_and_cleans_up():
+    """The default LiveViewer draws in a child process; after close() neither it nor its
+    server runs and the port is free. A dead drawing process becomes LiveViewer.error.
+
+    Catches: frames never reaching the child (nothing drawn), a child or server left behind,
+    an exception from a dead child raised into the loop.
+    """
+    from harvest_qp.runner import Observation
+    from harvest_qp.viewer import LiveViewer
+
+    port = free_port()
+    live = LiveViewer(port=port, verbose=False)
+    drawer = live.viewer.process.pid
+    assert running(drawer) and listening_addresses(port) == {"0100007F"}
+    for k in range(40):
+        live.observe(Observation(time=0.002 * k, q=np.array(HOME_Q), qdot=np.zeros(12), force=np.zeros(3),
+                                 cloud=None, new_cloud=False))  # fmt: skip
+        time.sleep(0.002)
+    assert live.flush(20.0) and live.frames_drawn >= 1
+    live.close()
+    assert wait_gone(drawer), "the drawing process outlived close()"
+    deadline = time.monotonic() + 5
+    while listening_addresses(port) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not listening_addresses(port), "the server outlived the drawing process"
+
+    live = LiveViewer(port=free_port(), verbose=False)
+    live.viewer.process.kill()
+    live.viewer.process.wait()
+    live.observe(Observation(time=0.0, q=np.array(HOME_Q), qdot=np.zeros(12), force=np.zeros(3), cloud=None,
+                             new_cloud=False))  # fmt: skip
+    assert live.flush(20.0) is False and isinstance(live.error, ViewerError)
+    live.close()
+
+
+PARENT_LIVE = textwrap.dedent(
+    """
+    import time, sys
+    from harvest_qp.viewer import LiveViewer
+    live = LiveViewer(port=int(sys.argv[1]), verbose=False)
+    print(live.viewer.process.pid, flush=True)
+    time.sleep(120)
+    """
+)
+
+
+def test_no_orphan_drawing_process_after_sigkill():
+    """SIGKILL of a program with a live viewer: the drawing process and its server both end.
+
+    Catches: a drawing process that does not notice its parent's death (it would keep the
+    server up). Two mechanisms end it: the socket's EOF and a getppid() watchdog; with the
+    watchdog disabled by hand the test still passes (the EOF suffices).
+    """
+    port = free_port()
+    parent = subprocess.Popen(
+        [sys.executable, "-c", PARENT_LIVE, str(port)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )  # fmt: skip
+    try:
+        line = parent.stdout.readline().decode().strip()
+        assert line.isdigit(), f"no live viewer started: {line!r} {parent.stderr.read()[-2000:]!r}"
+        drawer = int(line)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=30)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+    assert wait_gone(drawer, 5.0), "the drawing process outlived its parent"
+    deadline = time.monotonic() + 5
+    while listening_addresses(port) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not listening_addresses(port), "the server outlived the drawing process"
