@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from harvest_qp.viewer.server import ViewerError
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.viewer.server import ViewerError, ViewerPortInUseError
 
 _SAME = "same"
 
@@ -54,6 +55,10 @@ class ProcessDrawer:
             self._conn.send(viewer_kwargs)
             reply = self._receive(start_timeout)
             if reply[0] != "ready":
+                if reply[1].startswith("ViewerPortInUseError: "):  # keep the type for the caller
+                    raise ViewerPortInUseError(reply[1].split(": ", 1)[1])
+                if reply[1].startswith("InvalidInputError: "):
+                    raise InvalidInputError(reply[1].split(": ", 1)[1])
                 raise ViewerError(f"the drawing process could not start the viewer: {reply[1]}")
             self.url = reply[1]
         except BaseException:

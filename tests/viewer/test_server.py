@@ -91,6 +91,18 @@ def test_busy_port_raises_instead_of_moving():
     assert isinstance(info.value, HarvestQPError)
 
 
+def test_busy_port_error_from_the_drawing_process():
+    """The default LiveViewer (drawing in a child) reports a busy port with the same error type."""
+    from harvest_qp.viewer import LiveViewer
+
+    with socket.socket() as blocker:
+        blocker.bind(("127.0.0.1", 0))
+        blocker.listen()
+        port = blocker.getsockname()[1]
+        with pytest.raises(ViewerPortInUseError, match=f"port {port} "):
+            LiveViewer(port=port, verbose=False)
+
+
 @pytest.mark.parametrize("host, port", [("127.0.0.1", 0), ("127.0.0.1", 70000), ("", 7000), ("127.0.0.1", "7000")])
 def test_bad_host_or_port(host, port):
     with pytest.raises(InvalidInputError, match="host|port"):
