@@ -20,8 +20,13 @@ from harvest_qp.perception.unveiling import (
     NEAREST_AT_STEM_POINT,
     NEAREST_INTERIOR,
     RayObstaclePairs,
-    barrier_potential,
     ray_obstacle_pairs,
+)
+
+# The unveiling control law moved to harvest_qp.references.unveiling; re-exported here so that
+# existing imports keep working.
+from harvest_qp.references.unveiling import (  # noqa: E402
+    barrier_potential,
     repulsive_velocity,
     stem_angular_velocities,
     unveiling_velocity,

@@ -16,7 +16,8 @@ from harvest_qp.perception._validation import as_point, positive_int
 from harvest_qp.perception.classify import obstacles_near_stem_base, split_scene
 from harvest_qp.perception.free_space import FreeSpace, compute_free_space
 from harvest_qp.perception.stem import StemModel, fit_stem
-from harvest_qp.perception.unveiling import RayObstaclePairs, ray_obstacle_pairs, unveiling_velocity
+from harvest_qp.perception.unveiling import RayObstaclePairs, ray_obstacle_pairs
+from harvest_qp.references.unveiling import unveiling_velocity
 from harvest_qp.validation import as_positive_scalar
 
 __all__ = ["PerceptionResult", "process_cloud"]

@@ -1,4 +1,4 @@
-"""Unveiling geometry and the unveiling velocity V_cu (``subsec:occlusion_control_signal``).
+"""Unveiling geometry of ``subsec:occlusion_control_signal``: the ray/obstacle pairs (``eq:nearest``).
 
 For every camera-to-stem-point ray j and obstacle k the paper needs the point p_hat_jk of
 the ray segment [p_c, p_sj] nearest to the obstacle (``eq:nearest``) and its distance to
@@ -16,8 +16,8 @@ r_hat_jk < d_a contribute (the potential ``eq:art_potential`` is zero beyond), s
 3. ``eq:nearest`` and r_hat evaluated exactly on the pairs of the block that pass,
    keeping r_hat < d_a.
 
-:func:`unveiling_velocity` then sums ``eq:u_ij``, ``eq:omega_pivot``, ``eq:omega_i`` and
-``eq:v_c2`` over the pairs with ``np.bincount``.
+The control law on these pairs (``eq:art_potential`` .. ``eq:v_c2``, V_cu) lives in
+:mod:`harvest_qp.references.unveiling`.
 """
 
 from __future__ import annotations
@@ -37,11 +37,7 @@ __all__ = [
     "NEAREST_AT_STEM_POINT",
     "NEAREST_INTERIOR",
     "RayObstaclePairs",
-    "barrier_potential",
     "ray_obstacle_pairs",
-    "repulsive_velocity",
-    "stem_angular_velocities",
-    "unveiling_velocity",
 ]
 
 # Which branch of eq:nearest gave p_hat: the camera, a point inside the segment, the stem point.
@@ -326,131 +322,3 @@ def ray_obstacle_pairs(
         obstacle_radius=d_o,
         n_candidate_obstacles=int(candidates.size),
     )
-
-
-def barrier_potential(surface_distance: ArrayLike, d_a: float) -> NDArray[np.float64]:
-    """Barrier potential V(r_hat) of ``eq:art_potential`` (dimensionless).
-
-    V = 1/2 ln^2(d_a^2 / (d_a^2 - (d_a - r_hat)^2)) for 0 < r_hat < d_a, 0 for r_hat >= d_a,
-    +inf for r_hat <= 0 (on or inside the obstacle sphere).
-    """
-    r_hat = np.asarray(surface_distance, dtype=np.float64)
-    d_a = as_positive_scalar(d_a, "d_a")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_ratio = np.log(d_a * d_a / (d_a * d_a - (d_a - r_hat) ** 2))
-        potential = 0.5 * log_ratio**2
-    return np.where(r_hat >= d_a, 0.0, np.where(r_hat <= 0.0, np.inf, potential))
-
-
-def _repulsive_gain(surface_distance: NDArray[np.float64], d_a: float, floor: float) -> NDArray[np.float64]:
-    """||u_jk|| of ``eq:u_ij`` as a function of r_hat [m], with r_hat floored at ``floor``.
-
-    ||u|| = 2 / (d_a^2 - (d_a - r)^2) ln(d_a^2 / (d_a^2 - (d_a - r)^2)) (d_a - r); clamping r
-    to d_a makes it exactly zero outside the influence distance without a mask.
-    """
-    r_hat = np.clip(surface_distance, floor, d_a)
-    barrier = d_a * d_a - (d_a - r_hat) ** 2
-    return 2.0 / barrier * np.log(d_a * d_a / barrier) * (d_a - r_hat)
-
-
-def repulsive_velocity(
-    nearest_points: ArrayLike,
-    obstacle_points: ArrayLike,
-    *,
-    d_a: float,
-    d_o: float,
-    min_surface_distance: float = 1e-6,
-) -> NDArray[np.float64]:
-    """Virtual repulsive velocity u_jk = -dV/dp_hat of ``eq:u_ij``, one row per pair.
-
-    u = 2 / (d_a^2 - (d_a - r)^2) ln(d_a^2 / (d_a^2 - (d_a - r)^2)) e_jk with
-    e_jk = (d_a - r) (p_hat - p_o) / ||p_hat - p_o|| for r = r_hat < d_a, zero otherwise.
-
-    Args:
-        nearest_points: ``(P, 3)`` p_hat_jk [m].
-        obstacle_points: ``(P, 3)`` p_ok [m], paired row by row.
-        d_a: influence distance [m].
-        d_o: obstacle radius [m].
-        min_surface_distance: r_hat is floored at this [m] so that a ray touching or crossing
-            an obstacle sphere (r_hat <= 0, where the paper's potential is infinite) gives a
-            large but finite velocity.  A pair with p_hat exactly at the obstacle centre has no
-            direction and gives zero.
-
-    Returns:
-        ``(P, 3)`` velocities [1/m: the gradient of the dimensionless potential].
-    """
-    nearest = as_finite_points("nearest_points", nearest_points)
-    obstacles = as_finite_points("obstacle_points", obstacle_points)
-    if nearest.shape != obstacles.shape:
-        raise InvalidInputError(
-            f"nearest_points and obstacle_points must have the same shape (P, 3), got "
-            f"{nearest.shape} and {obstacles.shape}"
-        )
-    d_a = as_positive_scalar(d_a, "d_a")
-    d_o = as_positive_scalar(d_o, "d_o", allow_zero=True)
-    floor = as_positive_scalar(min_surface_distance, "min_surface_distance")
-    gap = nearest - obstacles
-    distance = np.sqrt(np.einsum("ij,ij->i", gap, gap))
-    gain = _repulsive_gain(distance - d_o, d_a, floor)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(distance[:, None] > 0.0, gain[:, None] * gap / distance[:, None], 0.0)
-
-
-def stem_angular_velocities(pairs: RayObstaclePairs, *, min_surface_distance: float = 1e-6) -> NDArray[np.float64]:
-    """Angular velocity omega_sj about each stem point: ``eq:omega_pivot`` summed by ``eq:omega_i``.
-
-    omega_jk = S(p_hat - p_sj) u_jk / ||p_hat - p_sj||^2 for pairs in the interior branch of
-    ``eq:nearest``, zero otherwise; omega_sj = sum_k omega_jk.
-
-    On the interior branch p_hat - p_sj = -(1 - s) p_cs_j, so omega_jk =
-    -(p_cs_j x u_jk) / ((1 - s) ||p_cs_j||^2) and the sum over k only needs, per stem point,
-    the sum of u_jk / (1 - s): one ``np.bincount`` per component, then one cross product per
-    stem point instead of one per pair.
-
-    Args:
-        pairs: output of :func:`ray_obstacle_pairs`.
-        min_surface_distance: floor on r_hat [m], see :func:`repulsive_velocity`.
-
-    Returns:
-        ``(n_S, 3)`` omega_sj [1/m^2, the paper's unscaled units; times k_c it is rad/s].
-    """
-    floor = as_positive_scalar(min_surface_distance, "min_surface_distance")
-    gain = _repulsive_gain(pairs.surface_distance, pairs.influence_distance, floor)
-    # Zero weight outside the interior branch, computed on all pairs (most are interior):
-    # cheaper than gathering the interior ones.  The floor on 1 - s only avoids 0/0 at s = 1.
-    interior = pairs.case == NEAREST_INTERIOR
-    weight = gain * interior / np.maximum(1.0 - pairs.segment_parameter, np.finfo(np.float64).tiny)
-    n_stem = pairs.stem_points.shape[0]
-    summed = np.stack(
-        [
-            np.bincount(pairs.stem_index, weights=weight * component, minlength=n_stem)
-            for component in pairs.away_directions.T
-        ],
-        axis=1,
-    )
-    rays = pairs.stem_points - pairs.camera_position
-    return -np.cross(rays, summed) / np.einsum("ij,ij->i", rays, rays)[:, None]
-
-
-def unveiling_velocity(
-    pairs: RayObstaclePairs, *, k_c: float, min_surface_distance: float = 1e-6
-) -> NDArray[np.float64]:
-    """Unveiling twist V_cu of ``eq:v_c2``, ordered [linear; angular] in the world frame.
-
-    V_cu = k_c sum_j [S(p_sj - p_c); I_3] omega_sj, with omega_sj from
-    :func:`stem_angular_velocities`; d_a and d_o are those the pairs were computed with.
-    Zero when there are no stem points (n_S = 0) or no pairs.
-
-    Args:
-        pairs: output of :func:`ray_obstacle_pairs`.
-        k_c: gain (0.00025 in Section ``sec:exper``).
-        min_surface_distance: floor on r_hat [m], see :func:`repulsive_velocity`.
-
-    Returns:
-        ``(6,)`` twist: linear [m/s] then angular [rad/s].
-    """
-    k_c = as_positive_scalar(k_c, "k_c")
-    omega = stem_angular_velocities(pairs, min_surface_distance=min_surface_distance)
-    rays = pairs.stem_points - pairs.camera_position
-    linear = np.cross(rays, omega).sum(axis=0)  # S(p_cs) omega = p_cs x omega
-    return k_c * np.concatenate((linear, omega.sum(axis=0)))

@@ -1,5 +1,5 @@
-"""Unveiling kernel and velocity (subsec:occlusion_control_signal): eq:nearest,
-eq:art_potential, eq:u_ij, eq:omega_pivot, eq:omega_i, eq:v_c2."""
+"""Unveiling kernel (perception, eq:nearest) and the paper's literal law on it
+(harvest_qp.references.unveiling: eq:art_potential, eq:u_ij, eq:omega_pivot, eq:omega_i, eq:v_c2)."""
 
 import numpy as np
 import pytest
@@ -9,8 +9,10 @@ from harvest_qp.perception.unveiling import (
     NEAREST_AT_CAMERA,
     NEAREST_AT_STEM_POINT,
     NEAREST_INTERIOR,
-    barrier_potential,
     ray_obstacle_pairs,
+)
+from harvest_qp.references.unveiling import (
+    barrier_potential,
     repulsive_velocity,
     stem_angular_velocities,
     unveiling_velocity,

@@ -1,0 +1,54 @@
+"""Argument checks of the reference laws (scalars and vectors via :mod:`harvest_qp.validation`).
+
+Kept free of :mod:`harvest_qp.perception` imports: ``harvest_qp.perception`` re-exports the
+unveiling law from :mod:`harvest_qp.references.unveiling`, so a module-level import in the other
+direction would be circular.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.validation import as_matrix, as_positive_scalar, as_vector
+
+__all__ = ["as_points", "as_pose", "as_position", "as_positive_scalar", "as_time_step"]
+
+
+def as_position(value: ArrayLike, name: str) -> NDArray[np.float64]:
+    """A finite ``(3,)`` float64 vector [m]; a scalar is an error (never meant for a position)."""
+    if np.ndim(value) == 0:
+        raise InvalidInputError(f"{name} must have shape (3,), got the scalar {value!r}")
+    return as_vector(value, 3, name)
+
+
+def as_pose(value: ArrayLike, name: str) -> NDArray[np.float64]:
+    """A finite ``(4, 4)`` homogeneous pose whose rotation block is orthonormal (to 1e-6)."""
+    pose = as_matrix(value, (4, 4), name)
+    rotation = pose[:3, :3]
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) or not np.allclose(pose[3], [0, 0, 0, 1]):
+        raise InvalidInputError(
+            f"{name} must be a homogeneous pose (orthonormal rotation, last row 0 0 0 1), got\n{pose}"
+        )
+    return pose
+
+
+def as_points(value: ArrayLike, name: str) -> NDArray[np.float64]:
+    """A finite ``(n, 3)`` float64 array [m]; ``n`` may be 0 (``[]`` means no points)."""
+    try:
+        points = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name} must be numeric with shape (n, 3), got {type(value).__name__}") from None
+    if points.size == 0:
+        return points.reshape(0, 3)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InvalidInputError(f"{name} must have shape (n, 3), got shape {points.shape}")
+    if not np.isfinite(points).all():
+        raise InvalidInputError(f"{name} must contain only finite values (no NaN or inf)")
+    return points
+
+
+def as_time_step(dt: float) -> float:
+    """A finite time step > 0 [s]."""
+    return as_positive_scalar(dt, "dt")

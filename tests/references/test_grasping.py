@@ -1,0 +1,140 @@
+"""V_g of eq:gr_pos_contr, eq:gr_forc_contr, eq:contr_dir, eq:rot_contr, eq:superimp_g."""
+
+import math
+
+import numpy as np
+import pytest
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.references import StemStretching
+
+# {G} with y_g = (0, 0, -1) (the crop hangs down): x = (1, 0, 0), z = x cross y = (0, 1, 0).
+DOWN = np.column_stack(([1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]))
+
+
+def _pose(position, rotation=DOWN):
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = position
+    return pose
+
+
+def test_v_g_by_hand():
+    """p_sb = (0, 0, 1), p_gd = (0.3, 0, 0.6): n_c = (0.6, 0, -0.8).  p_g = (0.1, 0.2, 0.7):
+    e_pg = (-0.2, 0.2, 0.1), n.e = -0.2, projected (-0.08, 0.2, -0.06), v_p = (0.012, -0.03,
+    0.009).  f = 2 n_c + (0, 1, 0): e_fg = -1; after one 0.01 s step the integral is -0.01,
+    k_fp e + k_fi I = -0.001002, v_f = 0.001002 n_c.  v_gw = -0.3 n_c x (0, 0, -1) =
+    (0, -0.18, 0); alignment acos(0.8).
+    Catches: v_p not projected, v_f with the wrong sign, v_gw = +k_og n_c x y_g."""
+    law = StemStretching(k_pg=0.15, k_og=0.3, k_fp=0.001, k_fi=0.0002, f_d=3.0, integration_threshold=None)
+    law.set_target([0.0, 0.0, 1.0], [0.3, 0.0, 0.6])
+    np.testing.assert_allclose(law.n_c, [0.6, 0.0, -0.8], rtol=1e-15)
+    twist = law.update(_pose([0.1, 0.2, 0.7]), np.array([1.2, 1.0, -1.6]), 0.01)
+    v_p = np.array([0.012, -0.03, 0.009])
+    v_f = 0.001002 * np.array([0.6, 0.0, -0.8])
+    np.testing.assert_allclose(twist[:3], v_p + v_f, rtol=1e-12)
+    np.testing.assert_allclose(twist[3:], [0.0, -0.18, 0.0], atol=1e-15)
+    assert law.position_error == pytest.approx(math.sqrt(0.05), rel=1e-12)
+    assert law.alignment == pytest.approx(math.acos(0.8), rel=1e-12)
+    assert law.force_along_nc == pytest.approx(2.0)
+    assert law.integral == pytest.approx(-0.01)
+    np.testing.assert_allclose(law.v_gt, twist[:3])
+
+
+def test_v_gw_rotates_y_g_onto_n_c():
+    """Integrating R' = S(v_gw) R drives the alignment angle to 0.  Catches: the sign of eq:rot_contr."""
+    law = StemStretching(k_og=1.0)
+    law.set_target([0.0, 0.0, 1.0], [0.3, 0.0, 0.6])
+    rotation = DOWN.copy()
+    angles = []
+    for _ in range(500):
+        w = law.update(_pose([0.3, 0.0, 0.6], rotation), np.zeros(3), 0.01)[3:]
+        angles.append(law.alignment)
+        angle = np.linalg.norm(w) * 0.01
+        if angle > 0:
+            k = w / np.linalg.norm(w)
+            skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+            rotation = (np.eye(3) + math.sin(angle) * skew + (1 - math.cos(angle)) * skew @ skew) @ rotation
+    assert np.all(np.diff(angles) <= 0.0) and angles[-1] < 0.01 * angles[0]
+
+
+def test_pulling_along_n_c_stretches_the_stem_to_f_d():
+    """Sign convention: a stem of 400 N/m anchored at p_sb, slack until 5 cm; the gripper
+    follows V_g kinematically and the sensor reads the force the gripper applies to the crop,
+    +400 (stretch) n_c.  The force converges to f_d with the paper's gains (settling ~20 s,
+    FINDINGS' linearised loop).  Catches: v_f's sign (the stem would go slack or tear), and an
+    integral that never starts (steady error f_d k_fp / ... would remain)."""
+    law = StemStretching()
+    base = np.array([0.0, 0.0, 1.0])
+    law.set_target(base, [0.0, 0.0, 0.9])  # n_c = (0, 0, -1), straight down
+    position = np.array([0.0, 0.0, 0.96])  # 4 cm from the base: slack
+    dt, forces = 0.01, []
+    for _ in range(6000):
+        stretch = max(0.0, np.linalg.norm(position - base) - 0.05)
+        force = 400.0 * stretch * law.n_c
+        position = position + dt * law.update(_pose(position), force, dt)[:3]
+        forces.append(float(law.force_along_nc))
+    forces = np.array(forces)
+    assert abs(forces[-100:].mean() - 3.0) < 0.03
+    assert forces.max() < 2 * 3.0
+
+
+def test_anti_windup_holds_the_integral_while_saturated():
+    """A large force error saturates |v_f| at max_speed; the integral is then held (not
+    integrated), and resumes as soon as the error reverses.  Catches: plain integration
+    (the integral would grow by e dt every step)."""
+    law = StemStretching(k_fp=0.01, k_fi=0.01, max_speed=0.02, integration_threshold=None)
+    law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
+    pose = _pose([0.0, 0.0, 0.9])
+    # n_c . f = 0: e_fg = -3, k_fp e = -0.03 already past -0.02: held from the first step.
+    for _ in range(100):
+        twist = law.update(pose, np.zeros(3), 0.01)
+        assert law.saturated
+        assert law.integral == 0.0
+        np.testing.assert_allclose(twist[:3], [0.0, 0.0, -0.02])  # -n_c * (-0.02)
+    # Slightly below the saturation: integrates until the command reaches it, then holds.
+    law.reset()
+    force = np.array([0.0, 0.0, -1.5])  # n_c . f = 1.5: e = -1.5, k_fp e = -0.015
+    integrals = []
+    for _ in range(200):
+        law.update(pose, force, 0.01)
+        integrals.append(law.integral)
+    assert integrals[0] == pytest.approx(-0.015)
+    # Held where k_fp e + k_fi I first reaches -max_speed (I ~ -0.5), within one step's
+    # increment k_fi e dt = 1.5e-4; plain integration would end at -3.0.
+    command = 0.01 * -1.5 + 0.01 * integrals[-1]
+    assert -0.02 <= command <= -0.02 + 1.5e-4
+    assert integrals[-1] == integrals[-50]
+    # Error reversed (force above f_d): the integral unwinds at once.
+    law.update(pose, np.array([0.0, 0.0, -4.0]), 0.01)
+    assert law.integral == pytest.approx(integrals[-1] + 0.01)
+
+
+def test_integration_starts_once_the_force_exceeds_the_threshold():
+    """With integration_threshold = 1 N (FINDINGS' remedy for wind-up during the slack swing)
+    the integral stays 0 while n_c.f <= 1 N, starts above it, and stays on afterwards."""
+    law = StemStretching(integration_threshold=1.0)
+    law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
+    pose = _pose([0.0, 0.0, 0.9])
+    for _ in range(10):
+        law.update(pose, np.array([0.0, 0.0, 2.5]), 0.01)  # compressed: n_c.f = -2.5
+    assert law.integral == 0.0
+    law.update(pose, np.array([0.0, 0.0, -1.5]), 0.01)
+    assert law.integral == pytest.approx(-0.015)
+    law.update(pose, np.array([0.0, 0.0, -0.5]), 0.01)  # latched: still integrating
+    assert law.integral == pytest.approx(-0.015 - 0.025)
+    law.reset()
+    assert law.integral == 0.0
+
+
+def test_bad_input_raises():
+    with pytest.raises(InvalidInputError, match="k_pg"):
+        StemStretching(k_pg=-1.0)
+    law = StemStretching()
+    with pytest.raises(InvalidInputError, match="set_target"):
+        law.update(_pose([0.0, 0.0, 0.0]), np.zeros(3), 0.01)
+    with pytest.raises(InvalidInputError, match="target must differ"):
+        law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 1.0])
+    law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
+    with pytest.raises(InvalidInputError, match="force"):
+        law.update(_pose([0.0, 0.0, 0.0]), [0.0, np.nan, 0.0], 0.01)
