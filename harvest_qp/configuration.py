@@ -9,6 +9,7 @@ velocities (``eq:control_signal_rr_world``, ``eq:superimp_g``).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,7 +17,7 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.exceptions import InvalidInputError, ModelError, UnknownFrameError
-from harvest_qp.validation import as_vector
+from harvest_qp.validation import as_scalar, as_vector, describe
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
@@ -30,30 +31,33 @@ class Configuration:
     """
 
     def __init__(self, model: pin.Model, q: np.ndarray | Sequence[float] | None = None) -> None:
+        if not isinstance(model, pin.Model):
+            raise InvalidInputError(f"Configuration model must be a pinocchio.Model, got {type(model).__name__}")
         if model.nq != model.nv:
             raise ModelError(
-                f"harvest_qp needs a model with nq == nv (revolute/prismatic joints), got nq={model.nq}, "
-                f"nv={model.nv}"
+                f"harvest_qp needs a model with nq == nv (revolute/prismatic joints), got nq={model.nq}, nv={model.nv}"
             )
         self.model = model
         self.data = model.createData()
         self._frame_ids = {model.frames[i].name: i for i in range(model.nframes)}
         self._joint_ids = {model.names[i]: i for i in range(1, model.njoints)}
-        self.q = np.array(pin.neutral(model) if q is None else q, dtype=float)
-        self.update(self.q)
+        self._nframes = model.nframes
+        self.update(pin.neutral(model) if q is None else q)
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_urdf(cls, path: str | Path, q: np.ndarray | None = None) -> Configuration:
-        """Load a URDF [file path] and return its configuration at ``q``."""
+    def from_urdf(cls, path: str | Path, q: np.ndarray | Sequence[float] | None = None) -> Configuration:
+        """Load a URDF [file path] and return its configuration at ``q`` [rad]."""
+        if not isinstance(path, (str, os.PathLike)):
+            raise InvalidInputError(f"URDF path must be a str or path, got {describe(path)}")
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"URDF file not found: {path}")
         return cls(pin.buildModelFromUrdf(str(path)), q)
 
     @classmethod
-    def dual_ur5e(cls, q: np.ndarray | None = None) -> Configuration:
-        """The shipped dual-UR5e harvester, at ``q`` or at the home configuration."""
+    def dual_ur5e(cls, q: np.ndarray | Sequence[float] | None = None) -> Configuration:
+        """The shipped dual-UR5e harvester, at ``q`` [rad] or at the home configuration."""
         from harvest_qp.robot.description import HOME_Q
         from harvest_qp.robot.paths import urdf_path
 
@@ -90,16 +94,27 @@ class Configuration:
         """Joint speed limits [rad/s]."""
         return self.model.velocityLimit
 
+    @property
+    def q(self) -> np.ndarray:
+        """Joint positions [rad] (nv,); assigning it is :meth:`update` (checked, kinematics recomputed)."""
+        return self._q
+
+    @q.setter
+    def q(self, value: np.ndarray | Sequence[float]) -> None:
+        self.update(value)
+
     def update(self, q: np.ndarray | Sequence[float]) -> None:
         """Set joint positions [rad] and recompute placements and joint Jacobians."""
-        q = as_vector(q, self.model.nq, "q")
-        self.q = q
+        q = as_vector(q, self.model.nq, "Configuration q")
+        self._q = q
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
 
-    def integrate(self, qdot: np.ndarray, dt: float) -> np.ndarray:
-        """Joint positions after applying ``qdot`` [rad/s] for ``dt`` [s] (does not update)."""
-        return self.q + np.asarray(qdot, dtype=float) * dt
+    def integrate(self, qdot: np.ndarray | Sequence[float], dt: float) -> np.ndarray:
+        """Joint positions [rad] after applying ``qdot`` [rad/s] for ``dt`` [s] (does not update)."""
+        qdot = as_vector(qdot, self.nv, "Configuration.integrate qdot")
+        dt = as_scalar(dt, "Configuration.integrate dt", minimum=0.0)
+        return self.q + qdot * dt
 
     # ------------------------------------------------------------------ frames
     def frame_id(self, name: str) -> int:
@@ -113,10 +128,8 @@ class Configuration:
 
     def joint_index(self, name: str) -> int:
         """Index in ``q`` of the joint ``name``."""
-        if name not in self._joint_ids:
-            raise UnknownFrameError(
-                f"unknown joint {name!r}; valid joints are: {', '.join(self.joint_names)}"
-            )
+        if not isinstance(name, str) or name not in self._joint_ids:
+            raise UnknownFrameError(f"unknown joint {name!r}; valid joints are: {', '.join(self.joint_names)}")
         return self.model.joints[self._joint_ids[name]].idx_q
 
     def frame_pose(self, name: str) -> pin.SE3:
@@ -137,12 +150,17 @@ class Configuration:
 
     def frame_jacobian_by_id(self, frame_id: int) -> np.ndarray:
         """Like :meth:`frame_jacobian` for a frame index (no name lookup, for hot loops)."""
+        is_index = type(frame_id) is int or isinstance(frame_id, np.integer)
+        if not is_index or not 0 <= frame_id < self._nframes:
+            raise InvalidInputError(
+                f"frame_id must be an int in [0, {self._nframes}) (see frame_id()), got {describe(frame_id)}"
+            )
         return pin.getFrameJacobian(self.model, self.data, frame_id, _LWA)
 
     def point_jacobian(self, name: str, point: np.ndarray) -> np.ndarray:
         """Linear Jacobian (3 x nv) of the world point [m] rigidly attached to frame ``name``."""
         J = self.frame_jacobian(name)
-        r = np.asarray(point, dtype=float) - self.frame_position(name)
+        r = as_vector(point, 3, "point_jacobian point") - self.frame_position(name)
         return J[:3] - np.cross(r[:, None], J[3:], axis=0)
 
     def world_joint_jacobians(self) -> np.ndarray:

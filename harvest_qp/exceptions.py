@@ -19,6 +19,14 @@ class InvalidInputError(HarvestQPError, ValueError):
     """An argument has the wrong shape, sign, type or a non-finite value."""
 
 
+class DimensionError(InvalidInputError):
+    """A size does not match the robot model (e.g. a joint-space task with ``dim != nv``).
+
+    Raised before any compiled kernel sees the mismatched arrays: the kernels index
+    by the sizes they are handed and do not check bounds.
+    """
+
+
 class UnknownFrameError(HarvestQPError, KeyError):
     """A frame name is not part of the robot model; the message lists valid names."""
 
@@ -40,9 +48,7 @@ class SolverError(HarvestQPError):
         status: the backend's own status string or code.
     """
 
-    def __init__(
-        self, message: str, *, problem: Any = None, backend: str = "", status: Any = None
-    ) -> None:
+    def __init__(self, message: str, *, problem: Any = None, backend: str = "", status: Any = None) -> None:
         super().__init__(message)
         self.problem = problem
         self.backend = backend

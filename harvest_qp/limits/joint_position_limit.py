@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.limits.limit import Limit, LimitRows
 from harvest_qp.qp_kernels import position_limit_bounds
-from harvest_qp.validation import as_positive_scalar, as_vector
+from harvest_qp.validation import as_bounds, as_configuration, as_nonnegative_vector, as_positive_scalar, as_scalar
 
 
 class JointPositionLimit(Limit):
@@ -21,8 +23,9 @@ class JointPositionLimit(Limit):
     Args:
         configuration: the robot (its URDF position limits are used by default).
         gain: fraction of the remaining range allowed per step, in (0, 1].
-        lower, upper: override limits [rad].
-        max_acceleration: braking deceleration [rad/s^2] (scalar or per joint), or None.
+        lower, upper: override limits [rad] (scalar or per joint; ``lower <= upper``;
+            ``-inf``/``+inf`` for an unbounded joint).
+        max_acceleration: braking deceleration [rad/s^2] (>= 0, scalar or per joint), or None.
     """
 
     priority = 1
@@ -33,26 +36,49 @@ class JointPositionLimit(Limit):
         configuration: Configuration,
         *,
         gain: float = 0.95,
-        lower: np.ndarray | None = None,
-        upper: np.ndarray | None = None,
-        max_acceleration: float | np.ndarray | None = None,
+        lower: float | np.ndarray | Sequence[float] | None = None,
+        upper: float | np.ndarray | Sequence[float] | None = None,
+        max_acceleration: float | np.ndarray | Sequence[float] | None = None,
     ) -> None:
+        as_configuration(configuration, "JointPositionLimit configuration")
         n = configuration.nv
-        self.gain = as_positive_scalar(gain, "gain")
-        if self.gain > 1.0:
-            raise ValueError(f"gain must be in (0, 1], got {gain}")
-        self.lower = as_vector(configuration.lower_limits if lower is None else lower, n, "lower")
-        self.upper = as_vector(configuration.upper_limits if upper is None else upper, n, "upper")
+        self.gain = as_scalar(gain, "JointPositionLimit gain", minimum=0.0, maximum=1.0, exclusive_minimum=True)
+        self.lower, self.upper = as_bounds(
+            configuration.lower_limits if lower is None else lower,
+            configuration.upper_limits if upper is None else upper,
+            n,
+            "JointPositionLimit",
+        )
         self.max_acceleration = (
-            None if max_acceleration is None else as_vector(max_acceleration, n, "max_acceleration")
+            None
+            if max_acceleration is None
+            else as_nonnegative_vector(max_acceleration, n, "JointPositionLimit max_acceleration")
         )
         # The kernel takes an empty array for "no braking bound".
         self._braking = np.zeros(0) if self.max_acceleration is None else self.max_acceleration
+        self._model = configuration.model
 
-    def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
+    def check_configuration(self, configuration: Configuration) -> None:
+        self._check_joint_vectors(configuration, lower=self.lower, upper=self.upper)
+        if self.max_acceleration is not None:
+            self._check_joint_vectors(configuration, max_acceleration=self.max_acceleration)
+
+    def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
+        """The velocity box [rad/s] for a step of ``dt`` [s] from the configuration's ``q``."""
+        dt = as_positive_scalar(dt, "JointPositionLimit dt")
+        self._ensure_bound(configuration)
         lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
         self.fill_box(configuration, dt, previous_qdot, lower, upper)
         return LimitRows(lower=lower, upper=upper)
 
-    def fill_box(self, configuration: Configuration, dt: float, previous_qdot, lower, upper) -> None:
+    def fill_box(
+        self,
+        configuration: Configuration,
+        dt: float,
+        previous_qdot: np.ndarray | None,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> None:
+        # The kernel loops over q and reads lower/upper/braking by that index: sizes checked once per model.
+        self._ensure_bound(configuration)
         position_limit_bounds(configuration.q, self.lower, self.upper, self.gain, dt, self._braking, lower, upper)

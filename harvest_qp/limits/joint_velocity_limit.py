@@ -2,26 +2,50 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.limits.limit import Limit, LimitRows
-from harvest_qp.validation import as_nonnegative_vector
+from harvest_qp.validation import as_configuration, as_nonnegative_vector
 
 
 class JointVelocityLimit(Limit):
-    """``|qdot| <= v_max`` [rad/s] (the model's limits, pi rad/s on a UR5e, by default)."""
+    """``|qdot| <= v_max`` [rad/s] (the model's limits, pi rad/s on a UR5e, by default).
+
+    Args:
+        configuration: the robot.
+        max_velocity: speed limit [rad/s] (>= 0, scalar or per joint), or None for the model's.
+    """
 
     priority = 0
     has_box = True
 
-    def __init__(self, configuration: Configuration, *, max_velocity: float | np.ndarray | None = None):
+    def __init__(
+        self, configuration: Configuration, *, max_velocity: float | np.ndarray | Sequence[float] | None = None
+    ) -> None:
+        as_configuration(configuration, "JointVelocityLimit configuration")
         v = configuration.velocity_limits if max_velocity is None else max_velocity
-        self.max_velocity = as_nonnegative_vector(v, configuration.nv, "max_velocity")
+        self.max_velocity = as_nonnegative_vector(v, configuration.nv, "JointVelocityLimit max_velocity")
+        self._model = configuration.model
 
-    def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
+    def check_configuration(self, configuration: Configuration) -> None:
+        self._check_joint_vectors(configuration, max_velocity=self.max_velocity)
+
+    def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
+        """The box ``[-v_max, v_max]`` [rad/s] (independent of ``dt`` [s])."""
+        self._ensure_bound(configuration)
         return LimitRows(lower=-self.max_velocity, upper=self.max_velocity.copy())
 
-    def fill_box(self, configuration: Configuration, dt: float, previous_qdot, lower, upper) -> None:
+    def fill_box(
+        self,
+        configuration: Configuration,
+        dt: float,
+        previous_qdot: np.ndarray | None,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> None:
+        self._ensure_bound(configuration)
         np.negative(self.max_velocity, out=lower)
         upper[:] = self.max_velocity

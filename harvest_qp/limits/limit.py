@@ -2,12 +2,43 @@
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
+from harvest_qp.exceptions import DimensionError
+from harvest_qp.validation import as_configuration, check_limit_rows
+
+#: Limits defined in this package: their rows' sizes come from the checked model.
+_BUILT_IN_PREFIX = "harvest_qp.limits."
+
+
+def _checked_compute(compute):
+    """Wrap a user ``compute`` so its rows are size-checked before the solver's kernels see them."""
+
+    @functools.wraps(compute)
+    def checked(
+        self: Limit, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None
+    ) -> LimitRows:
+        rows = compute(self, configuration, dt, previous_qdot)
+        if not isinstance(rows, LimitRows):
+            raise DimensionError(f"{type(self).__name__}.compute must return LimitRows, got {type(rows).__name__}")
+        nv = as_configuration(configuration, f"{type(self).__name__} configuration").nv
+        check_limit_rows(self, rows.G, rows.h, nv)
+        for side, value in (("lower", rows.lower), ("upper", rows.upper)):
+            if value is not None and getattr(value, "shape", None) != (nv,):
+                raise DimensionError(
+                    f"{type(self).__name__}.compute returned a box {side} of shape "
+                    f"{getattr(value, 'shape', type(value).__name__)}, expected ({nv},) (one entry per joint)"
+                )
+        return rows
+
+    checked._size_checked = True
+    return checked
 
 
 @dataclass
@@ -29,6 +60,9 @@ class Limit(ABC):
     Box limits are intersected in ``priority`` order (lower number first): where two
     boxes do not overlap, the earlier one wins and the later one is moved onto it,
     so the speed limit always holds and joint position limits beat acceleration limits.
+
+    A limit sized for one model is checked against the model it is used on
+    (:meth:`check_configuration`, once per model) before its arrays reach a kernel.
     """
 
     #: Order in which box limits are intersected (velocity 0, position 1, acceleration 2).
@@ -36,6 +70,43 @@ class Limit(ABC):
     #: True for limits whose :meth:`compute` returns a box (``lower``/``upper``) and no rows.
     #: The solver then calls :meth:`fill_box`, which writes into its buffers.
     has_box: bool = False
+    #: The pinocchio model this limit was last checked against (None: not yet).
+    _model: pin.Model | None = None
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        # The solver's compiled kernels index G by the model's nv without bounds checks: a
+        # limit defined outside this package gets its rows checked as they are computed.
+        own = cls.__dict__.get("compute")
+        if own is not None and not cls.__module__.startswith(_BUILT_IN_PREFIX) and not hasattr(own, "_size_checked"):
+            cls.compute = _checked_compute(own)
+
+    def check_configuration(self, configuration: Configuration) -> None:
+        """Raise unless this limit can run on ``configuration``'s model.
+
+        Raises:
+            InvalidInputError: ``configuration`` is not a :class:`Configuration`.
+            DimensionError: a size of this limit disagrees with the model's ``nv``.
+        """
+        as_configuration(configuration, f"{type(self).__name__} configuration")
+
+    def _check_joint_vectors(self, configuration: Configuration, **vectors: np.ndarray) -> None:
+        """For limits with per-joint vectors: each must have the model's ``nv`` entries."""
+        as_configuration(configuration, f"{type(self).__name__} configuration")
+        nv = configuration.nv
+        for name, vector in vectors.items():
+            if vector.shape != (nv,):
+                raise DimensionError(
+                    f"{type(self).__name__} {name} has {vector.shape[0]} entries but the model has nv = {nv} "
+                    f"joints; build the limit from the configuration it runs on"
+                )
+
+    def _ensure_bound(self, configuration: Configuration) -> None:
+        """Check this limit against ``configuration``'s model once per model (the hot path is one ``is``)."""
+        model = getattr(configuration, "model", None)
+        if model is None or model is not self._model:
+            self.check_configuration(configuration)
+            self._model = model
 
     def fill_box(
         self,
@@ -51,11 +122,16 @@ class Limit(ABC):
         skip the allocations (it runs every control tick).
         """
         rows = self.compute(configuration, dt, previous_qdot)
+        n = lower.shape[0]
+        for side, value in (("lower", rows.lower), ("upper", rows.upper)):
+            if getattr(value, "shape", None) != (n,):
+                raise DimensionError(
+                    f"{type(self).__name__}.compute returned a box {side} of shape "
+                    f"{getattr(value, 'shape', type(value).__name__)}, expected ({n},) (one entry per joint)"
+                )
         lower[:] = rows.lower
         upper[:] = rows.upper
 
     @abstractmethod
-    def compute(
-        self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None
-    ) -> LimitRows:
+    def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
         """Rows of this limit at the configuration's state, for a step of ``dt`` [s]."""

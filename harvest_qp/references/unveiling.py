@@ -47,6 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.references._checks import as_points, as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references.next_best_view import NextBestView
 
 if TYPE_CHECKING:  # a module-level import would be circular (perception re-exports this module)
     from harvest_qp.perception.unveiling import RayObstaclePairs
@@ -271,55 +272,6 @@ def predicted_stem_points(
     return pose[:3, 3] + along[:, None] * up
 
 
-# ---------------------------------------------------------------- next-best-view step
-
-
-def _orthonormal_pair(axis: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    helper = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    first = np.cross(axis, helper)
-    first /= np.linalg.norm(first)
-    return first, np.cross(axis, first)
-
-
-def _voxel_representatives(points: NDArray[np.float64], voxel: float) -> NDArray[np.float64]:
-    """One point per occupied voxel of edge ``voxel`` [m] (the first one met)."""
-    if points.shape[0] == 0:
-        return points
-    keys = np.floor(points / voxel).astype(np.int64)
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    _, first = np.unique(flat, return_index=True)
-    return points[first]
-
-
-def clear_lines_of_sight(
-    viewpoints: NDArray[np.float64],
-    targets: NDArray[np.float64],
-    obstacles: NDArray[np.float64],
-    *,
-    clearance: float,
-    ignore_radius: float,
-) -> NDArray[np.bool_]:
-    """``(n_V, n_T)``: whether the segment from each viewpoint to each target passes farther
-    than ``clearance`` [m] from every obstacle point, ignoring obstacles within
-    ``ignore_radius`` [m] of that target (what touches the stem does not hide it)."""
-    n_v, n_t = viewpoints.shape[0], targets.shape[0]
-    if obstacles.shape[0] == 0:
-        return np.ones((n_v, n_t), dtype=bool)
-    # segments (n_V, n_T, 3) from viewpoint to target; obstacle offsets from the viewpoint.
-    segment = targets[None, :, :] - viewpoints[:, None, :]
-    squared_length = np.einsum("vtk,vtk->vt", segment, segment)
-    offset = obstacles[None, :, :] - viewpoints[:, None, :]  # (n_V, n_O, 3)
-    dot = np.einsum("vtk,vok->vto", segment, offset)
-    t = np.clip(dot / squared_length[:, :, None], 0.0, 1.0)
-    squared_offset = np.einsum("vok,vok->vo", offset, offset)
-    squared_distance = squared_offset[:, None, :] + t * (t * squared_length[:, :, None] - 2.0 * dot)
-    near_target = np.einsum("tok->to", (obstacles[None, :, :] - targets[:, None, :]) ** 2) < ignore_radius**2
-    blocked = (squared_distance < clearance**2) & ~near_target[None, :, :]
-    return ~blocked.any(axis=2)
-
-
 class Unveiling:
     """Unveiling reference V_cu of the camera arm (``eq:art_potential`` .. ``eq:v_c2``), bounded,
     low-passed, and extended to a stem not seen at all (module docstring).
@@ -354,6 +306,8 @@ class Unveiling:
         stall_time: a target viewpoint towards which the camera made less than 1 deg of
             progress for this long [s] is abandoned and its direction avoided (FINDINGS: a
             collision row held the arm 20 s aiming at an unreachable viewpoint).
+        memory_radius: non-stem points within this of the ROI centre are remembered as 1 cm
+            voxels for the viewpoint search [m] (0.45, as measured in FINDINGS).
         frame_period: assumed time between frames [s] when :meth:`observe` gets no timestamp.
 
     Attributes:
@@ -362,6 +316,7 @@ class Unveiling:
         n_pairs: ray/obstacle pairs used by the last paper-mode :meth:`observe`.
         mode: "paper", "predicted" or "idle".
         clear_fraction: fraction of predicted points clear from the camera (predicted mode).
+        next_best_view: the :class:`~harvest_qp.references.next_best_view.NextBestView` state.
     """
 
     def __init__(
@@ -375,7 +330,7 @@ class Unveiling:
         max_angular: float = 0.2,
         min_pivot: float = 0.03,
         min_stem_points: int = 10,
-        nbv_angles: tuple[float, ...] = (math.radians(10.0), math.radians(20.0), math.radians(35.0)),
+        nbv_angles: tuple[float, ...] = (math.radians(15.0), math.radians(30.0), math.radians(50.0)),
         nbv_azimuths: int = 8,
         nbv_speed: float = 0.1,
         nbv_gain: float = 2.0,
@@ -384,6 +339,7 @@ class Unveiling:
         goal_fraction: float = 0.8,
         min_distance: float = 0.25,
         stall_time: float = 1.5,
+        memory_radius: float = 0.45,
         frame_period: float = 1.0 / 30.0,
     ) -> None:
         self.k_c = as_positive_scalar(k_c, "k_c")
@@ -416,7 +372,20 @@ class Unveiling:
             raise InvalidInputError(f"goal_fraction must be in (0, 1], got {goal_fraction!r}")
         self.min_distance = as_positive_scalar(min_distance, "min_distance", allow_zero=True)
         self.stall_time = as_positive_scalar(stall_time, "stall_time")
+        self.memory_radius = as_positive_scalar(memory_radius, "memory_radius")
         self.frame_period = as_positive_scalar(frame_period, "frame_period")
+        self.next_best_view = NextBestView(
+            angles=self.nbv_angles,
+            azimuths=self.nbv_azimuths,
+            speed=self.nbv_speed,
+            gain=self.nbv_gain,
+            clearance=self.clearance,
+            ignore_radius=self.ignore_radius,
+            goal_fraction=self.goal_fraction,
+            min_distance=self.min_distance,
+            stall_time=self.stall_time,
+            memory_radius=self.memory_radius,
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -425,12 +394,8 @@ class Unveiling:
         self.value = np.zeros(6)
         self.n_pairs = 0
         self.mode = "idle"
-        self.clear_fraction = math.nan
         self._time = 0.0
-        self._target: NDArray[np.float64] | None = None  # unit direction from the ROI centre
-        self._best_progress = math.inf
-        self._progress_time = 0.0
-        self._avoid: list[NDArray[np.float64]] = []
+        self.next_best_view.reset()
 
     # ------------------------------------------------------------ per frame
 
@@ -468,9 +433,10 @@ class Unveiling:
             centre = predicted.mean(axis=0) if roi_centre is None else as_position(roi_centre, "roi_centre")
             self.mode = "predicted"
             self.n_pairs = 0
-            self.raw = self._next_best_view(camera, predicted, obstacles, centre)
+            twist = self.next_best_view.step(camera, predicted, obstacles, centre, self._time)
+            self.raw = saturate_twist(twist, self.max_linear, self.max_angular)
             return
-        self._target = None  # a seen stem ends any next-best-view search
+        self.next_best_view.drop_target()  # a seen stem ends the search (the memory stays)
         if stem.shape[0] == 0:
             self.mode, self.n_pairs, self.raw = "idle", 0, np.zeros(6)
             return
@@ -494,102 +460,8 @@ class Unveiling:
             self.value = self.value + (-math.expm1(-dt / self.time_constant)) * (self.raw - self.value)
         return self.value.copy()
 
-    # ------------------------------------------------------------ predicted mode
-
-    def _candidates(self, direction: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Unit directions from the ROI centre: the current one, then rings at nbv_angles."""
-        first, second = _orthonormal_pair(direction)
-        azimuth = 2.0 * math.pi * np.arange(self.nbv_azimuths) / self.nbv_azimuths
-        polar = np.repeat(self.nbv_angles, self.nbv_azimuths)
-        phi = np.tile(azimuth, self.nbv_angles.size)
-        sideways = np.cos(phi)[:, None] * first + np.sin(phi)[:, None] * second
-        ring = np.cos(polar)[:, None] * direction + np.sin(polar)[:, None] * sideways
-        return np.vstack((direction, ring)), np.concatenate(([0.0], polar))
-
-    def _relevant_obstacles(
-        self, obstacles: NDArray[np.float64], centre: NDArray[np.float64], direction: NDArray[np.float64], radius: float
-    ) -> NDArray[np.float64]:
-        """Obstacle points that can lie on a line of sight from a candidate to a predicted
-        point, one per 1 cm voxel: a cone about the current direction wide enough for the
-        widest candidate ring, between just behind the ROI centre and the camera sphere."""
-        offset = obstacles - centre
-        height = offset @ direction
-        lateral_squared = np.einsum("ij,ij->i", offset, offset) - height**2
-        widest = float(self.nbv_angles.max())
-        reach = np.maximum(height, 0.0) * math.tan(min(widest + math.radians(10.0), 1.4)) + 0.1
-        keep = (height > -0.05) & (height < radius + 0.02) & (lateral_squared < reach**2)
-        return _voxel_representatives(obstacles[keep], 0.01)
-
-    def _next_best_view(
-        self,
-        camera: NDArray[np.float64],
-        predicted: NDArray[np.float64],
-        obstacles: NDArray[np.float64],
-        centre: NDArray[np.float64],
-    ) -> NDArray[np.float64]:
-        offset = camera - centre
-        distance = float(np.linalg.norm(offset))
-        if distance < 1e-6:
-            self.clear_fraction = math.nan
-            return np.zeros(6)
-        direction = offset / distance
-        radius = max(distance, self.min_distance)
-        near = self._relevant_obstacles(obstacles, centre, direction, radius)
-        directions, polar = self._candidates(direction)
-        viewpoints = centre + radius * directions
-        viewpoints[0] = camera
-        clear = clear_lines_of_sight(
-            viewpoints, predicted, near, clearance=self.clearance, ignore_radius=self.ignore_radius
-        )
-        fraction = clear.mean(axis=1)
-        self.clear_fraction = float(fraction[0])
-
-        if self._target is not None:
-            progress = math.acos(min(1.0, float(self._target @ direction)))
-            if progress < self._best_progress - math.radians(1.0):
-                self._best_progress, self._progress_time = progress, self._time
-            elif self._time - self._progress_time > self.stall_time:
-                self._avoid.append(self._target)
-                self._target = None
-            elif progress < math.radians(3.0):
-                self._target = None  # reached: plan again from here
-
-        if fraction[0] >= self.goal_fraction:
-            self._target = None
-            tangential = np.zeros(3)
-        else:
-            # Score: clear fraction, minus a small price for the angle (prefer the nearest of
-            # equally good viewpoints), minus 1 for directions already abandoned.
-            score = fraction - 0.05 * polar
-            for avoided in self._avoid:
-                score -= (directions @ avoided > math.cos(math.radians(15.0))).astype(float)
-            best = int(np.argmax(score[1:])) + 1
-            if self._target is not None:
-                # Keep the committed target unless a candidate is clearly better (no dithering).
-                target_fraction = clear_lines_of_sight(
-                    (centre + radius * self._target)[None],
-                    predicted,
-                    near,
-                    clearance=self.clearance,
-                    ignore_radius=self.ignore_radius,
-                ).mean()
-                if fraction[best] > target_fraction + 0.25:
-                    self._target = None
-            if self._target is None and fraction[best] > fraction[0]:
-                self._target = directions[best]
-                self._best_progress = math.acos(min(1.0, float(self._target @ direction)))
-                self._progress_time = self._time
-            if self._target is None:
-                tangential = np.zeros(3)
-            else:
-                along = self._target - (self._target @ direction) * direction
-                norm = float(np.linalg.norm(along))
-                arc = radius * math.acos(min(1.0, float(self._target @ direction)))
-                speed = min(self.nbv_speed, self.nbv_gain * arc)
-                tangential = speed * along / norm if norm > 1e-9 else np.zeros(3)
-        radial = self.nbv_gain * max(0.0, self.min_distance - distance) * direction
-        linear = tangential + radial
-        # Bearing feed-forward: with e = p_r - p_c and de/dt = -v, w = v x e / |e|^2 keeps
-        # the bearing of p_r fixed (so V_cr's centering is not disturbed).
-        angular = np.cross(linear, -offset) / distance**2
-        return saturate_twist(np.concatenate((linear, angular)), self.max_linear, self.max_angular)
+    @property
+    def clear_fraction(self) -> float:
+        """Fraction of predicted stem points with a clear line of sight from the camera at the
+        last predicted-mode frame (NaN before)."""
+        return self.next_best_view.clear_fraction

@@ -211,6 +211,13 @@ def build_mjcf() -> str:
             out.append("      " + "  " * d + "</body>")
     out.append("    </body>")
     out.append("  </worldbody>")
+    # The robot geoms have conaffinity 0, so the contype/conaffinity filter never pairs two of
+    # them (adjacent links overlap by design); these explicit pairs make exactly the
+    # controller's self-collision pairs (`self_collision_pairs()`) physical contacts.
+    out.append("  <contact>")
+    for a, b in desc.self_collision_pairs():
+        out.append(f'    <pair geom1="{a}" geom2="{b}"/>')
+    out.append("  </contact>")
     out.append("</mujoco>")
     return "\n".join(out) + "\n"
 

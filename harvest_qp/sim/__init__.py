@@ -12,7 +12,7 @@ Typical use::
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo
 from harvest_qp.sim.camera import CameraConfig, DepthCamera, OpenGLCamera, RayCastCamera, make_camera
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
-from harvest_qp.sim.robot import SimRobot, SimulationError
+from harvest_qp.sim.robot import SensorFaults, SimRobot, SimulationError
 from harvest_qp.sim.scene import LEAF_LAYOUT, PARAM_RANGES, VineScene, VineSceneParams, build_vine_scene
 
 __all__ = [
@@ -24,6 +24,7 @@ __all__ = [
     "OpenGLCamera",
     "PARAM_RANGES",
     "RayCastCamera",
+    "SensorFaults",
     "SimRobot",
     "SimulationError",
     "SpeedjServo",

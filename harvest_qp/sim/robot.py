@@ -15,25 +15,55 @@ clock is set to 0.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections import deque
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
-from harvest_qp.interface import N_JOINTS, PointCloud, RobotInterface
+from harvest_qp.interface import N_JOINTS, ROBOT, PointCloud, RobotInterface
 from harvest_qp.robot import description as desc
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
+from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor, site_force_world
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
 
-__all__ = ["SimRobot", "SimulationError"]
+__all__ = ["SensorFaults", "SimRobot", "SimulationError"]
 
 
 class SimulationError(HarvestQPError):
     """The physics diverged (MuJoCo warned about bad accelerations or state values)."""
+
+
+@dataclass(frozen=True)
+class SensorFaults:
+    """Sensor faults of the simulated robot (all seeded by the robot's ``seed``).
+
+    Attributes:
+        frame_loss: probability that a whole camera frame is lost (never delivered).
+        frame_latency: delay from capture to delivery of a camera frame [s]; None keeps
+            the camera's own ``CameraConfig.latency``.
+        force_noise_std: white noise std on each wrist force component [N]; None keeps
+            the sensor's own ``ForceSensorConfig.noise_std``.
+    """
+
+    frame_loss: float = 0.0
+    frame_latency: float | None = None
+    force_noise_std: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.frame_loss, (int, float, np.floating)) or not 0.0 <= self.frame_loss < 1.0:
+            raise InvalidInputError(f"SensorFaults.frame_loss must be a probability in [0, 1), got {self.frame_loss!r}")
+        for name in ("frame_latency", "force_noise_std"):
+            value = getattr(self, name)
+            if value is not None and (
+                not isinstance(value, (int, float, np.floating)) or not np.isfinite(value) or value < 0
+            ):
+                raise InvalidInputError(f"SensorFaults.{name} must be None or a finite number >= 0, got {value!r}")
 
 
 class SimRobot(RobotInterface):
@@ -52,6 +82,10 @@ class SimRobot(RobotInterface):
         payload_compensation: compensate the held cluster's weight in the grasping arm's
             joint torques, as a UR5e does with its configured payload.
         settle_time: time the scene settles at reset before the clock starts [s].
+        faults: sensor faults (lost camera frames, frame latency, force noise).
+        vine_distance_every: :meth:`ground_truth` measures ``min_vine_distance`` on every
+            this many control ticks and repeats the last value in between (~70 us per
+            measurement on the 2-core machine).
     """
 
     def __init__(
@@ -65,6 +99,8 @@ class SimRobot(RobotInterface):
         control_period: float = 0.002,
         payload_compensation: bool = True,
         settle_time: float = 0.2,
+        faults: SensorFaults | None = None,
+        vine_distance_every: int = 1,
     ) -> None:
         if scene is None or isinstance(scene, VineSceneParams):
             scene = build_vine_scene(scene, actuation=actuation)
@@ -76,6 +112,21 @@ class SimRobot(RobotInterface):
             raise InvalidInputError(f"camera must be a CameraConfig or None, got {type(camera).__name__}")
         if not np.isfinite(settle_time) or settle_time < 0:
             raise InvalidInputError(f"settle_time must be >= 0 [s], got {settle_time!r}")
+        if faults is not None and not isinstance(faults, SensorFaults):
+            raise InvalidInputError(f"faults must be a SensorFaults or None, got {type(faults).__name__}")
+        if (
+            isinstance(vine_distance_every, bool)
+            or not isinstance(vine_distance_every, (int, np.integer))
+            or (vine_distance_every < 1)
+        ):
+            raise InvalidInputError(f"vine_distance_every must be an integer >= 1, got {vine_distance_every!r}")
+        self.faults = faults if faults is not None else SensorFaults()
+        self.vine_distance_every = int(vine_distance_every)
+        if camera is not None and self.faults.frame_latency is not None:
+            camera = dataclasses.replace(camera, latency=float(self.faults.frame_latency))
+        force = force if force is not None else ForceSensorConfig()
+        if self.faults.force_noise_std is not None:
+            force = dataclasses.replace(force, noise_std=float(self.faults.force_noise_std))
         self.scene = scene
         # A private copy: reset() edits the model (weld pose, stem spring rest values), so
         # robots built from the same scene must not share it.
@@ -105,7 +156,7 @@ class SimRobot(RobotInterface):
         self._ids = ids
         self._force = WristForceSensor(
             m, ids["ft_force"], ids["ft_site"], float(m.body_mass[ids["grasp_tool"]]),
-            force if force is not None else ForceSensorConfig(), seed=self.seed,
+            force, seed=self.seed,
         )  # fmt: skip
         self.camera_config = camera
         self._camera: DepthCamera | None = None
@@ -114,6 +165,18 @@ class SimRobot(RobotInterface):
                 m, camera, geom_labels=scene.geom_labels, exclude_body=ids["cam_tool"], camera=CAMERA_NAME,
                 seed=self.seed,
             )  # fmt: skip
+        base = m.body(desc.collision_bodies()[0].link).id
+        robot_geoms = np.flatnonzero(scene.geom_labels == ROBOT)
+        floor = [g for g in range(m.ngeom) if m.geom(g).name == "floor"]
+        self._contacts = ContactMonitor(
+            m, arm_geoms=robot_geoms[m.geom_bodyid[robot_geoms] != base],
+            stand_geoms=robot_geoms[m.geom_bodyid[robot_geoms] == base], vine_geoms=scene.vine_geoms,
+            floor_geoms=np.array(floor, dtype=np.int64),
+        )  # fmt: skip
+        slide = ids["stem_slide"]
+        self._slide_dof = int(m.jnt_dofadr[slide])
+        self._slide_stiffness = float(m.jnt_stiffness[slide])
+        self._slide_damping = float(m.dof_damping[self._slide_dof])
         self._spring0 = m.qpos_spring.copy()
         self._stem_qpos = self._stem_spring_addresses()
         self._jacp = np.zeros((3, m.nv))
@@ -147,6 +210,12 @@ class SimRobot(RobotInterface):
             self.seed = int(seed)
         m, d = self.model, self.data
         m.qpos_spring[:] = self._spring0
+        # A torn stem from the last episode grows back.
+        m.jnt_stiffness[self._ids["stem_slide"]] = self._slide_stiffness
+        m.dof_damping[self._slide_dof] = self._slide_damping
+        self._torn = False
+        self._tear_time = float("nan")
+        self._max_tension = 0.0
         mujoco.mj_resetData(m, d)
         d.qpos[self._qpos_ids] = self.scene.home_q
         mujoco.mj_forward(m, d)
@@ -177,6 +246,13 @@ class SimRobot(RobotInterface):
         self._force.update(d, self.control_period)
         self._frames: deque[tuple[float, PointCloud]] = deque()
         self._next_frame_tick = 0
+        self._frames_lost = 0
+        self._frame_rng = np.random.default_rng([self.seed, 0xF7A3E])
+        self._vine_distance_tick = -1
+        self._vine_distance = (float("inf"), -1, -1)
+        self._min_vine_distance = float("inf")
+        self._contact_ticks = dict.fromkeys(CONTACT_KINDS, 0)
+        self._counted_tick = -1
         if self._camera is not None:
             self._camera.reset(seed=self.seed)
             self._maybe_capture()
@@ -216,6 +292,7 @@ class SimRobot(RobotInterface):
             self._physics_step()
         self._check_physics()
         self._ticks += 1
+        self._check_tear()
         self._force.update(self.data, self.control_period)
         self._maybe_capture()
         if self._viewer is not None and self._ticks % self._viewer_every == 0:
@@ -301,12 +378,74 @@ class SimRobot(RobotInterface):
         return self._camera.capture(self.data, self.site_pose("camera"), self.time)
 
     def ground_truth(self) -> dict[str, float | NDArray[np.float64]]:
-        """Quantities a real robot cannot measure, for logs and tests."""
-        return {
+        """Quantities a real robot cannot measure, for logs and tests (one value per key per tick).
+
+        Keys:
+            stem_tension: true stem tension [N] (:meth:`stem_tension`; ~0 once torn).
+            stem_force: (3,) true force of the stem on the cluster [N, world].
+            qdot_ref: (12,) the servo's acceleration-limited velocity reference [rad/s].
+            stem_torn: 1.0 once the stem tension exceeded the scene's ``stem_break_force``
+                (the stem tore: its axial spring is released), else 0.0.
+            stem_tension_max: largest stem tension since the reset [N].
+            contacts_arm_arm, contacts_arm_vine, contacts_arm_stand, contacts_arm_floor:
+                active robot contacts of each kind now (see :mod:`harvest_qp.sim.contacts`).
+            min_vine_distance: smallest true distance between a robot geom and a vine geom
+                other than the held stem and cluster [m] (negative: penetration), measured
+                every ``vine_distance_every`` ticks.
+            min_vine_distance_so_far: smallest ``min_vine_distance`` measured since the reset [m].
+            frames_lost: camera frames lost to ``faults.frame_loss`` since the reset.
+        """
+        out: dict[str, float | NDArray[np.float64]] = {
             "stem_tension": self.stem_tension(),
             "stem_force": self.stem_force(),
             "qdot_ref": self.velocity_reference(),
+            "stem_torn": float(self._torn),
+            "stem_tension_max": self._max_tension,
         }
+        for kind, count in self.contact_counts().items():
+            out[f"contacts_{kind}"] = float(count)
+        out["min_vine_distance"] = self.min_vine_distance()
+        out["min_vine_distance_so_far"] = self._min_vine_distance
+        out["frames_lost"] = float(self._frames_lost)
+        return out
+
+    def contact_counts(self) -> dict[str, int]:
+        """Active robot contacts by kind now: ``arm_arm``, ``arm_vine``, ``arm_stand``, ``arm_floor``."""
+        return self._contacts.contact_counts(self.data)
+
+    def min_vine_distance(self, *, with_pair: bool = False) -> float | tuple[float, str, str]:
+        """Smallest true robot-vine distance [m] (held stem and cluster excluded), negative if penetrating.
+
+        Measured at most once per tick, every ``vine_distance_every`` ticks (the last value
+        in between).
+
+        Args:
+            with_pair: also return the names of the robot geom and the vine geom.
+        """
+        if self._vine_distance_tick < 0 or self._ticks - self._vine_distance_tick >= self.vine_distance_every:
+            self._vine_distance = self._contacts.min_vine_distance(self.data)
+            self._vine_distance_tick = self._ticks
+            self._min_vine_distance = min(self._min_vine_distance, self._vine_distance[0])
+        dist, ga, gv = self._vine_distance
+        if not with_pair:
+            return dist
+        name = lambda g: self.model.geom(g).name if g >= 0 else ""  # noqa: E731
+        return dist, name(ga), name(gv)
+
+    @property
+    def stem_torn(self) -> bool:
+        """True once the stem has torn (tension above the scene's ``stem_break_force``)."""
+        return self._torn
+
+    @property
+    def stem_tear_time(self) -> float:
+        """Time of the tear [s] (NaN while intact)."""
+        return self._tear_time
+
+    @property
+    def frames_lost(self) -> int:
+        """Camera frames lost to ``faults.frame_loss`` since the reset."""
+        return self._frames_lost
 
     # ------------------------------------------------------------------ internals
 
@@ -326,6 +465,20 @@ class SimRobot(RobotInterface):
         mujoco.mj_step2(m, d)
         mujoco.mj_step1(m, d)
 
+    def _check_tear(self) -> None:
+        """Tear the stem when its tension exceeds the break force: release its axial spring."""
+        if self._torn:
+            return
+        tension = self.stem_tension()
+        self._max_tension = max(self._max_tension, tension)
+        if tension > self.scene.params.stem_break_force:
+            m = self.model
+            # The stem's top joint then slides freely: the stem no longer holds the cluster.
+            m.jnt_stiffness[self._ids["stem_slide"]] = 0.0
+            m.dof_damping[self._slide_dof] = 0.0
+            self._torn = True
+            self._tear_time = self.time
+
     def _check_physics(self) -> None:
         d = self.data
         counts = np.asarray(d.warning.number, dtype=np.int64)
@@ -340,8 +493,13 @@ class SimRobot(RobotInterface):
         if self._camera is None or self._ticks < self._next_frame_tick:
             return
         t = self.time
-        cloud = self._camera.capture(self.data, self.site_pose("camera"), t)
-        self._frames.append((t + self._camera.config.latency, cloud))
+        # Draw for every frame, so the loss pattern only depends on the seed and the frame count.
+        lost = self._frame_rng.random() < self.faults.frame_loss
+        if lost:
+            self._frames_lost += 1
+        else:
+            cloud = self._camera.capture(self.data, self.site_pose("camera"), t)
+            self._frames.append((t + self._camera.config.latency, cloud))
         # Frame instants on the control grid closest to k / rate (33.3 ms -> 16-17 ticks).
         k = round(t * self._camera.config.rate) + 1
         self._next_frame_tick = max(self._ticks + 1, int(round(k / self._camera.config.rate / self.control_period)))

@@ -25,9 +25,11 @@ cluster is one rigid body of sphere berries on a ball joint at the stem end. A w
 equality between the ``grasp_tool`` body and the cluster is the grasp (activated by
 :class:`harvest_qp.sim.SimRobot` at the current relative pose).
 
-Contacts: only the branch and cane collide with the robot (rigid wood). Leaves, stem and
-berries are seen by the camera but do not collide: real leaves yield, and the held
-cluster touching the gripper would fight the weld.
+Contacts: the branch, cane, leaves and petioles collide with the robot (leaves with a
+softer contact, as real leaves yield); the robot's own self-collision pairs are explicit
+contact pairs of the robot model. The held stem and cluster do not collide: the cluster
+touching the gripper would fight the weld. The stem tears when its tension exceeds
+``stem_break_force`` (:class:`harvest_qp.sim.SimRobot` releases its axial spring).
 
 Randomisation: :meth:`VineSceneParams.sample` draws every scalar uniformly from
 :data:`PARAM_RANGES`; leaf poses and berry positions are drawn from ``seed`` in both the
@@ -41,15 +43,19 @@ from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError, ModelError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.robot import description as desc
 from harvest_qp.robot import paths
 from harvest_qp.sim.actuation import ActuationConfig, add_joint_actuators
+from harvest_qp.sim.contacts import _segment_distances
 
 __all__ = [
+    "APPROACH_RADIUS",
+    "HIDDEN_APPROACH_MIN",
+    "HIDDEN_STEM_PROBABILITY",
     "PARAM_RANGES",
     "LEAF_LAYOUT",
     "VineSceneParams",
@@ -83,14 +89,26 @@ PARAM_RANGES: dict[str, tuple[float, float]] = {
     "canopy_leaves": (6, 20),
     "leaf_size": (0.05, 0.08),
     "occluder_distance": (0.06, 0.1),
+    "occluder_coverage": (0.5, 0.75),
 }
+
+#: Probability that :meth:`VineSceneParams.sample` hides the stem along the whole approach.
+HIDDEN_STEM_PROBABILITY = 0.25
+
+#: Radius of the paper's region of interest around the stem base, r [m]: the approach
+#: viewpoint that ``occluder_coverage`` refers to lies this far from the stem base.
+APPROACH_RADIUS = 0.35
+
+#: A stem hidden along the whole approach (``occluder_coverage = 1``) stays hidden from every
+#: point of the straight approach this far or farther from the stem base [m].
+HIDDEN_APPROACH_MIN = 0.3
 
 #: Ranges of the per-leaf random draws (from ``seed``), for every scene:
 #: ``distance`` of a free leaf's centre from the stem middle [m], ``size_scale`` of its
 #: half-length relative to ``leaf_size``, ``width_ratio`` of its half-width to its
 #: half-length, ``tilt`` of a leaf's normal away from its nominal direction [rad]
-#: (occluder: facing the camera; free leaves: facing away from the stem), the
-#: occluder's ``lateral_offset`` from the line of sight [m], and for canopy leaves their
+#: (occluder: facing the approach viewpoint; free leaves: facing away from the stem), and
+#: for canopy leaves their
 #: position along the cane from its middle (``canopy_along``), below it
 #: (``canopy_drop``) and along x from it (``canopy_depth``, negative towards the robot) [m].
 LEAF_LAYOUT: dict[str, tuple[float, float]] = {
@@ -99,7 +117,6 @@ LEAF_LAYOUT: dict[str, tuple[float, float]] = {
     "width_ratio": (0.7, 0.9),
     "tilt": (-0.5, 0.5),
     "occluder_tilt": (-0.25, 0.25),
-    "lateral_offset": (-0.008, 0.008),
     "canopy_along": (-0.75, 0.75),
     "canopy_drop": (0.02, 0.25),
     "canopy_depth": (-0.08, 0.04),
@@ -124,7 +141,10 @@ MAX_BEND_STIFFNESS = 10.0
 _INT_FIELDS = ("stem_segments", "berry_count", "leaf_count", "canopy_leaves")
 _LEAF_THICKNESS = 0.0015  # half-thickness of a leaf ellipsoid [m]
 _PETIOLE_RADIUS = 0.0025
+_SIGHT_MARGIN = 0.006  # lines of sight kept clear of free leaves and petioles by this much [m]
+_COVERAGE_SAMPLES = 101  # stem points (by arc length) the occluder's coverage is counted on
 _WELD_SOLREF = (0.004, 1.0)  # stiff grasp: 2 timesteps, critically damped
+_FOLIAGE_SOLREF = (0.02, 1.0)  # leaves yield: a softer contact than the wood's default
 
 
 @dataclass(frozen=True)
@@ -153,11 +173,20 @@ class VineSceneParams:
         canopy_leaves: number of leaves hanging from the cane behind the cluster (the
             canopy wall the camera sees from its start pose).
         leaf_size: nominal leaf half-length [m].
-        occlude_stem: place one leaf between the camera's start position and the stem.
-        occluder_distance: distance of the occluding leaf from the stem middle [m].
+        occlude_stem: place one leaf between the camera's approach and the stem.
+        occluder_distance: distance of the occluding leaf from the stem middle [m] (moved
+            up to 6 cm further towards the camera when needed to clear the gripper).
+        occluder_coverage: fraction of the stem's length the occluding leaf hides, seen
+            from the approach viewpoint (:meth:`VineScene.approach_pose` at
+            :data:`APPROACH_RADIUS` from the stem base). Below 1 the leaf hides the lower
+            part (cluster side) and leaves the stem base visible; 1 hides the whole stem from
+            every point of the straight approach from ``camera_start`` (to the stem base
+            and to the cluster) down to :data:`HIDDEN_APPROACH_MIN` from the stem base.
         grasp_offset: distance from the gripper point up to the stem end [m].
         camera_start: position [m] the occluding leaf hides the stem from; None = the
             camera position at ``HOME_Q``.
+        stem_break_force: stem tension beyond which the stem tears [N] (well above the
+            paper's 2 f_d = 6 N force limit, so a working force loop never tears it).
     """
 
     seed: int = 0
@@ -182,14 +211,16 @@ class VineSceneParams:
     leaf_size: float = 0.065
     occlude_stem: bool = True
     occluder_distance: float = 0.08
+    occluder_coverage: float = 0.7
     grasp_offset: float = 0.015
     camera_start: tuple[float, float, float] | None = None
+    stem_break_force: float = 15.0
 
     def __post_init__(self) -> None:
         positive = (
             "stem_length", "stem_radius", "stem_axial_stiffness", "cluster_mass", "berry_radius",
             "cluster_length", "cluster_radius", "branch_radius", "branch_length", "leaf_size",
-            "occluder_distance",
+            "occluder_distance", "stem_break_force",
         )  # fmt: skip
         for name in positive:
             value = getattr(self, name)
@@ -198,6 +229,12 @@ class VineSceneParams:
         for name in ("stem_bend", "stem_bend_azimuth", "branch_yaw", "branch_pitch", "grasp_offset"):
             if not np.isfinite(getattr(self, name)):
                 raise InvalidInputError(f"VineSceneParams.{name} must be finite, got {getattr(self, name)!r}")
+        if not isinstance(self.occluder_coverage, (int, float, np.floating)) or not (
+            0.0 <= self.occluder_coverage <= 1.0
+        ):
+            raise InvalidInputError(
+                f"VineSceneParams.occluder_coverage must be a fraction in [0, 1], got {self.occluder_coverage!r}"
+            )
         if not 0 <= self.stem_bend <= np.pi / 2:
             raise InvalidInputError(f"VineSceneParams.stem_bend must be in [0, pi/2] rad, got {self.stem_bend!r}")
         if not -1.2 <= self.branch_pitch <= 1.2:
@@ -243,15 +280,28 @@ class VineSceneParams:
                 )
 
     @classmethod
-    def sample(cls, seed: int, **overrides) -> VineSceneParams:
+    def sample(
+        cls, seed: int, *, hidden_stem_probability: float = HIDDEN_STEM_PROBABILITY, **overrides
+    ) -> VineSceneParams:
         """Random parameters: every field of :data:`PARAM_RANGES` uniform in its range.
+
+        With probability ``hidden_stem_probability`` the occluding leaf hides the whole stem
+        along the straight approach (``occluder_coverage = 1``) instead of the drawn
+        fraction: the stem then stays hidden all the way into the region of interest.
 
         Args:
             seed: seed of the draws (also used as the layout ``seed``).
+            hidden_stem_probability: probability of a stem hidden along the whole approach.
             **overrides: fields to set instead of drawing them.
         """
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise InvalidInputError(f"seed must be a non-negative integer, got {seed!r}")
+        if not isinstance(hidden_stem_probability, (int, float, np.floating)) or not (
+            0.0 <= hidden_stem_probability <= 1.0
+        ):
+            raise InvalidInputError(
+                f"hidden_stem_probability must be a probability in [0, 1], got {hidden_stem_probability!r}"
+            )
         rng = np.random.default_rng([int(seed), 0x5EED])
         values: dict[str, float | int] = {}
         for name, (low, high) in PARAM_RANGES.items():
@@ -262,6 +312,9 @@ class VineSceneParams:
         unknown = set(overrides) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise InvalidInputError(f"unknown VineSceneParams fields: {sorted(unknown)}")
+        # Its own stream: the other draws of a seed do not depend on it.
+        if np.random.default_rng([int(seed), 0x41DE]).uniform() < hidden_stem_probability:
+            values["occluder_coverage"] = 1.0
         values.update(overrides)
         values.setdefault("seed", int(seed))
         return cls(**values)
@@ -284,8 +337,15 @@ class VineScene:
         ids: ids of named parts: ``cluster`` (body), ``weld`` (equality),
             ``cam_tool`` / ``grasp_tool`` (bodies), ``stem_slide`` (joint),
             ``occluder`` (geom, -1 if none), sensor ids ``ft_force``, ``ft_torque``, ``stem_force``.
-        stem_geoms / leaf_geoms / berry_geoms: geom ids of those parts.
+        stem_geoms / leaf_geoms / berry_geoms: geom ids of those parts (``berry_geoms``:
+            the held cluster's).
         actuator_names: the 12 joint servo names in joint order.
+        vine_geoms: geom ids of every vine part the robot collides with (branch, cane,
+            leaves, petioles): all but the held stem and cluster.
+        camera_start: where the straight approach starts [m] (``params.camera_start`` or
+            the camera position at ``home_q``).
+        cluster_centre: middle of the held cluster's axis at rest [m] (the paper's ROI
+            centre before the stem is seen).
     """
 
     params: VineSceneParams
@@ -301,6 +361,36 @@ class VineScene:
     leaf_geoms: NDArray[np.int32]
     berry_geoms: NDArray[np.int32]
     actuator_names: list[str] = field(default_factory=list)
+    vine_geoms: NDArray[np.int32] = field(default_factory=lambda: np.zeros(0, np.int32))
+    camera_start: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    cluster_centre: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+    def approach_pose(self, distance: float, *, target: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Camera pose (4x4 {C}) on the straight approach, ``distance`` [m] from ``target``.
+
+        The position lies on the line from :attr:`camera_start` to ``target`` (default:
+        the stem base p_sb, the ROI centre); the orientation is the home camera orientation
+        turned by the smallest rotation that points its optical axis at ``target`` (what
+        the paper's V_cr does, leaving the roll about the view direction alone).
+        """
+        goal = self.stem_base if target is None else np.asarray(target, dtype=float)
+        if not np.isfinite(distance) or distance <= 0:
+            raise InvalidInputError(f"distance must be a finite number > 0 [m], got {distance!r}")
+        if goal.shape != (3,) or not np.all(np.isfinite(goal)):
+            raise InvalidInputError(f"target must be 3 finite coordinates [m] or None, got {target!r}")
+        position = goal + distance * _unit(self.camera_start - goal)
+        z0 = self.camera_home[:3, 2]
+        z1 = _unit(goal - position)
+        axis = np.cross(z0, z1)
+        angle = float(np.arctan2(np.linalg.norm(axis), np.dot(z0, z1)))
+        R0 = self.camera_home[:3, :3]
+        R = R0 if np.linalg.norm(axis) < 1e-12 else np.column_stack(
+            [_rotate(R0[:, k], _unit(axis), angle) for k in range(3)]
+        )  # fmt: skip
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = position
+        return T
 
     @property
     def stem_base(self) -> NDArray[np.float64]:
@@ -354,6 +444,160 @@ def _point_segment_distance(p, a, b) -> tuple[float, NDArray[np.float64]]:
     t = float(np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0))
     closest = a + t * ab
     return float(np.linalg.norm(p - closest)), closest
+
+
+def _stem_samples(stem: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """``n`` points evenly spaced by arc length along the stem polyline, end to base."""
+    seg = np.linalg.norm(np.diff(stem, axis=0), axis=1)
+    arc = np.r_[0.0, np.cumsum(seg)]
+    at = np.linspace(0.0, arc[-1], n)
+    return np.column_stack([np.interp(at, arc, stem[:, k]) for k in range(3)])
+
+
+def _segment_hits_ellipsoid(
+    origins: NDArray[np.float64], targets: NDArray[np.float64], centre: NDArray, R: NDArray, semi: NDArray
+) -> NDArray[np.bool_]:
+    """Whether each segment origin -> target crosses the ellipsoid (centre, axes R, semi-axes)."""
+    o = ((origins - centre) @ R) / semi
+    d = ((targets - centre) @ R) / semi - o
+    a = np.sum(d * d, axis=1)
+    b = 2.0 * np.sum(o * d, axis=1)
+    c = np.sum(o * o, axis=1) - 1.0
+    disc = b * b - 4.0 * a * c
+    root = np.sqrt(np.maximum(disc, 0.0))
+    s1 = (-b - root) / (2.0 * a)
+    s2 = (-b + root) / (2.0 * a)
+    return (disc >= 0.0) & (s2 >= 0.0) & (s1 <= 1.0)
+
+
+def _petiole_blocks(petiole, origins: NDArray, targets: NDArray) -> bool:
+    """Whether a petiole capsule (with a margin) crosses any segment origin -> target."""
+    a, b = petiole
+    if np.linalg.norm(b - a) <= 1e-3:
+        return False
+    dist = _segment_distances(np.asarray(origins, float), np.asarray(targets, float), a[None], b[None])
+    return bool(np.any(dist < _PETIOLE_RADIUS + _SIGHT_MARGIN))
+
+
+def _approach_views(
+    camera_start: NDArray, stem_base: NDArray, cluster_axis: tuple[NDArray, NDArray]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Camera positions along the straight approach, and the viewpoint coverage refers to.
+
+    The approach runs from ``camera_start`` straight towards the stem base (the ROI centre
+    once the stem is seen) or towards the cluster centre (the ROI centre before, as in the
+    paper); both are sampled down to :data:`HIDDEN_APPROACH_MIN` from their target.
+    """
+    cluster_centre = 0.5 * (cluster_axis[0] + cluster_axis[1])
+    views = []
+    for target in (stem_base, cluster_centre):
+        span = float(np.linalg.norm(camera_start - target))
+        u = _unit(camera_start - target)
+        for dist in np.linspace(min(HIDDEN_APPROACH_MIN, span), span, 10):
+            views.append(target + dist * u)
+    coverage_view = stem_base + APPROACH_RADIUS * _unit(camera_start - stem_base)
+    return np.array(views), coverage_view
+
+
+def _place_occluder(
+    p: VineSceneParams,
+    rng: np.random.Generator,
+    stem: NDArray,
+    *,
+    coverage_view: NDArray,
+    approach_views: NDArray,
+    tool_axis: tuple[NDArray, NDArray],
+    supports: tuple[tuple[NDArray, NDArray], ...],
+) -> _Leaf:
+    """The occluding leaf: hides ``occluder_coverage`` of the stem seen from ``coverage_view``.
+
+    The leaf faces the viewpoint (tilted by the seeded draws) ``occluder_distance`` in front
+    of the stem middle, its long axis along the stem's image. With full coverage it is
+    sized to hide the stem from every approach viewpoint; otherwise it slides along the
+    stem's image towards the cluster until exactly that fraction of the stem (sampled by
+    arc length) is behind it, by bisection. It moves further from the stem, by 1 cm steps,
+    until it clears the grasping tool by 15 mm.
+    """
+    mid = 0.5 * (stem[0] + stem[-1])
+    stem_dir = _unit(stem[-1] - stem[0])
+    tilts = rng.uniform(*LEAF_LAYOUT["occluder_tilt"], size=2)
+    half_length0 = p.leaf_size * rng.uniform(*LEAF_LAYOUT["size_scale"])
+    half_width0 = half_length0 * rng.uniform(*LEAF_LAYOUT["width_ratio"])
+    samples = _stem_samples(stem, _COVERAGE_SAMPLES)
+    full = p.occluder_coverage >= 1.0
+    views = approach_views if full else coverage_view[None]
+    margin = 1.5 * p.stem_radius + 0.004
+    tool_r = desc.GRASP_TOOL.capsules[0].radius
+    best: tuple[float, _Leaf] | None = None
+    for extra in np.arange(0.0, 0.0601, 0.01):
+        u = _unit(coverage_view - mid)
+        side = np.cross(u, stem_dir)
+        side = _unit(side) if np.linalg.norm(side) > 1e-6 else _frame_from_z(u, stem_dir)[:, 1]
+        normal = _rotate(_rotate(u, side, tilts[0]), stem_dir, tilts[1])
+        R = _frame_from_z(normal, stem_dir)  # x: along the stem's image, z: the leaf's normal
+        centre0 = mid + (p.occluder_distance + extra) * u
+        # Where the lines of sight to the stem cross the leaf's plane, in the leaf frame.
+        origin = np.repeat(views, len(samples), axis=0)
+        target = np.tile(samples, (len(views), 1))
+        ray = target - origin
+        t = ((centre0 - origin) @ normal) / (ray @ normal)
+        local = (origin + t[:, None] * ray - centre0) @ R
+        lo, hi = local.min(axis=0), local.max(axis=0)
+        half_x, half_y = 0.5 * (hi[0] - lo[0]) + margin, 0.5 * (hi[1] - lo[1]) + margin
+        # An ellipse with semi-axes sqrt(2) times a rectangle's half-sides contains it.
+        semi = np.array(
+            [max(half_length0, np.sqrt(2) * half_x), max(half_width0, np.sqrt(2) * half_y), _LEAF_THICKNESS]
+        )
+        centred = centre0 + 0.5 * (lo[0] + hi[0]) * R[:, 0] + 0.5 * (lo[1] + hi[1]) * R[:, 1]
+        if full:
+            centre = centred
+        else:
+            # Slide towards the cluster end of the stem's image: the base emerges first.
+            towards_end = np.sign(local[0, 0] - local[-1, 0]) or 1.0
+            origin1 = np.repeat(coverage_view[None], len(samples), axis=0)
+
+            def coverage(shift: float, _c=centred, _R=R, _semi=semi, _o=origin1, _e=towards_end) -> float:
+                return float(np.mean(_segment_hits_ellipsoid(_o, samples, _c + _e * shift * _R[:, 0], _R, _semi)))
+
+            low, high = 0.0, semi[0] + (hi[0] - lo[0]) + 0.01
+            for _ in range(40):
+                half = 0.5 * (low + high)
+                low, high = (half, high) if coverage(half) >= p.occluder_coverage else (low, half)
+            shift = (
+                low if abs(coverage(low) - p.occluder_coverage) <= abs(coverage(high) - p.occluder_coverage) else high
+            )
+            centre = centred + towards_end * shift * R[:, 0]
+        # Clearance to the grasping tool, from points on the leaf's rim and centre.
+        phi = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
+        rim = centre + np.outer(semi[0] * np.cos(phi), R[:, 0]) + np.outer(semi[1] * np.sin(phi), R[:, 1])
+        rim = np.vstack([rim, centre])
+        clearance = min(_point_segment_distance(x, *tool_axis)[0] for x in rim) - tool_r
+        leaf = _Leaf(
+            centre, R, float(semi[0]), float(semi[1]), _occluder_petiole(centre, R, semi, supports, views, samples)
+        )
+        if best is None or clearance > best[0]:
+            best = (clearance, leaf)
+        if clearance >= 0.015:
+            break
+    assert best is not None
+    return best[1]
+
+
+def _occluder_petiole(centre, R, semi, supports, views, samples) -> tuple[NDArray, NDArray]:
+    """A petiole from the occluder's rim to the branch or cane that crosses no line of sight.
+
+    Tries the rim points at 8 angles against the nearest point of each support; a leaf with
+    no clear petiole gets none (a zero-length one).
+    """
+    origin = np.repeat(views, len(samples), axis=0)
+    target = np.tile(samples, (len(views), 1))
+    for angle in np.linspace(0.0, 2 * np.pi, 8, endpoint=False):
+        base = centre + 0.9 * (semi[0] * np.cos(angle) * R[:, 0] + semi[1] * np.sin(angle) * R[:, 1])
+        for support in supports:
+            _, on_support = _point_segment_distance(base, *support)
+            if not _petiole_blocks((base, on_support), origin, target):
+                return base, on_support
+    return centre, centre
 
 
 # --------------------------------------------------------------------------- builder
@@ -442,12 +686,19 @@ def _leaf_layout(
     tool_axis: tuple[NDArray, NDArray],
     branch: tuple[NDArray, NDArray],
     cane: tuple[NDArray, NDArray],
-    camera_start: NDArray,
+    coverage_view: NDArray,
+    approach_views: NDArray,
 ) -> list[_Leaf]:
-    """Leaf poses: an occluder between ``camera_start`` and the stem, then free leaves around it."""
+    """Leaf poses: an occluder between the approach and the stem, then free leaves around it.
+
+    No free or canopy leaf may cross a line of sight from the straight approach
+    (``approach_views``) to the stem: only the occluder hides it, by ``occluder_coverage``.
+    """
     mid = 0.5 * (stem[0] + stem[-1])
-    stem_dir = _unit(stem[-1] - stem[0])
     leaves: list[_Leaf] = []
+    sight_targets = _stem_samples(stem, 13)
+    sight_from = np.repeat(approach_views, len(sight_targets), axis=0)
+    sight_to = np.tile(sight_targets, (len(approach_views), 1))
 
     def petiole_for(centre, R, half_length, support=branch):
         _, on_branch = _point_segment_distance(centre, *support)
@@ -471,25 +722,18 @@ def _leaf_layout(
             return False
         if _segment_distance(petiole[0], petiole[1], *tool_axis) < 0.06:
             return False
-        return True
+        semi = np.array([half_length, half_length, _LEAF_THICKNESS]) + _SIGHT_MARGIN
+        if np.any(_segment_hits_ellipsoid(sight_from, sight_to, centre, R, semi)):
+            return False
+        return not _petiole_blocks(petiole, sight_from, sight_to)
 
     if p.occlude_stem and p.leaf_count > 0:
-        u = _unit(camera_start - mid)
-        side = (
-            _unit(np.cross(u, stem_dir))
-            if np.linalg.norm(np.cross(u, stem_dir)) > 1e-6
-            else _frame_from_z(u, stem_dir)[:, 1]
-        )
-        lateral = rng.uniform(*LEAF_LAYOUT["lateral_offset"], size=2)
-        centre = mid + p.occluder_distance * u + lateral[0] * side + lateral[1] * stem_dir
-        normal = _rotate(u, side, rng.uniform(*LEAF_LAYOUT["occluder_tilt"]))
-        normal = _rotate(normal, stem_dir, rng.uniform(*LEAF_LAYOUT["occluder_tilt"]))
-        R = _frame_from_z(normal, stem_dir)  # long axis along the stem's image
-        # Big enough to cover the stem seen from the camera start, whatever the draw.
-        half_length = max(p.leaf_size * rng.uniform(*LEAF_LAYOUT["size_scale"]), 0.6 * p.stem_length + 0.02)
-        half_width = max(half_length * rng.uniform(*LEAF_LAYOUT["width_ratio"]), 0.045)
-        leaves.append(_Leaf(centre, R, half_length, half_width, petiole_for(centre, R, half_length)))
-
+        leaves.append(
+            _place_occluder(
+                p, rng, stem, coverage_view=coverage_view, approach_views=approach_views, tool_axis=tool_axis,
+                supports=(branch, cane),
+            )
+        )  # fmt: skip
     free = p.leaf_count - len(leaves)
     for _ in range(free):
         for _attempt in range(200):
@@ -667,23 +911,27 @@ def build_vine_scene(
     camera_start = home["camera"][:3, 3] if p.camera_start is None else np.asarray(p.camera_start, float)
     cluster_axis = (stem_end, stem_end + (p.grasp_offset + 0.03 + p.cluster_length) * y_g)
     tool_axis = (home["ft_sensor"][:3, 3], G[:3, 3])
+    approach_views, coverage_view = _approach_views(camera_start, stem_base, cluster_axis)
     leaves = _leaf_layout(
         p, rng, stem=stem, cluster_axis=cluster_axis, tool_axis=tool_axis, branch=(b0, b1), cane=cane,
-        camera_start=camera_start,
+        coverage_view=coverage_view, approach_views=approach_views,
     )  # fmt: skip
+    # Leaves and petioles collide with the robot (not with the stem or the cluster); a soft
+    # contact (20 ms time constant instead of MuJoCo's 2*dt) as real leaves yield.
+    foliage = dict(contype=0, conaffinity=1, group=1, solref=list(_FOLIAGE_SOLREF))
     for i, leaf in enumerate(leaves):
         shade = 1.0 + 0.12 * (rng.uniform() - 0.5)
         rgba = [LEAF_COLOR[0] * shade, LEAF_COLOR[1] * shade, LEAF_COLOR[2] * shade, 1.0]
         vine.add_geom(
             name=f"leaf_{i}", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID, pos=list(leaf.centre),
             quat=_quat(leaf.rotation),
-            size=[leaf.half_length, leaf.half_width, _LEAF_THICKNESS], rgba=rgba, **soft,
+            size=[leaf.half_length, leaf.half_width, _LEAF_THICKNESS], rgba=rgba, **foliage,
         )  # fmt: skip
         a, b = leaf.petiole
         if np.linalg.norm(b - a) > 1e-3:
             vine.add_geom(
                 name=f"petiole_{i}", type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[*a, *b],
-                size=[_PETIOLE_RADIUS, 0, 0], rgba=list(RACHIS_COLOR), **soft,
+                size=[_PETIOLE_RADIUS, 0, 0], rgba=list(RACHIS_COLOR), **foliage,
             )  # fmt: skip
 
     # ---- grasp, sensors, camera, servos
@@ -763,4 +1011,7 @@ def build_vine_scene(
         leaf_geoms=np.array([g for g, nm in enumerate(geom_names) if nm.startswith("leaf_")], dtype=np.int32),
         berry_geoms=np.array([g for g, nm in enumerate(geom_names) if nm.startswith("berry_")], dtype=np.int32),
         actuator_names=actuator_names,
+        vine_geoms=np.flatnonzero(model.geom_bodyid == model.body("vine").id).astype(np.int32),
+        camera_start=np.array(camera_start, dtype=float),
+        cluster_centre=0.5 * (cluster_axis[0] + cluster_axis[1]),
     )

@@ -2,53 +2,98 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_matrix, as_vector
+from harvest_qp.validation import as_name, as_rotation, as_vector
 
 
 class FramePoseTask(Task):
     """``J qdot = gain * e + V_ff`` with the pose error ``e = [p* - p; log(R* R^T)]`` (world).
 
     Args:
-        frame: frame name.
-        weight: scalar or 6 per-axis weights (world axes).
+        frame: frame name (checked at the first solve).
+        weight: scalar or 6 per-axis weights (world axes) [1/(m/s)^2, 1/(rad/s)^2].
         level: priority level.
         gain: error feedback gain [1/s].
     """
 
-    def __init__(self, frame: str, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0):
+    def __init__(self, frame: str, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0) -> None:
+        self.frame = as_name(frame, "FramePoseTask frame")
         super().__init__(6, weight=weight, level=level, gain=gain)
-        self.frame = frame
-        self.target_position: np.ndarray | None = None
-        self.target_rotation: np.ndarray | None = None
-        self.feedforward = np.zeros(6)
+        self._target_position: np.ndarray | None = None
+        self._target_rotation: np.ndarray | None = None
+        self._feedforward = np.zeros(6)
 
-    def set_target(self, position: np.ndarray, rotation: np.ndarray, *, feedforward: np.ndarray | None = None):
-        """Target position [m] and rotation matrix (world), optional feed-forward twist."""
-        self.target_position = as_vector(position, 3, "target position")
-        R = as_matrix(rotation, (3, 3), "target rotation")
-        if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
-            raise InvalidInputError("target rotation must be a rotation matrix (orthonormal, det +1)")
-        self.target_rotation = R
-        self.feedforward = np.zeros(6) if feedforward is None else as_vector(feedforward, 6, "feedforward")
+    def _label(self) -> str:
+        return f"FramePoseTask({getattr(self, 'frame', '?')!r})"
+
+    @property
+    def target_position(self) -> np.ndarray | None:
+        """Target position [m] (world), None before :meth:`set_target`."""
+        return self._target_position
+
+    @target_position.setter
+    def target_position(self, value: np.ndarray | Sequence[float]) -> None:
+        self._target_position = as_vector(value, 3, f"{self._label()} target position")
+
+    @property
+    def target_rotation(self) -> np.ndarray | None:
+        """Target rotation matrix (world), None before :meth:`set_target`."""
+        return self._target_rotation
+
+    @target_rotation.setter
+    def target_rotation(self, value: np.ndarray | Sequence[Sequence[float]]) -> None:
+        self._target_rotation = as_rotation(value, f"{self._label()} target rotation")
+
+    @property
+    def feedforward(self) -> np.ndarray:
+        """Feed-forward twist [m/s, rad/s] (world) added to the feedback."""
+        return self._feedforward
+
+    @feedforward.setter
+    def feedforward(self, value: np.ndarray | Sequence[float]) -> None:
+        self._feedforward = as_vector(value, 6, f"{self._label()} feedforward")
+
+    def set_target(
+        self,
+        position: np.ndarray | Sequence[float],
+        rotation: np.ndarray | Sequence[Sequence[float]],
+        *,
+        feedforward: np.ndarray | Sequence[float] | None = None,
+    ) -> None:
+        """Target position [m] and rotation matrix (world), optional feed-forward twist [m/s, rad/s]."""
+        label = self._label()
+        # Check everything before assigning anything: a rejected call leaves the old target.
+        position = as_vector(position, 3, f"{label} target position")
+        rotation = as_rotation(rotation, f"{label} target rotation")
+        feedforward = np.zeros(6) if feedforward is None else as_vector(feedforward, 6, f"{label} feedforward")
+        self._target_position, self._target_rotation, self._feedforward = position, rotation, feedforward
 
     def set_target_from_configuration(self, configuration: Configuration) -> None:
         """Hold the frame where it is now."""
+        self._ensure_bound(configuration)
         pose = configuration.frame_pose(self.frame)
         self.set_target(pose.translation, pose.rotation)
 
+    def check_configuration(self, configuration: Configuration) -> None:
+        super().check_configuration(configuration)
+        configuration.frame_id(self.frame)  # UnknownFrameError listing the valid names
+
     def error(self, configuration: Configuration) -> np.ndarray:
         """Pose error ``[p* - p; log3(R* R^T)]`` [m, rad] in the world frame."""
-        if self.target_position is None:
-            raise InvalidInputError(f"FramePoseTask({self.frame!r}) has no target: call set_target first")
+        if self._target_position is None or self._target_rotation is None:
+            raise InvalidInputError(f"{self._label()} has no target: call set_target first")
+        self._ensure_bound(configuration)
         pose = configuration.frame_pose(self.frame)
         rot = pin.log3(self.target_rotation @ pose.rotation.T)
         return np.concatenate([self.target_position - pose.translation, rot])
 
     def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        return configuration.frame_jacobian(self.frame), self.gain * self.error(configuration) + self.feedforward
+        v = self.gain * self.error(configuration) + self.feedforward  # checks the configuration first
+        return configuration.frame_jacobian(self.frame), v

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.qp_kernels import rotate_twist_rows
 from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_vector
+from harvest_qp.validation import as_choice, as_name, as_vector
+
+WEIGHT_FRAMES = ("world", "local")
 
 
 class FrameTwistTask(Task):
@@ -24,8 +27,8 @@ class FrameTwistTask(Task):
     optical axis free: the paper's 5-DOF task with 1 DOF of redundancy.
 
     Args:
-        frame: frame name in the model.
-        weight: scalar or 6 per-axis weights.
+        frame: frame name in the model (checked at the first solve).
+        weight: scalar or 6 per-axis weights [1/(m/s)^2, 1/(rad/s)^2].
         weight_frame: ``"world"`` or ``"local"``.
         level: priority level (see :class:`Task`).
         gain: scale applied to the reference (1 = track it as given).
@@ -40,17 +43,57 @@ class FrameTwistTask(Task):
         level: int = 1,
         gain: float = 1.0,
     ) -> None:
+        self._frame = as_name(frame, "FrameTwistTask frame")
         super().__init__(6, weight=weight, level=level, gain=gain)
-        if weight_frame not in ("world", "local"):
-            raise InvalidInputError(f"weight_frame must be 'world' or 'local', got {weight_frame!r}")
-        self.frame = frame
         self.weight_frame = weight_frame
         self.reference = np.zeros(6)
-        self._frame_id: int | None = None
 
-    def set_reference(self, twist: np.ndarray) -> None:
+    def _label(self) -> str:
+        return f"FrameTwistTask({getattr(self, '_frame', '?')!r})"
+
+    @property
+    def frame(self) -> str:
+        """Name of the task frame; reassigning it re-checks it against the model at the next solve."""
+        return self._frame
+
+    @frame.setter
+    def frame(self, value: str) -> None:
+        self._frame = as_name(value, f"{self._label()} frame")
+        self._model = None  # the cached frame index belongs to the old name
+
+    @property
+    def weight_frame(self) -> str:
+        """Axes the weights act on: ``"world"`` or ``"local"``."""
+        return self._weight_frame
+
+    @weight_frame.setter
+    def weight_frame(self, value: str) -> None:
+        self._weight_frame = as_choice(value, f"{self._label()} weight_frame", WEIGHT_FRAMES)
+        self._local = self._weight_frame == "local"
+
+    @property
+    def reference(self) -> np.ndarray:
+        """Reference twist ``[v; w]`` [m/s, rad/s], world-aligned at the frame origin."""
+        return self._reference
+
+    @reference.setter
+    def reference(self, twist: np.ndarray | Sequence[float]) -> None:
+        self._reference = as_vector(twist, 6, f"{self._label()} reference twist")
+
+    def set_reference(self, twist: np.ndarray | Sequence[float]) -> None:
         """Set the reference twist ``[v; w]`` [m/s, rad/s], world-aligned at the frame origin."""
-        self.reference = as_vector(twist, 6, f"{self.frame} reference twist")
+        self.reference = twist
+
+    def check_configuration(self, configuration: Configuration) -> None:
+        super().check_configuration(configuration)
+        configuration.frame_id(self._frame)  # UnknownFrameError listing the valid names
+
+    def _bind(self, configuration: Configuration) -> None:
+        # The index and the local-row buffers are per model: a task moved to another
+        # model (other nv) must never hand the kernel buffers of the old size.
+        self._frame_id = configuration.frame_id(self._frame)
+        self._J_local = np.empty((6, configuration.nv))
+        self._v_local = np.empty(6)
 
     def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
         J, v = self.compute_rows(configuration, dt)
@@ -58,13 +101,10 @@ class FrameTwistTask(Task):
 
     def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Like :meth:`compute`, into buffers reused at the next call (the solver's fast path)."""
-        if self._frame_id is None:
-            self._frame_id = configuration.frame_id(self.frame)
-            self._J_local = np.empty((6, configuration.nv))
-            self._v_local = np.empty(6)
+        self._ensure_bound(configuration)
         J = configuration.frame_jacobian_by_id(self._frame_id)
-        v = self.reference if self.gain == 1.0 else self.gain * self.reference
-        if self.weight_frame == "local":
+        v = self._reference if self._gain == 1.0 else self._gain * self._reference
+        if self._local:
             # Rotate rows into the frame's axes so that weights act on local axes.
             rotate_twist_rows(configuration.data.oMf[self._frame_id].rotation, J, v, self._J_local, self._v_local)
             return self._J_local, self._v_local

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_matrix, as_vector
+from harvest_qp.validation import as_name, as_rotation, as_vector
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -24,28 +26,62 @@ class RelativeFrameTask(Task):
     offset from the gripper while both arms move.
 
     Args:
-        frame, root: frame names.
-        weight: scalar or 6 weights (root axes).
+        frame, root: frame names (different; checked at the first solve).
+        weight: scalar or 6 weights (root axes) [1/(m/s)^2, 1/(rad/s)^2].
         level: priority level.
         gain: error feedback gain [1/s].
     """
 
     def __init__(
         self, frame: str, root: str, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0
-    ):
+    ) -> None:
+        self.frame = as_name(frame, "RelativeFrameTask frame")
+        self.root = as_name(root, "RelativeFrameTask root")
+        if self.frame == self.root:
+            # The pose of a frame in itself never changes: the rows would be all zero.
+            raise InvalidInputError(f"RelativeFrameTask frame and root must differ, got both {frame!r}")
         super().__init__(6, weight=weight, level=level, gain=gain)
-        self.frame = frame
-        self.root = root
-        self.target_position: np.ndarray | None = None
-        self.target_rotation: np.ndarray | None = None
+        self._target_position: np.ndarray | None = None
+        self._target_rotation: np.ndarray | None = None
 
-    def set_target(self, position: np.ndarray, rotation: np.ndarray) -> None:
-        """Target position [m] and rotation of ``frame`` in ``root``."""
-        self.target_position = as_vector(position, 3, "target position")
-        self.target_rotation = as_matrix(rotation, (3, 3), "target rotation")
+    def _label(self) -> str:
+        return f"RelativeFrameTask({getattr(self, 'frame', '?')!r}, {getattr(self, 'root', '?')!r})"
+
+    @property
+    def target_position(self) -> np.ndarray | None:
+        """Target position [m] of ``frame`` in ``root``, None before :meth:`set_target`."""
+        return self._target_position
+
+    @target_position.setter
+    def target_position(self, value: np.ndarray | Sequence[float]) -> None:
+        self._target_position = as_vector(value, 3, f"{self._label()} target position")
+
+    @property
+    def target_rotation(self) -> np.ndarray | None:
+        """Target rotation matrix of ``frame`` in ``root``, None before :meth:`set_target`."""
+        return self._target_rotation
+
+    @target_rotation.setter
+    def target_rotation(self, value: np.ndarray | Sequence[Sequence[float]]) -> None:
+        self._target_rotation = as_rotation(value, f"{self._label()} target rotation")
+
+    def set_target(
+        self, position: np.ndarray | Sequence[float], rotation: np.ndarray | Sequence[Sequence[float]]
+    ) -> None:
+        """Target position [m] and rotation matrix of ``frame`` in ``root``."""
+        label = self._label()
+        position = as_vector(position, 3, f"{label} target position")
+        rotation = as_rotation(rotation, f"{label} target rotation")
+        self._target_position, self._target_rotation = position, rotation
+
+    def check_configuration(self, configuration: Configuration) -> None:
+        super().check_configuration(configuration)
+        configuration.frame_id(self.frame)  # UnknownFrameError listing the valid names
+        configuration.frame_id(self.root)
 
     def relative_pose(self, configuration: Configuration) -> tuple[np.ndarray, np.ndarray]:
         """Position [m] and rotation of ``frame`` in ``root``."""
+        self._ensure_bound(configuration)
         root = configuration.frame_pose(self.root)
         frame = configuration.frame_pose(self.frame)
         Rt = root.rotation.T
@@ -53,6 +89,7 @@ class RelativeFrameTask(Task):
 
     def jacobian(self, configuration: Configuration) -> np.ndarray:
         """Relative Jacobian (6 x nv) in root coordinates."""
+        self._ensure_bound(configuration)
         root = configuration.frame_pose(self.root)
         Jf = configuration.frame_jacobian(self.frame)
         Jr = configuration.frame_jacobian(self.root)
@@ -65,8 +102,8 @@ class RelativeFrameTask(Task):
 
     def error(self, configuration: Configuration) -> np.ndarray:
         """Relative pose error [m, rad] in root coordinates."""
-        if self.target_position is None:
-            raise InvalidInputError(f"RelativeFrameTask({self.frame!r}, {self.root!r}) has no target")
+        if self._target_position is None or self._target_rotation is None:
+            raise InvalidInputError(f"{self._label()} has no target: call set_target first")
         p, R = self.relative_pose(configuration)
         return np.concatenate([self.target_position - p, pin.log3(self.target_rotation @ R.T)])
 

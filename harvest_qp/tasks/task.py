@@ -2,16 +2,41 @@
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 
 import numpy as np
+import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.validation import as_nonnegative_vector
+from harvest_qp.validation import (
+    as_configuration,
+    as_integer,
+    as_level,
+    as_nonnegative_vector,
+    as_positive_scalar,
+    as_vector,
+    check_task_rows,
+)
 
 #: Level of hard tasks: they become equality constraints of every QP in the stack.
 HARD = 0
+
+#: Tasks defined in this package: their ``compute_rows`` sizes come from the checked model.
+_BUILT_IN_PREFIX = "harvest_qp.tasks."
+
+
+def _checked_compute_rows(compute_rows):
+    """Wrap a user override of ``compute_rows`` so its rows are size-checked before the solver's kernels."""
+
+    @functools.wraps(compute_rows)
+    def checked(self: Task, configuration: Configuration, dt: float) -> tuple[np.ndarray | None, np.ndarray]:
+        J, v = compute_rows(self, configuration, dt)
+        check_task_rows(self, J, v, as_configuration(configuration, f"{self._label()} configuration").nv)
+        return J, v
+
+    checked._size_checked = True
+    return checked
 
 
 class Task(ABC):
@@ -23,39 +48,119 @@ class Task(ABC):
     above it (strict priorities); level :data:`HARD` (0) makes ``J qdot = v`` an
     equality constraint.
 
+    ``weight``, ``level`` and ``gain`` may be reassigned at any time; each assignment is
+    checked like the constructor's argument.
+
+    A task is checked against the robot model the first time it is computed on it
+    (and again whenever it meets another model): :meth:`check_configuration` raises
+    :class:`~harvest_qp.exceptions.DimensionError` for a size that does not fit, before
+    the solver's compiled kernels (which do not check bounds) ever see the rows.
+
     Args:
-        dim: number of task rows.
-        weight: scalar or per-row weights (>= 0). A zero weight frees that row.
+        dim: number of task rows (an integer >= 1).
+        weight: scalar or per-row weights (>= 0, unit: 1 / (task unit)^2). A zero weight frees that row.
         level: priority level, 0 (hard), 1 (highest soft), 2, ...
         gain: feedback gain [1/s] of tasks that correct an error.
     """
 
-    def __init__(self, dim: int, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0):
-        self.dim = dim
-        self.weight = as_nonnegative_vector(weight, dim, f"{type(self).__name__} weight")
-        if int(level) != level or level < 0:
-            raise InvalidInputError(f"level must be an integer >= 0 (0 = hard), got {level!r}")
-        self.level = int(level)
-        gain = float(gain)
-        if not np.isfinite(gain) or gain < 0.0:
-            raise InvalidInputError(f"{type(self).__name__} gain must be finite and >= 0, got {gain}")
-        self.gain = gain
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        # The solver's compiled kernels index by the rows' sizes without bounds checks; a
+        # subclass outside this package that overrides compute_rows gets its rows checked.
+        own = cls.__dict__.get("compute_rows")
+        if own is not None and not cls.__module__.startswith(_BUILT_IN_PREFIX) and not hasattr(own, "_size_checked"):
+            cls.compute_rows = _checked_compute_rows(own)
 
+    def __init__(self, dim: int, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0) -> None:
+        self._dim = as_integer(dim, f"{type(self).__name__} dim", minimum=1)
+        self.weight = weight
+        self.level = level
+        self.gain = gain
+        #: The pinocchio model this task was last checked against (None: not yet).
+        self._model: pin.Model | None = None
+
+    # ------------------------------------------------------------------ checked attributes
+    @property
+    def dim(self) -> int:
+        """Number of task rows."""
+        return self._dim
+
+    @property
+    def weight(self) -> np.ndarray:
+        """Per-row weights (dim,), >= 0."""
+        return self._weight
+
+    @weight.setter
+    def weight(self, value: float | np.ndarray) -> None:
+        self._weight = as_nonnegative_vector(value, self._dim, f"{self._label()} weight")
+
+    @property
+    def level(self) -> int:
+        """Priority level: 0 (hard), 1 (highest soft), 2, ..."""
+        return self._level
+
+    @level.setter
+    def level(self, value: int) -> None:
+        self._level = as_level(value, f"{self._label()} level")
+
+    @property
+    def gain(self) -> float:
+        """Feedback gain [1/s] (>= 0)."""
+        return self._gain
+
+    @gain.setter
+    def gain(self, value: float) -> None:
+        self._gain = as_positive_scalar(value, f"{self._label()} gain", allow_zero=True)
+
+    def _label(self) -> str:
+        """How messages name this task (subclasses add their frame names)."""
+        return type(self).__name__
+
+    # ------------------------------------------------------------------ model checks
+    def check_configuration(self, configuration: Configuration) -> None:
+        """Raise unless this task can run on ``configuration``'s model.
+
+        Raises:
+            InvalidInputError: ``configuration`` is not a :class:`Configuration`.
+            DimensionError: a size of this task disagrees with the model's ``nv``.
+            UnknownFrameError: the task names a frame the model lacks.
+        """
+        as_configuration(configuration, f"{self._label()} configuration")
+
+    def _ensure_bound(self, configuration: Configuration) -> None:
+        """Check this task against ``configuration``'s model once per model (the hot path is one ``is``)."""
+        model = getattr(configuration, "model", None)
+        if model is None or model is not self._model:
+            self.check_configuration(configuration)
+            self._model = model
+            self._bind(configuration)
+
+    def _bind(self, configuration: Configuration) -> None:  # noqa: B027 (an optional hook)
+        """Hook: cache what depends on the model (frame indices, buffers); called after the check."""
+
+    # ------------------------------------------------------------------ rows
     @abstractmethod
     def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Task Jacobian ``J`` (dim x nv) and desired task velocity ``v`` (dim,)."""
+        """Task Jacobian ``J`` (dim x nv) and desired task velocity ``v`` (dim,) for a step of ``dt`` [s]."""
 
     def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray | None, np.ndarray]:
         """Like :meth:`compute`, but ``J`` may be ``None`` meaning the identity (joint-space tasks).
 
         The solver calls this one so that joint-space tasks skip a dense ``I`` product.
+        The default checks the shapes :meth:`compute` returns (a subclass's ``compute``
+        is user code) so that a wrong shape raises here, not inside a kernel.
         """
-        return self.compute(configuration, dt)
+        self._ensure_bound(configuration)
+        J, v = self.compute(configuration, dt)
+        check_task_rows(self, J, v, configuration.nv)
+        return J, v
 
     def residual(self, configuration: Configuration, qdot: np.ndarray, dt: float) -> np.ndarray:
-        """Weighted residual ``diag(sqrt(w)) (J qdot - v)`` of a solution."""
+        """Weighted residual ``diag(sqrt(w)) (J qdot - v)`` of a solution ``qdot`` [rad/s]."""
+        self._ensure_bound(configuration)
+        qdot = as_vector(qdot, configuration.nv, f"{self._label()} residual qdot")
         J, v = self.compute(configuration, dt)
         return np.sqrt(self.weight) * (J @ qdot - v)
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(level={self.level}, weight={self.weight.tolist()}, gain={self.gain})"
+        return f"{self._label()}(level={self.level}, weight={self.weight.tolist()}, gain={self.gain})"

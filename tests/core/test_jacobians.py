@@ -87,18 +87,78 @@ def test_relative_frame_task_jacobian(configuration, rng):
         np.testing.assert_allclose(J @ qdot, np.concatenate([lin, ang]), atol=1e-6)
 
 
-def test_posture_and_damping_task_jacobians(configuration, rng):
+def test_posture_task_rows_are_the_decay_of_pinocchio_configuration_difference(configuration, rng):
+    """Oracle: pinocchio's own configuration difference ``e = q* (-) q`` (``pin.difference``).
+
+    The task asks ``de/dt = -J qdot = -gain e``: ``J qdot`` must equal ``-de/dt`` by finite
+    differences of ``e`` along ``qdot``, and ``v`` must be ``gain e``. Catches a sign flip
+    (``q - q*``), a permuted or partial identity, and the gain applied wrongly, on both the
+    dense path (``compute``) and the solver's path (``compute_rows``, ``J = None`` = identity).
+    """
+    model = configuration.model
     target = rng.uniform(-1, 1, 12)
     posture = PostureTask(target, gain=3.0)
     q = _states(rng, 1)[0]
     configuration.update(q)
-    J, v = posture.compute(configuration, 0.002)
     qdot = rng.standard_normal(12)
-    np.testing.assert_allclose(J @ qdot, ((q + H * qdot) - (q - H * qdot)) / (2 * H), atol=1e-9)
-    np.testing.assert_allclose(v, 3.0 * (target - q))
-    J, v = DampingTask(12).compute(configuration, 0.002)
-    np.testing.assert_allclose(J, np.eye(12))
-    np.testing.assert_allclose(v, 0.0)
+    de_dt = (pin.difference(model, q + H * qdot, target) - pin.difference(model, q - H * qdot, target)) / (2 * H)
+    J, v = posture.compute(configuration, 0.002)
+    np.testing.assert_allclose(J @ qdot, -de_dt, atol=1e-8)
+    np.testing.assert_allclose(v, 3.0 * pin.difference(model, q, target), atol=1e-12)
+    J_rows, v_rows = posture.compute_rows(configuration, 0.002)
+    np.testing.assert_allclose((qdot if J_rows is None else J_rows @ qdot), -de_dt, atol=1e-8)
+    np.testing.assert_allclose(v_rows, 3.0 * pin.difference(model, q, target), atol=1e-12)
+
+
+def test_posture_task_alone_is_solved_per_joint_and_clipped_by_the_speed_box(configuration, rng):
+    """Hand-computed: with a posture task alone the QP is separable per joint, so with any
+    positive weights ``qdot_i = clip(gain (q*_i - q_i), -v_max_i, v_max_i)``.
+
+    Catches the joint-space kernel adding a weight or target to the wrong joint, a wrong
+    sign of ``f``, or the weights leaking into the minimiser.
+    """
+    from harvest_qp import Solver
+    from harvest_qp.limits import JointVelocityLimit
+
+    q = _states(rng, 1)[0]
+    configuration.update(q)
+    target = q + rng.uniform(-0.3, 0.3, 12)
+    weight = rng.uniform(1e-3, 10.0, 12)
+    v_max = rng.uniform(0.2, 1.0, 12)
+    posture = PostureTask(target, weight=weight, gain=4.0)
+    qdot = Solver().solve(configuration, [posture], [JointVelocityLimit(configuration, max_velocity=v_max)]).qdot
+    np.testing.assert_allclose(qdot, np.clip(4.0 * (target - q), -v_max, v_max), rtol=1e-7, atol=1e-9)
+
+
+@pytest.mark.parametrize("per_joint", [False, True], ids=["scalar", "per-joint"])
+def test_damping_task_gives_the_hand_computed_damped_least_squares(configuration, rng, per_joint):
+    """Oracle: the damped least-squares solution written out with numpy and a Jacobian from
+    pinocchio directly (``computeFrameJacobian`` on a fresh ``Data``):
+    ``qdot = (J^T J + diag(w) + eps I)^-1 J^T V``, ``eps`` the solver's regularization; for a
+    scalar ``w = lambda^2`` also ``J^T (J J^T + lambda^2 I)^-1 V`` (eps = 0 there, 1e-8 relative).
+
+    Catches damping applied to the wrong joints or with the wrong weight, a damping task that
+    also pulls towards a non-zero velocity, and a dimension mix-up of the damping rows.
+    """
+    from harvest_qp import Solver
+
+    q = _states(rng, 1)[0]
+    configuration.update(q)
+    model, data = configuration.model, configuration.model.createData()
+    J = pin.computeFrameJacobian(model, data, q, model.getFrameId("gripper"), pin.LOCAL_WORLD_ALIGNED)
+    V = rng.uniform(-0.2, 0.2, 6)
+    w = rng.uniform(1e-3, 1e-1, 12) if per_joint else np.full(12, 1e-2)
+    twist = FrameTwistTask("gripper")
+    twist.set_reference(V)
+    solver = Solver()
+    qdot = solver.solve(configuration, [twist, DampingTask(12, weight=w if per_joint else 1e-2)]).qdot
+    expected = np.linalg.solve(J.T @ J + np.diag(w) + solver.regularization * np.eye(12), J.T @ V)
+    np.testing.assert_allclose(qdot, expected, rtol=1e-7, atol=1e-10)
+    if not per_joint:
+        dls = J.T @ np.linalg.solve(J @ J.T + 1e-2 * np.eye(6), V)
+        np.testing.assert_allclose(qdot, dls, rtol=1e-6, atol=1e-10)
+    # Residual by hand: sqrt(w) * (qdot - 0).
+    np.testing.assert_allclose(DampingTask(12, weight=w).residual(configuration, qdot, 0.002), np.sqrt(w) * qdot)
 
 
 def test_point_jacobian(configuration, rng):

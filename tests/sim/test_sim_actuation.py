@@ -8,7 +8,7 @@ import pytest
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import RobotInterface
 from harvest_qp.robot import ur5e
-from harvest_qp.sim import ActuationConfig, SimRobot
+from harvest_qp.sim import ActuationConfig, SimRobot, build_vine_scene
 
 
 def test_sim_robot_implements_the_interface(blind_robot):
@@ -23,7 +23,11 @@ def test_sim_robot_implements_the_interface(blind_robot):
 
 
 def _track(robot: SimRobot, amplitude, duration: float) -> tuple[np.ndarray, float]:
-    """Joint errors against the integral of ``amplitude * sin(pi t)`` commands [rad], max tension [N]."""
+    """Joint errors against the integral of ``amplitude * sin(pi t)`` commands [rad], max tension [N].
+
+    The motion must stay free of contacts (arms and vine collide physically): a contact
+    would stop the arm and this would no longer measure the servo.
+    """
     q_ref = robot.joint_positions()
     errors, tension = [], 0.0
     dt = robot.control_period
@@ -34,14 +38,20 @@ def _track(robot: SimRobot, amplitude, duration: float) -> tuple[np.ndarray, flo
         q_ref = q_ref + qd * dt
         errors.append(robot.joint_positions() - q_ref)
         tension = max(tension, abs(robot.stem_tension()))
+        assert not any(robot.contact_counts().values()), (k, robot.contact_counts())
     return np.array(errors), tension
+
+
+#: 0.6 rad/s on every joint, with signs that keep both arms clear of each other, of
+#: themselves and of the vine (all +0.6 folds the camera arm's wrist onto its upper arm).
+FREE_SWING = np.tile([-0.6, 0.6, -0.6, 0.6, 0.6, 0.6], 2)
 
 
 def test_velocity_tracking_on_a_smooth_reference(blind_robot):
     """0.6 sin(pi t) rad/s on all 12 joints for 3 s: < 5 mrad rms (the notes measured ~1)."""
     # Released: the grasping arm would otherwise stretch the stem by decimetres.
     blind_robot.set_grasp(False)
-    errors, _ = _track(blind_robot, 0.6 * np.ones(12), 3.0)
+    errors, _ = _track(blind_robot, FREE_SWING, 3.0)
     rms = np.sqrt(np.mean(errors**2))
     assert rms < 5e-3, rms
     assert np.abs(errors).max() < 1e-2
@@ -49,7 +59,7 @@ def test_velocity_tracking_on_a_smooth_reference(blind_robot):
 
 def test_velocity_tracking_while_holding_the_cluster(blind_robot):
     """The camera arm at 0.6 rad/s, the grasping arm gently (the stem pulls back at 400 N/m)."""
-    amplitude = np.r_[np.full(6, 0.6), np.full(6, 0.03)]
+    amplitude = np.r_[FREE_SWING[:6], np.full(6, 0.03)]
     errors, tension = _track(blind_robot, amplitude, 2.0)
     assert np.sqrt(np.mean(errors**2)) < 5e-3
     assert blind_robot.holding and tension > 1.0  # the stem did pull back
@@ -61,7 +71,9 @@ def test_acceleration_and_velocity_limits_are_respected():
     robot.set_grasp(False)  # free arms: the held stem would stop the grasping arm
     dt = robot.control_period
     cmd = np.zeros(12)
-    cmd[[0, 4, 6, 10]] = [1.0, -1.5, 2.0 * np.pi, -0.8]  # 2 pi is clipped to the 180 deg/s limit
+    # Pans and wrist-3 joints: the arms stay clear of each other and of the vine (2 pi is
+    # clipped to the 180 deg/s limit).
+    cmd[[0, 5, 6, 11]] = [1.0, -1.5, -2.0 * np.pi, 0.8]
     robot.send_joint_velocities(cmd)
     refs, vels, torques = [], [], []
     for _ in range(600):
@@ -69,6 +81,7 @@ def test_acceleration_and_velocity_limits_are_respected():
         refs.append(robot.velocity_reference())
         vels.append(robot.joint_velocities())
         torques.append(robot.data.qfrc_actuator[robot._dof_ids].copy())
+        assert not any(robot.contact_counts().values())
     refs, vels, torques = np.array(refs), np.array(vels), np.array(torques)
     # The reference ramps at exactly the acceleration limit and stops at the speed limit.
     assert np.abs(np.diff(refs, axis=0)).max() <= amax * dt + 1e-12
@@ -100,14 +113,23 @@ def test_stop_brings_the_arms_to_rest_within_the_acceleration_limit():
 
 
 def test_commands_stop_at_the_joint_limits():
-    robot = SimRobot(camera=None)
-    lo, hi = robot.model.jnt_range[robot.model.joint("cam_elbow_joint").id]
+    """A joint driven at its limit stops within the margin (the servo reads the model's ranges).
+
+    The limit is narrowed on the camera wrist 3 (the elbow cannot reach its +-pi limits: the
+    folded forearm's wrist hits the upper arm first, a physical contact now).
+    """
+    scene = build_vine_scene()
+    wrist = scene.model.joint("cam_wrist_3_joint").id
+    hi = float(scene.home_q[5] + 0.6)
+    scene.model.jnt_range[wrist, 1] = hi
+    robot = SimRobot(scene, camera=None)
     cmd = np.zeros(12)
-    cmd[2] = 3.0  # camera elbow towards +pi
+    cmd[5] = 3.0  # camera wrist 3 towards the narrowed limit
     robot.send_joint_velocities(cmd)
-    robot.advance(1.5)
-    assert robot.joint_positions()[2] <= hi - robot._servo.config.position_margin + 2e-3
-    assert abs(robot.joint_velocities()[2]) < 0.05
+    robot.advance(1.0)
+    assert hi - robot._servo.config.position_margin - 0.02 < robot.joint_positions()[5]
+    assert robot.joint_positions()[5] <= hi - robot._servo.config.position_margin + 2e-3
+    assert abs(robot.joint_velocities()[5]) < 0.05
 
 
 def test_invalid_commands_are_rejected(blind_robot):

@@ -11,9 +11,8 @@ import pytest
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.robot import description as desc
-from harvest_qp.sim import PARAM_RANGES, CameraConfig, SimRobot, VineSceneParams, build_vine_scene
-from harvest_qp.sim.camera import RayCastCamera
-from tests.sim.helpers import look_at
+from harvest_qp.robot import paths
+from harvest_qp.sim import PARAM_RANGES, SimRobot, VineSceneParams, build_vine_scene
 
 
 def test_default_scene_is_the_papers_setup(default_scene):
@@ -65,8 +64,25 @@ def test_sampled_parameters_stay_in_documented_ranges():
     for seed in range(30):
         p = VineSceneParams.sample(seed)
         for name, (low, high) in PARAM_RANGES.items():
+            if name == "occluder_coverage" and p.occluder_coverage == 1.0:
+                continue  # a stem hidden along the whole approach
             assert low <= getattr(p, name) <= high, (seed, name)
     assert VineSceneParams.sample(3, stem_length=0.06).stem_length == 0.06
+
+
+def test_hidden_stem_seeds_come_at_the_requested_rate():
+    """Bug caught: the hidden-stem fraction parameter ignored (never or always hidden)."""
+    hidden = [VineSceneParams.sample(s).occluder_coverage == 1.0 for s in range(400)]
+    # Binomial(400, 0.25): mean 100, std 8.7; 4 std either side.
+    assert 65 <= sum(hidden) <= 135
+    assert not any(VineSceneParams.sample(s, hidden_stem_probability=0.0).occluder_coverage == 1.0 for s in range(40))
+    assert all(VineSceneParams.sample(s, hidden_stem_probability=1.0).occluder_coverage == 1.0 for s in range(40))
+    # The flag has its own stream: the other draws of a seed do not change with it.
+    a = VineSceneParams.sample(5, hidden_stem_probability=0.0)
+    b = VineSceneParams.sample(5, hidden_stem_probability=1.0)
+    assert dataclasses.replace(b, occluder_coverage=a.occluder_coverage) == a
+    with pytest.raises(InvalidInputError, match="hidden_stem_probability"):
+        VineSceneParams.sample(1, hidden_stem_probability=1.5)
 
 
 @pytest.mark.parametrize(
@@ -78,6 +94,8 @@ def test_sampled_parameters_stay_in_documented_ranges():
         ("stem_bend", 3.0, "stem_bend"),
         ("seed", -1, "seed"),
         ("camera_start", (1.0, 2.0), "camera_start"),
+        ("occluder_coverage", 1.2, "occluder_coverage"),
+        ("stem_break_force", 0.0, "stem_break_force"),
         ("stem_axial_stiffness", 1e6, "stable"),
         ("stem_bend_stiffness", 50.0, "stable"),
     ],
@@ -94,46 +112,23 @@ def test_sample_rejects_unknown_overrides_and_bad_seed():
         VineSceneParams.sample(-3)
 
 
-def test_start_view_occludes_the_stem_which_is_visible_from_elsewhere(default_scene):
-    """The paper's start: the stem is hidden by leaves from the camera's start position."""
-    # The start is ~0.71 m from the stem, just beyond the 0.7 m detection range: widen the
-    # range so that only occlusion can hide the stem here.
-    wide = CameraConfig(stem_range=5.0)
-    robot = SimRobot(default_scene, camera=wide)
-    camera = robot._camera
-    mid = 0.5 * (default_scene.stem_base + default_scene.stem_end)
-    start = robot.site_pose("camera")[:3, 3]
-    # From HOME_Q the camera looks +x past the vine and sees the canopy, no stem.
-    home = robot.camera_cloud()
-    assert home is not None and len(home) > 500 and home.count(STEM) == 0
-    # Turned towards the stem from the same position: still no stem point (the occluding leaf).
-    towards = camera.capture(robot.data, look_at(start, mid), 0.0)
-    assert towards.count(STEM) == 0
-    # The occluding leaf is what hides it: without it the stem shows up.
-    no_occluder = SimRobot(dataclasses.replace(default_scene.params, occlude_stem=False), camera=wide)
-    cloud = no_occluder._camera.capture(no_occluder.data, look_at(start, mid), 0.0)
-    assert cloud.count(STEM) > 0
-    # From inside the region of interest, to the side of the leaf, the stem is visible.
-    side = mid + 0.3 * np.array([-np.cos(0.6), np.sin(0.6), 0.05])
-    assert camera.capture(robot.data, look_at(side, mid), 0.0).count(STEM) > 20
+SCENE_CASES = ["default", "default_hidden", *range(20)]  # seeds 1-5 included; seed 2 is a hidden-stem seed
 
 
-def _stem_hidden_from(scene, position) -> bool:
-    m = scene.model
-    d = mujoco.MjData(m)
-    d.qpos[:12] = scene.home_q
-    mujoco.mj_forward(m, d)
-    cam = RayCastCamera(
-        m, CameraConfig(stem_range=5.0), geom_labels=scene.geom_labels, exclude_body=scene.ids["cam_tool"]
-    )
-    mid = 0.5 * (scene.stem_base + scene.stem_end)
-    return cam.capture(d, look_at(position, mid), 0.0).count(STEM) == 0
+@pytest.mark.parametrize("case", SCENE_CASES)
+def test_scene_compiles_steps_and_holds_the_grasp(case):
+    """Default, default with a hidden stem, 20 seeds: compile, 1 s without MuJoCo warnings, grasp holds.
 
-
-@pytest.mark.parametrize("seed", range(20))
-def test_random_scene_compiles_steps_and_holds_the_grasp(seed):
-    """20 seeds: compiles, 1 s of stepping without MuJoCo warnings, grasp holds, nothing explodes."""
-    params = VineSceneParams.sample(seed)
+    MuJoCo Menagerie style (compile, step, no warning, no explosion). Bug caught: a scene
+    whose leaves start in contact with the robot (seeds 1 and 3 touched the gripper once
+    leaves collided), unstable stems or welds, a grasp that slips.
+    """
+    if case == "default":
+        params, seed = VineSceneParams(), 0
+    elif case == "default_hidden":
+        params, seed = VineSceneParams(occluder_coverage=1.0), 0
+    else:
+        params, seed = VineSceneParams.sample(case), case
     robot = SimRobot(params, seed=seed, camera=None)
     m, d = robot.model, robot.data
     gripper, stem_end = m.site("gripper").id, m.site("stem_end").id
@@ -145,7 +140,7 @@ def test_random_scene_compiles_steps_and_holds_the_grasp(seed):
     for _ in range(500):
         robot.step()
         max_qvel = max(max_qvel, float(np.max(np.abs(d.qvel))))
-        assert d.ncon == 0  # the robot at rest touches nothing (only wood collides with it)
+        assert not any(robot.contact_counts().values())  # the robot at rest touches nothing
     assert robot.time == pytest.approx(1.0)
     assert all(v == 0 for v in robot.mujoco_warnings.values()), robot.mujoco_warnings
     offset = d.site_xpos[stem_end] - d.site_xpos[gripper]
@@ -154,6 +149,20 @@ def test_random_scene_compiles_steps_and_holds_the_grasp(seed):
     # Nothing explodes: every joint of the scene well below physical speeds [rad/s, m/s].
     assert max_qvel < 0.5
     assert np.all(np.isfinite(d.qpos))
-    # The stem starts unloaded and the hidden-stem layout holds for the random scenes too.
+    # The stem starts unloaded.
     assert abs(robot.stem_tension()) < 0.05
-    assert _stem_hidden_from(robot.scene, robot.scene.camera_home[:3, 3])
+
+
+def test_shipped_robot_scene_compiles_and_steps_without_warnings():
+    """robots/dual_ur5e/scene.xml as a user loads it: compiles, 1 s at HOME_Q holds still, no warning."""
+    model = mujoco.MjModel.from_xml_path(str(paths.scene_path()))
+    data = mujoco.MjData(model)
+    data.qpos[:12] = desc.HOME_Q
+    mujoco.mj_forward(model, data)
+    assert model.npair == len(desc.self_collision_pairs())
+    assert data.ncon == 0  # HOME_Q is collision-free
+    for _ in range(500):
+        data.qfrc_applied[:] = data.qfrc_bias  # hold against gravity
+        mujoco.mj_step(model, data)
+    assert all(w.number == 0 for w in data.warning)
+    assert np.all(np.isfinite(data.qpos))

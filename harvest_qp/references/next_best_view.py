@@ -1,0 +1,231 @@
+"""Next-best-view step for a stem that is not seen at all (beyond the paper).
+
+The paper's V_cu (``eq:v_c2``) is zero while no stem point is seen (n_S = 0).  When a leaf
+hides the stem along the whole approach, the camera then reaches the ROI and never sees the
+stem (FINDINGS, "A stem hidden along the whole approach"; reproduced on the lab scenes by
+``tests/references/test_unveiling_closed_loop.py``).  Applying the paper's potential to
+*predicted* stem points instead does not help: a ray through the middle of a leaf has
+obstacle points on every side, the repulsions cancel, and the camera dithers (measured on the
+lab scenes: 0 of 6 unveiled with d_a = 1 cm, 2 of 6 after 12-14 s with d_a = 5 cm).
+
+This step looks for a viewpoint instead:
+
+1. Obstacle memory: every frame's non-stem points within ``memory_radius`` of the ROI centre
+   are accumulated as 1 cm voxels, so the plan does not change whenever a leaf leaves the field
+   of view; unobserved space counts as free (optimistic exploration: the camera goes to look).
+2. Candidates: the current viewpoint and rings of ``azimuths`` viewpoints at ``angles`` from
+   it on the sphere about the ROI centre (radius: the current distance, at least
+   ``min_distance``).
+3. Score: how many predicted stem points each candidate sees past the memory (segment farther
+   than ``clearance`` from every voxel, voxels within ``ignore_radius`` of the stem point
+   ignored: the crop and gripper touch the stem without hiding it); ties are broken by fewer
+   voxels on the lines of sight, then by the smaller angle.  Directions abandoned by the stall
+   rule are excluded.
+4. Motion: the camera commits to the best candidate and moves tangentially towards it, at
+   most ``speed``, re-planning when it gets there (within 3 deg), when a candidate becomes
+   clearer by ``switch_margin``, or when it stalls (less than 1 deg of progress in
+   ``stall_time``: the arm may be held by a collision row).  It stops once ``goal_fraction``
+   of the predicted points are clear from where it is.
+
+The returned twist also carries the bearing feed-forward w = v x (p_r - p_c) / |p_r - p_c|^2,
+which keeps the ROI centre's bearing fixed while the camera moves (V_cr's centering is
+undisturbed), and an outward speed when the camera is closer than ``min_distance``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["NextBestView", "VoxelMemory", "sight_lines"]
+
+_KEY_OFFSET = 1 << 20  # voxel indices are shifted by this to pack three into one int64
+_KEY_BITS = 21
+
+
+class VoxelMemory:
+    """Occupied voxels of edge ``voxel`` [m], accumulated over frames, as voxel centres."""
+
+    def __init__(self, voxel: float = 0.01) -> None:
+        self.voxel = float(voxel)
+        self.reset()
+
+    def reset(self) -> None:
+        self._keys = np.zeros(0, dtype=np.int64)
+        self.points = np.zeros((0, 3))
+
+    def add(self, points: NDArray[np.float64]) -> None:
+        if points.shape[0] == 0:
+            return
+        index = np.floor(points / self.voxel).astype(np.int64) + _KEY_OFFSET
+        keys = (index[:, 0] << (2 * _KEY_BITS)) | (index[:, 1] << _KEY_BITS) | index[:, 2]
+        keys = np.union1d(self._keys, keys)
+        if keys.shape[0] == self._keys.shape[0]:
+            return
+        self._keys = keys
+        mask = (1 << _KEY_BITS) - 1
+        index = np.column_stack((keys >> (2 * _KEY_BITS), (keys >> _KEY_BITS) & mask, keys & mask)) - _KEY_OFFSET
+        self.points = (index + 0.5) * self.voxel
+
+
+def sight_lines(
+    viewpoints: NDArray[np.float64],
+    targets: NDArray[np.float64],
+    obstacles: NDArray[np.float64],
+    *,
+    clearance: float,
+    ignore_radius: float,
+) -> NDArray[np.int64]:
+    """``(n_V, n_T)`` number of obstacle points within ``clearance`` [m] of the segment from
+    each viewpoint to each target (0: a clear line of sight), not counting obstacles within
+    ``ignore_radius`` [m] of that target."""
+    n_v, n_t = viewpoints.shape[0], targets.shape[0]
+    if obstacles.shape[0] == 0:
+        return np.zeros((n_v, n_t), dtype=np.int64)
+    segment = targets[None, :, :] - viewpoints[:, None, :]  # (V, T, 3)
+    squared_length = np.einsum("vtk,vtk->vt", segment, segment)[:, :, None]
+    offset = obstacles[None, :, :] - viewpoints[:, None, :]  # (V, O, 3)
+    dot = np.matmul(segment, offset.transpose(0, 2, 1))  # (V, T, O)
+    t = np.clip(dot / squared_length, 0.0, 1.0)
+    squared_offset = np.einsum("vok,vok->vo", offset, offset)[:, None, :]
+    squared_distance = squared_offset + t * (t * squared_length - 2.0 * dot)
+    gap = obstacles[None, :, :] - targets[:, None, :]
+    counted = np.einsum("tok,tok->to", gap, gap) >= ignore_radius**2  # (T, O)
+    return np.count_nonzero((squared_distance < clearance**2) & counted[None, :, :], axis=2)
+
+
+def _orthonormal_pair(axis: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    helper = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    first = np.cross(axis, helper)
+    first /= np.linalg.norm(first)
+    return first, np.cross(axis, first)
+
+
+class NextBestView:
+    """The next-best-view step (module docstring); parameters as in :class:`~harvest_qp.references.Unveiling`."""
+
+    def __init__(
+        self,
+        *,
+        angles: NDArray[np.float64],
+        azimuths: int,
+        speed: float,
+        gain: float,
+        clearance: float,
+        ignore_radius: float,
+        goal_fraction: float,
+        min_distance: float,
+        stall_time: float,
+        memory_radius: float,
+        switch_margin: float = 0.5,
+    ) -> None:
+        self.angles = np.asarray(angles, dtype=np.float64)
+        self.azimuths = int(azimuths)
+        self.speed = speed
+        self.gain = gain
+        self.clearance = clearance
+        self.ignore_radius = ignore_radius
+        self.goal_fraction = goal_fraction
+        self.min_distance = min_distance
+        self.stall_time = stall_time
+        self.memory_radius = memory_radius
+        self.switch_margin = switch_margin
+        self.memory = VoxelMemory(0.01)
+        self.reset()
+
+    def reset(self) -> None:
+        self.memory.reset()
+        self.target: NDArray[np.float64] | None = None  # unit direction from the ROI centre
+        self.avoided: list[NDArray[np.float64]] = []
+        self.clear_fraction = math.nan
+        self._best_progress = math.inf
+        self._progress_time = 0.0
+
+    def drop_target(self) -> None:
+        """Forget the committed viewpoint (the stem was seen); the memory is kept."""
+        self.target = None
+
+    def _candidates(self, direction: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        first, second = _orthonormal_pair(direction)
+        phi = np.tile(2.0 * math.pi * np.arange(self.azimuths) / self.azimuths, self.angles.size)
+        polar = np.repeat(self.angles, self.azimuths)
+        sideways = np.cos(phi)[:, None] * first + np.sin(phi)[:, None] * second
+        ring = np.cos(polar)[:, None] * direction + np.sin(polar)[:, None] * sideways
+        return np.vstack((direction, ring)), np.concatenate(([0.0], polar))
+
+    def step(
+        self,
+        camera: NDArray[np.float64],
+        predicted: NDArray[np.float64],
+        obstacles: NDArray[np.float64],
+        centre: NDArray[np.float64],
+        time: float,
+    ) -> NDArray[np.float64]:
+        """The twist ``(6,)`` [m/s; rad/s] of one frame (unsaturated)."""
+        near = obstacles[np.einsum("ij,ij->i", obstacles - centre, obstacles - centre) < self.memory_radius**2]
+        self.memory.add(near)
+        offset = camera - centre
+        distance = float(np.linalg.norm(offset))
+        if distance < 1e-6:
+            self.clear_fraction = math.nan
+            return np.zeros(6)
+        direction = offset / distance
+        radius = max(distance, self.min_distance)
+        directions, polar = self._candidates(direction)
+        viewpoints = centre + radius * directions
+        viewpoints[0] = camera
+        blockers = sight_lines(
+            viewpoints, predicted, self.memory.points, clearance=self.clearance, ignore_radius=self.ignore_radius
+        )
+        fraction = np.mean(blockers == 0, axis=1)
+        self.clear_fraction = float(fraction[0])
+
+        if self.target is not None:
+            progress = math.acos(min(1.0, float(self.target @ direction)))
+            if progress < self._best_progress - math.radians(1.0):
+                self._best_progress, self._progress_time = progress, time
+            elif time - self._progress_time > self.stall_time:
+                self.avoided.append(self.target)
+                self.target = None
+            if progress < math.radians(3.0):
+                self.target = None  # reached: plan again from here
+
+        tangential = np.zeros(3)
+        if fraction[0] >= self.goal_fraction:
+            self.target = None
+        else:
+            allowed = np.ones(directions.shape[0], dtype=bool)
+            allowed[0] = False
+            for avoided in self.avoided:
+                allowed &= directions @ avoided < math.cos(math.radians(15.0))
+            if allowed.any():
+                # Lexicographic: most clear points, then fewest voxels in the way, then nearest.
+                order = np.lexsort((polar, blockers.sum(axis=1), -fraction))
+                best = int(order[np.flatnonzero(allowed[order])[0]])
+                if self.target is not None:
+                    target_blockers = sight_lines(
+                        (centre + radius * self.target)[None],
+                        predicted,
+                        self.memory.points,
+                        clearance=self.clearance,
+                        ignore_radius=self.ignore_radius,
+                    )
+                    if fraction[best] >= np.mean(target_blockers == 0) + self.switch_margin:
+                        self.target = None
+                if self.target is None:
+                    self.target = directions[best]
+                    self._best_progress = math.acos(min(1.0, float(self.target @ direction)))
+                    self._progress_time = time
+            if self.target is not None:
+                along = self.target - (self.target @ direction) * direction
+                norm = float(np.linalg.norm(along))
+                arc = radius * math.acos(min(1.0, float(self.target @ direction)))
+                if norm > 1e-9:
+                    tangential = min(self.speed, self.gain * arc) * along / norm
+        radial = self.gain * max(0.0, self.min_distance - distance) * direction
+        linear = tangential + radial
+        # Bearing feed-forward: e = p_r - p_c, de/dt = -v; w = v x e / |e|^2 keeps e/|e| fixed.
+        angular = np.cross(linear, -offset) / distance**2
+        return np.concatenate((linear, angular))
