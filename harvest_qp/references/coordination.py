@@ -11,7 +11,7 @@ e = p_sb - p_c and de/dt = -v_gt (p_sb is static), the bearing e/|e| stays on z_
 when omega = (p_c - p_sb) x v_gt / |p_c - p_sb|^2, the paper's term divided by
 |p_c - p_sb|^2.  :class:`GraspFeedForward` uses that exact bearing rate by default
 (``normalise=True``); ``normalise=False`` gives the printed term.  At the paper's
-|p_c - p_sb| ~ r = 0.35 m the printed term is 1/0.35^2 ~ 8x smaller; FINDINGS measured no
+|p_c - p_sb| ~ r = 0.35 m the printed term is 1/0.35^2 ~ 8x smaller; the lab measurements showed no
 difference in end theta (0.41-0.46 deg either way, |omega| <= 0.002 rad/s), so the choice is
 about units, not about a measured effect.
 """
@@ -66,7 +66,7 @@ def switch_ready(
     True when the camera is within ``distance_factor`` x ``radius`` of the ROI centre
     (``distance`` [m]) and its tip moves slower than ``max_linear`` [m/s] and ``max_angular``
     [rad/s] (Section ``sec:exper``: 1.05 r, 0.01 m/s, 0.025 rad/s).  Which speed is passed is
-    the caller's choice (FINDINGS: the camera's free roll alone moves at ~0.045 rad/s, so pass
+    the caller's choice (lab measurements: the camera's free roll alone moves at ~0.045 rad/s, so pass
     the angular speed without the roll about z_c if that roll is left free).
     """
     distance = as_positive_scalar(distance, "distance", allow_zero=True)

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step, cross3
 
 __all__ = ["StemStretching"]
 
@@ -45,7 +45,7 @@ class StemStretching:
             integral whose own term still fits in the saturation.
         integration_threshold: the integral starts only once n_c^T f has exceeded this [N]
             (latched until :meth:`reset`); ``None`` integrates from the start as the paper does.
-            Deviation, measured (FINDINGS, "Grasping arm"): at the bimanual start the slack stem
+            Deviation, measured (lab measurements, README): at the bimanual start the slack stem
             swings and is compressed (-2.5 N for ~2 s); integrating that wound the PI up to a
             4.54-5.87 N peak (51-96 % over f_d), integrating only once n_c^T f > 1 N gave
             3.43-3.47 N (14-16 %).
@@ -151,9 +151,9 @@ class StemStretching:
         v_f = -n * command
         # eq:rot_contr
         y_g = pose[:3, 1]
-        v_gw = -self.k_og * np.cross(n, y_g)
+        v_gw = -self.k_og * cross3(n, y_g)
         self.position_error = float(np.linalg.norm(projected))
-        self.alignment = math.atan2(float(np.linalg.norm(np.cross(y_g, n))), float(y_g @ n))
+        self.alignment = math.atan2(math.sqrt(float(v_gw @ v_gw)) / self.k_og, float(y_g @ n))
         self.force_along_nc = force_along
         self.v_gt = v_p + v_f
         return np.concatenate((self.v_gt, v_gw))

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step, cross3
 
 __all__ = ["ReachingCentering", "minimum_rotation"]
 
@@ -40,10 +40,10 @@ def minimum_rotation(z_axis: ArrayLike, direction: ArrayLike) -> tuple[float, ND
     """
     z = np.asarray(z_axis, dtype=np.float64)
     e = np.asarray(direction, dtype=np.float64)
-    cross = np.cross(z, e)
-    sine = float(np.linalg.norm(cross))
+    cross = cross3(z, e)
+    sine = math.sqrt(float(cross @ cross))
     cosine = float(z @ e)
-    norm_e = float(np.linalg.norm(e))
+    norm_e = math.sqrt(float(e @ e))
     if norm_e == 0.0:
         return 0.0, np.zeros(3)
     theta = math.atan2(sine, cosine)
@@ -126,12 +126,13 @@ class ReachingCentering:
             self.roi_centre = self.roi_centre + (-math.expm1(-dt / self.roi_time_constant)) * (
                 self._roi_target - self.roi_centre
             )
-        return self.velocity(pose, self.roi_centre)
+        return self._velocity(pose, self.roi_centre)
 
     def velocity(self, camera_pose: ArrayLike, roi_centre: ArrayLike) -> NDArray[np.float64]:
         """V_cr of ``eq:control_signal_rr_world`` for a given p_r [m], without touching the filter."""
-        pose = as_pose(camera_pose, "camera_pose")
-        p_r = as_position(roi_centre, "roi_centre")
+        return self._velocity(as_pose(camera_pose, "camera_pose"), as_position(roi_centre, "roi_centre"))
+
+    def _velocity(self, pose: NDArray[np.float64], p_r: NDArray[np.float64]) -> NDArray[np.float64]:
         e_pc = p_r - pose[:3, 3]
         squared = float(e_pc @ e_pc)
         self.distance = math.sqrt(squared)

@@ -13,8 +13,7 @@ is :func:`unveiling_velocity` (literal) with its parts :func:`barrier_potential`
 :func:`repulsive_velocity` and :func:`stem_angular_velocities`.
 
 :class:`Unveiling` is the reference object the closed loop uses.  It deviates from the paper
-in two measured ways (numbers in ``/work/notes/references.md`` and FINDINGS, "V_cu (unveiling)
-on lab clouds"):
+in two measured ways (the numbers are in the README's section on the reference laws):
 
 1. Bounded (the "paper" mode).  On this project's clouds the literal law with the paper's
    k_c reaches 1e4-1e5 rad/s and grows with the cloud's resolution: the sums run over every
@@ -30,7 +29,7 @@ on lab clouds"):
 2. Beyond the paper (the "predicted" mode).  While no stem point is seen (n_S = 0, where the
    paper's V_cu is zero), a stem hidden along the whole approach would never be unveiled.  The
    paper's potential applied to predicted stem points does not help: a ray through a leaf is
-   symmetric about it, the repulsions cancel and the camera dithers (FINDINGS; reproduced in
+   symmetric about it, the repulsions cancel and the camera dithers (the lab measurements; reproduced in
    ``tests/references/test_unveiling_closed_loop.py``).  Instead a next-best-view step scores
    candidate viewpoints on the sphere around the ROI centre by how many predicted stem points
    they see past the observed non-stem points, and moves the camera tangentially towards the
@@ -260,7 +259,7 @@ def predicted_stem_points(
     rises from the grasp along -y_g.  Returns ``(n, 3)`` points [m] evenly spaced on the segment
     from ``offset`` to ``offset + length`` above the grasp origin along -y_g.  The defaults
     (1.5 cm, 6 cm) match the lab's grasp offset and a typical 5-7 cm stem; real stems bend
-    5-15 deg off that axis (FINDINGS), which the consumer must tolerate.
+    5-15 deg off that axis (lab measurements, README), which the consumer must tolerate.
     """
     pose = as_pose(gripper_pose, "gripper_pose")
     offset = as_positive_scalar(offset, "offset", allow_zero=True)
@@ -283,8 +282,8 @@ class Unveiling:
         d_a: influence distance of ``eq:art_potential`` [m] (0.01).
         d_o: obstacle sphere radius [m] (0.001).
         time_constant: first-order low-pass on V_cu [s] (the paper's remedy for its
-            discontinuity; 0.2 s measured to work, FINDINGS).
-        max_linear, max_angular: bounds on the raw twist [m/s], [rad/s] (0.1, 0.2: FINDINGS'
+            discontinuity; 0.2 s worked in the lab measurements).
+        max_linear, max_angular: bounds on the raw twist [m/s], [rad/s] (0.1, 0.2: the lab measurements'
             closed-loop variant that unveiled most; the low-pass only shrinks it further).
         min_pivot: pairs whose pivot arm |p_hat - p_sj| is shorter are dropped [m] (3 cm).
         min_stem_points: with predicted points given, the paper mode takes over from the
@@ -295,20 +294,28 @@ class Unveiling:
         nbv_speed: top tangential speed of the next-best-view step [m/s] (0.1).
         nbv_gain: tangential speed = min(nbv_speed, nbv_gain x arc length to the target) [1/s].
         clearance: a line of sight is clear when it passes farther than this from every
-            observed non-stem point [m] (6 mm: 1 cm voxels, leaf points a few mm apart).
+            remembered 1 cm voxel centre [m] (9 mm; never below the voxel's half-diagonal,
+            8.7 mm, or a voxelised leaf would have gaps: measured with 6 mm, a disc leaf in
+            front of the stem read 33 % clear).
         ignore_radius: obstacle points this close to a predicted point do not hide it [m]
             (3 cm: the grape and gripper around the stem's bottom).
         goal_fraction: the step stops when this fraction of predicted points is clear from the
             current viewpoint.
         min_distance: the step never brings the camera closer to the ROI centre than this [m];
-            below it an outward speed gain x deficit is added (FINDINGS: without it the camera
+            below it an outward speed gain x deficit is added (lab measurements: without it the camera
             drifted to 3 cm from the grape).
         stall_time: a target viewpoint towards which the camera made less than 1 deg of
-            progress for this long [s] is abandoned and its direction avoided (FINDINGS: a
+            progress for this long [s] is abandoned and its direction avoided (lab measurements: a
             collision row held the arm 20 s aiming at an unreachable viewpoint).
         memory_radius: non-stem points within this of the ROI centre are remembered as 1 cm
-            voxels for the viewpoint search [m] (0.45, as measured in FINDINGS).
+            voxels for the viewpoint search [m] (0.45, as in the lab measurements).
         frame_period: assumed time between frames [s] when :meth:`observe` gets no timestamp.
+        max_stem_points, max_obstacle_points: in the paper mode, more stem / non-stem points
+            than these are thinned by a uniform stride before the ray/obstacle pairs (``None``:
+            never).  Not in the paper: at 848x480 the pairs took 44 ms median per lab frame
+            (``benchmarks/bench_references.py``); only the bounded law's direction is used, and
+            thinning to these counts changed it by cos >= 0.92 (mostly >= 0.99) on synthetic
+            848x480 frames (README, reference laws).
 
     Attributes:
         raw: last unfiltered V_cu ``(6,)`` [m/s; rad/s].
@@ -334,13 +341,15 @@ class Unveiling:
         nbv_azimuths: int = 8,
         nbv_speed: float = 0.1,
         nbv_gain: float = 2.0,
-        clearance: float = 0.006,
+        clearance: float = 0.009,
         ignore_radius: float = 0.03,
         goal_fraction: float = 0.8,
         min_distance: float = 0.25,
         stall_time: float = 1.5,
         memory_radius: float = 0.45,
         frame_period: float = 1.0 / 30.0,
+        max_stem_points: int | None = 300,
+        max_obstacle_points: int | None = 45_000,
     ) -> None:
         self.k_c = as_positive_scalar(k_c, "k_c")
         self.d_a = as_positive_scalar(d_a, "d_a")
@@ -374,6 +383,11 @@ class Unveiling:
         self.stall_time = as_positive_scalar(stall_time, "stall_time")
         self.memory_radius = as_positive_scalar(memory_radius, "memory_radius")
         self.frame_period = as_positive_scalar(frame_period, "frame_period")
+        for name, value in (("max_stem_points", max_stem_points), ("max_obstacle_points", max_obstacle_points)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
+                raise InvalidInputError(f"{name} must be None or an integer >= 1, got {value!r}")
+        self.max_stem_points = None if max_stem_points is None else int(max_stem_points)
+        self.max_obstacle_points = None if max_obstacle_points is None else int(max_obstacle_points)
         self.next_best_view = NextBestView(
             angles=self.nbv_angles,
             azimuths=self.nbv_azimuths,
@@ -442,6 +456,12 @@ class Unveiling:
             return
         from harvest_qp.perception.unveiling import ray_obstacle_pairs  # noqa: PLC0415 (circular at module level)
 
+        # Only the law's direction is used; uniform strides over the (image-ordered) points keep
+        # it while the cost stays about that of a 283x160 frame (see max_stem_points).
+        if self.max_stem_points is not None and stem.shape[0] > self.max_stem_points:
+            stem = stem[:: -(-stem.shape[0] // self.max_stem_points)]
+        if self.max_obstacle_points is not None and obstacles.shape[0] > self.max_obstacle_points:
+            obstacles = obstacles[:: -(-obstacles.shape[0] // self.max_obstacle_points)]
         pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=self.d_a, d_o=self.d_o)
         self.mode = "paper"
         self.n_pairs = int(np.count_nonzero(_pair_weights(pairs, 1e-6, self.min_pivot)))

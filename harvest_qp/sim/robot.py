@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -177,6 +178,9 @@ class SimRobot(RobotInterface):
         self._slide_dof = int(m.jnt_dofadr[slide])
         self._slide_stiffness = float(m.jnt_stiffness[slide])
         self._slide_damping = float(m.dof_damping[self._slide_dof])
+        self._stem_force_adr = int(m.sensor_adr[ids["stem_force"]])
+        self._stem_end_site = int(ids["stem_end_site"])
+        self._stem_base = tuple(float(x) for x in scene.stem_base)
         self._spring0 = m.qpos_spring.copy()
         self._stem_qpos = self._stem_spring_addresses()
         self._jacp = np.zeros((3, m.nv))
@@ -290,9 +294,9 @@ class SimRobot(RobotInterface):
             raise SimulationError("the simulation diverged earlier; call reset() to start again")
         for _ in range(self._substeps):
             self._physics_step()
+            self._check_tear()  # every physics step: the tension may not overshoot for a whole tick
         self._check_physics()
         self._ticks += 1
-        self._check_tear()
         self._force.update(self.data, self.control_period)
         self._maybe_capture()
         if self._viewer is not None and self._ticks % self._viewer_every == 0:
@@ -469,7 +473,7 @@ class SimRobot(RobotInterface):
         """Tear the stem when its tension exceeds the break force: release its axial spring."""
         if self._torn:
             return
-        tension = self.stem_tension()
+        tension = self._fast_tension()
         self._max_tension = max(self._max_tension, tension)
         if tension > self.scene.params.stem_break_force:
             m = self.model
@@ -478,6 +482,23 @@ class SimRobot(RobotInterface):
             m.dof_damping[self._slide_dof] = 0.0
             self._torn = True
             self._tear_time = self.time
+
+    def _fast_tension(self) -> float:
+        """:meth:`stem_tension` in plain float arithmetic (it runs every physics step)."""
+        d = self.data
+        adr = self._stem_force_adr
+        f0, f1, f2 = d.sensordata[adr : adr + 3].tolist()
+        r = d.site_xmat[self._stem_end_site].tolist()
+        # World force R f; its sign: along the direction from the stem end to the base.
+        fx, fy, fz = (
+            r[0] * f0 + r[1] * f1 + r[2] * f2,
+            r[3] * f0 + r[4] * f1 + r[5] * f2,
+            r[6] * f0 + r[7] * f1 + r[8] * f2,
+        )
+        px, py, pz = d.site_xpos[self._stem_end_site].tolist()
+        bx, by, bz = self._stem_base
+        magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
+        return magnitude if fx * (bx - px) + fy * (by - py) + fz * (bz - pz) >= 0 else -magnitude
 
     def _check_physics(self) -> None:
         d = self.data

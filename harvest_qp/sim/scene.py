@@ -13,10 +13,15 @@ Everything is placed relative to the grasping arm's gripper frame {G} at ``HOME_
   shape is an arc of total angle ``stem_bend`` leaning towards ``stem_bend_azimuth``;
 * the branch passes just above p_sb, rising from it into the canopy (away from the robot)
   along ``branch_yaw`` / ``branch_pitch``; the cane runs along y through the branch's far end;
-* one leaf hangs between the camera's start position and the stem so the stem is
-  occluded at the start (``occlude_stem``), the other leaves are scattered around the stem,
-  and ``canopy_leaves`` hang from the cane behind the cluster (the foliage wall the
-  camera sees from its start pose, which looks +x past the cluster).
+* one leaf (the occluder, ``occlude_stem``) hangs between the straight approach and the
+  stem and hides ``occluder_coverage`` of it as seen from the approach viewpoint 0.35 m
+  from p_sb (all of it, along the whole approach, when 1); the other leaves are scattered
+  around the stem, ``canopy_leaves`` hang from the cane behind the cluster (the foliage
+  wall the camera sees from its start pose, which looks +x past the cluster) and
+  ``other_clusters`` grape clusters hang from the cane; none of these crosses a line of
+  sight from the straight approach to the stem;
+* at ``HOME_Q`` the stem is outside the camera's field of view (and, on the default scene,
+  beyond the 0.7 m stem range): the start view sees no stem whatever the leaves.
 
 Physics: the branch, cane and leaves are static. The stem is a chain of capsules on ball
 joints (bending stiffness ``stem_bend_stiffness``) whose top joint also has an axial slide
@@ -25,8 +30,8 @@ cluster is one rigid body of sphere berries on a ball joint at the stem end. A w
 equality between the ``grasp_tool`` body and the cluster is the grasp (activated by
 :class:`harvest_qp.sim.SimRobot` at the current relative pose).
 
-Contacts: the branch, cane, leaves and petioles collide with the robot (leaves with a
-softer contact, as real leaves yield); the robot's own self-collision pairs are explicit
+Contacts: the branch, cane, leaves, petioles and other clusters collide with the robot
+(leaves and berries with a softer contact, as they yield); the robot's own self-collision pairs are explicit
 contact pairs of the robot model. The held stem and cluster do not collide: the cluster
 touching the gripper would fight the weld. The stem tears when its tension exceeds
 ``stem_break_force`` (:class:`harvest_qp.sim.SimRobot` releases its axial spring).
@@ -90,6 +95,7 @@ PARAM_RANGES: dict[str, tuple[float, float]] = {
     "leaf_size": (0.05, 0.08),
     "occluder_distance": (0.06, 0.1),
     "occluder_coverage": (0.5, 0.75),
+    "other_clusters": (0, 3),
 }
 
 #: Probability that :meth:`VineSceneParams.sample` hides the stem along the whole approach.
@@ -138,7 +144,7 @@ CAMERA_NAME = "rgbd_camera"
 MAX_AXIAL_STIFFNESS = 2.0e4
 MAX_BEND_STIFFNESS = 10.0
 
-_INT_FIELDS = ("stem_segments", "berry_count", "leaf_count", "canopy_leaves")
+_INT_FIELDS = ("stem_segments", "berry_count", "leaf_count", "canopy_leaves", "other_clusters")
 _LEAF_THICKNESS = 0.0015  # half-thickness of a leaf ellipsoid [m]
 _PETIOLE_RADIUS = 0.0025
 _SIGHT_MARGIN = 0.006  # lines of sight kept clear of free leaves and petioles by this much [m]
@@ -170,6 +176,8 @@ class VineSceneParams:
         branch_radius: branch radius [m].
         branch_length: branch length beyond the stem base [m].
         leaf_count: number of leaves around the stem, the occluding leaf included.
+        other_clusters: number of other grape clusters hanging from the cane (static
+            obstacles: green stems, purple berries; the paper's lab has none).
         canopy_leaves: number of leaves hanging from the cane behind the cluster (the
             canopy wall the camera sees from its start pose).
         leaf_size: nominal leaf half-length [m].
@@ -183,8 +191,9 @@ class VineSceneParams:
             every point of the straight approach from ``camera_start`` (to the stem base
             and to the cluster) down to :data:`HIDDEN_APPROACH_MIN` from the stem base.
         grasp_offset: distance from the gripper point up to the stem end [m].
-        camera_start: position [m] the occluding leaf hides the stem from; None = the
-            camera position at ``HOME_Q``.
+        camera_start: camera position [m] the straight approach starts from (the
+            occluder and the lines of sight kept clear refer to it); None = the camera
+            position at ``HOME_Q``.
         stem_break_force: stem tension beyond which the stem tears [N] (well above the
             paper's 2 f_d = 6 N force limit, so a working force loop never tears it).
     """
@@ -208,6 +217,7 @@ class VineSceneParams:
     branch_length: float = 0.3
     leaf_count: int = 5
     canopy_leaves: int = 12
+    other_clusters: int = 0
     leaf_size: float = 0.065
     occlude_stem: bool = True
     occluder_distance: float = 0.08
@@ -261,7 +271,9 @@ class VineSceneParams:
                 f"VineSceneParams.grasp_offset must be in [0, {self.stem_length + self.cluster_length}) m, "
                 f"got {self.grasp_offset!r}"
             )
-        for name, low in (("stem_segments", 1), ("berry_count", 1), ("leaf_count", 0), ("canopy_leaves", 0)):
+        for name, low in (
+            ("stem_segments", 1), ("berry_count", 1), ("leaf_count", 0), ("canopy_leaves", 0), ("other_clusters", 0),
+        ):  # fmt: skip
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
                 raise InvalidInputError(f"VineSceneParams.{name} must be an integer >= {low}, got {value!r}")
@@ -770,6 +782,56 @@ def _leaf_layout(
     return leaves
 
 
+@dataclass
+class _OtherCluster:
+    stem: tuple[NDArray[np.float64], NDArray[np.float64]]  # from the cane down to the cluster top
+    berries: NDArray[np.float64]  # (n, 3) world centres
+    berry_radius: float
+
+
+def _other_clusters(
+    p: VineSceneParams,
+    rng: np.random.Generator,
+    *,
+    cane: tuple[NDArray, NDArray],
+    keep_clear: list[tuple[NDArray, NDArray, float]],
+    sight: tuple[NDArray, NDArray],
+) -> list[_OtherCluster]:
+    """Clusters hanging from the cane, clear of ``keep_clear`` capsules and of the lines of sight."""
+    cane_mid = 0.5 * (cane[0] + cane[1])
+    cane_dir = _unit(cane[1] - cane[0])
+    down = np.array([0.0, 0.0, -1.0])
+    out: list[_OtherCluster] = []
+    for _ in range(p.other_clusters):
+        for _attempt in range(100):
+            along = rng.choice([-1.0, 1.0]) * rng.uniform(0.15, 0.65)
+            top = cane_mid + along * cane_dir
+            stem_len = rng.uniform(0.03, 0.07)
+            length = rng.uniform(0.09, 0.15)
+            radius = rng.uniform(0.035, 0.05)
+            r = rng.uniform(0.008, 0.01)
+            count = int(rng.integers(15, 31))
+            start = top + stem_len * down
+            axis = (start, start + length * down)
+            ok = all(_segment_distance(axis[0], axis[1], a, b) > radius + rad + 0.03 for a, b, rad in keep_clear)
+            ok = ok and not np.any(_segment_distances(sight[0], sight[1], axis[0][None], axis[1][None]) < radius + 0.01)
+            if not ok:
+                continue
+            centres = []
+            for _k in range(3000):
+                if len(centres) == count:
+                    break
+                h = rng.uniform(r, length - r)
+                envelope = max(radius * (1.0 - 0.7 * h / length) - r, 0.0)
+                rho, phi = envelope * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+                c = start + h * down + rho * np.array([np.cos(phi), np.sin(phi), 0.0])
+                if not centres or np.min(np.linalg.norm(np.array(centres) - c, axis=1)) >= 1.6 * r:
+                    centres.append(c)
+            out.append(_OtherCluster((top, start), np.array(centres), r))
+            break
+    return out
+
+
 def build_vine_scene(
     params: VineSceneParams | None = None,
     *,
@@ -932,6 +994,26 @@ def build_vine_scene(
             vine.add_geom(
                 name=f"petiole_{i}", type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[*a, *b],
                 size=[_PETIOLE_RADIUS, 0, 0], rgba=list(RACHIS_COLOR), **foliage,
+            )  # fmt: skip
+
+    # ---- other clusters hanging from the cane: static, green stems, soft berries
+    sight_from = np.repeat(approach_views, 13, axis=0)
+    sight_to = np.tile(_stem_samples(stem, 13), (len(approach_views), 1))
+    keep_clear = [
+        (cluster_axis[0], cluster_axis[1], p.cluster_radius), (tool_axis[0], tool_axis[1], 0.06),
+        (stem[0], stem[-1], 0.02), (camera_start, camera_start, 0.1),
+    ]  # fmt: skip
+    others = _other_clusters(p, rng, cane=cane, keep_clear=keep_clear, sight=(sight_from, sight_to))
+    for i, other in enumerate(others):
+        a, b = other.stem
+        vine.add_geom(
+            name=f"other_cluster_{i}_stem", type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[*a, *b],
+            size=[0.003, 0, 0], rgba=list(RACHIS_COLOR), **foliage,
+        )  # fmt: skip
+        for j, c in enumerate(other.berries):
+            vine.add_geom(
+                name=f"other_cluster_{i}_berry_{j}", type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(c),
+                size=[other.berry_radius, 0, 0], rgba=list(BERRY_COLOR), **foliage,
             )  # fmt: skip
 
     # ---- grasp, sensors, camera, servos

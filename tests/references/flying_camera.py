@@ -111,7 +111,7 @@ def hidden_stem_scene(
     """The default scene with its leaves replaced by one leaf ``leaf_offset`` [m] in front of
     the stem's midpoint as seen from +x (the approach direction), shifted by ``leaf_shift``
     (y, z) [m].  Unshifted, the stem stays hidden along the whole straight approach, as in
-    FINDINGS "A stem hidden along the whole approach"; shifted, it is partly occluded."""
+    the lab measurements "A stem hidden along the whole approach"; shifted, it is partly occluded."""
     scene = VineScene.default(seed=seed)
     mid = 0.5 * (scene.stem_base + scene.stem_end)
     centre = mid + np.array([leaf_offset, *leaf_shift])
@@ -147,6 +147,17 @@ class LabCamera:
             exclude_body=self.scene.ids["cam_tool"],
         )
         self._stem = STEM
+
+    def shift_occluder(self, distance: float) -> None:
+        """Move the occluding leaf by ``distance`` [m] along its long axis (a partly occluded stem)."""
+        import mujoco
+
+        model, data = self.scene.model, self.data
+        geom = self.scene.ids["occluder"]
+        axis = data.geom_xmat[geom].reshape(3, 3)[:, int(np.argmax(model.geom_size[geom]))]
+        body_rotation = data.xmat[model.geom_bodyid[geom]].reshape(3, 3)
+        model.geom_pos[geom] += body_rotation.T @ (distance * axis)
+        mujoco.mj_forward(model, data)
 
     def frame(self, pose: np.ndarray, t: float):
         cloud = self.camera.capture(self.data, pose, t)

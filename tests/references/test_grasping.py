@@ -62,7 +62,7 @@ def test_pulling_along_n_c_stretches_the_stem_to_f_d():
     """Sign convention: a stem of 400 N/m anchored at p_sb, slack until 5 cm; the gripper
     follows V_g kinematically and the sensor reads the force the gripper applies to the crop,
     +400 (stretch) n_c.  The force converges to f_d with the paper's gains (settling ~20 s,
-    FINDINGS' linearised loop).  Catches: v_f's sign (the stem would go slack or tear), and an
+    the lab measurements' linearised loop).  Catches: v_f's sign (the stem would go slack or tear), and an
     integral that never starts (steady error f_d k_fp / ... would remain)."""
     law = StemStretching()
     base = np.array([0.0, 0.0, 1.0])
@@ -111,7 +111,7 @@ def test_anti_windup_holds_the_integral_while_saturated():
 
 
 def test_integration_starts_once_the_force_exceeds_the_threshold():
-    """With integration_threshold = 1 N (FINDINGS' remedy for wind-up during the slack swing)
+    """With integration_threshold = 1 N (the lab measurements' remedy for wind-up during the slack swing)
     the integral stays 0 while n_c.f <= 1 N, starts above it, and stays on afterwards."""
     law = StemStretching(integration_threshold=1.0)
     law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])

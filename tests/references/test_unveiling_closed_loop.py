@@ -39,6 +39,23 @@ def test_bounded_law_unveils_a_partly_occluded_stem():
     assert np.linalg.norm(with_cu.positions[-1] - mid) < 0.38 and with_cu.thetas[-1] < np.radians(1.0)
 
 
+def test_bounded_law_unveils_a_partly_occluded_lab_stem():
+    """The lab's default scene with the occluding leaf moved 4 cm along its long axis: under
+    V_cr alone the stem fades to ~4 visible points as the camera nears the ROI; with the bounded
+    V_cu it rises past 150 (measured 203 at 12 s), and the camera still ends within 1.05 r,
+    centred.  Catches: the same bugs as the synthetic test, on the lab's own clouds (robot and
+    berry points included)."""
+    lab = LabCamera()
+    lab.shift_occluder(-0.04)
+    gripper = lab.scene.gripper_home
+    roi = gripper[:3, 3] + 0.04 * gripper[:3, 1]
+    alone = fly_lab(lab, unveiling=None, duration=12.0)
+    with_cu = fly_lab(lab, unveiling=Unveiling(), duration=12.0)
+    assert np.mean(alone.stem_points[-10:]) < 20
+    assert np.mean(with_cu.stem_points[-10:]) > 150
+    assert np.linalg.norm(with_cu.positions[-1] - roi) < 1.05 * 0.35 and with_cu.thetas[-1] < np.radians(1.0)
+
+
 def test_paper_law_without_bounds_is_unusable():
     """The literal law (no pivot drop, no saturation; only the low-pass) on the same flight:
     |w| reaches tens of rad/s and the camera is thrown out of the ROI.  Documents why the
@@ -77,6 +94,15 @@ def test_magnitude_is_bounded_and_resolution_independent(frames_at_two_resolutio
         assert np.linalg.norm(bounded[3:]) > 0.1  # not a vanishing twist either
         twists[width] = bounded / np.linalg.norm(bounded)
     assert twists[283] @ twists[848] > 0.98
+    # The Unveiling object thins the 848x480 frame (max_stem_points, max_obstacle_points) before
+    # the pairs: still bounded, still the same direction.
+    raws = {}
+    for width, (eye, stem, obstacles) in frames_at_two_resolutions.items():
+        law = Unveiling()
+        law.observe(eye, stem, obstacles)
+        assert np.linalg.norm(law.raw[3:]) <= 0.2 + 1e-12 and np.linalg.norm(law.raw[:3]) <= 0.1 + 1e-12
+        raws[width] = law.raw / np.linalg.norm(law.raw)
+    assert raws[283] @ raws[848] > 0.9
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +112,7 @@ def lab():
 
 def test_stem_hidden_along_the_whole_approach_is_unveiled_only_by_the_extension(lab):
     """The lab's default scene (VineSceneParams()), camera from its home pose, ROI on the grape
-    (FINDINGS: V_cr alone reaches 1.01 r and sees 0 stem points).  The paper's law alone
+    (lab measurements: V_cr alone reaches 1.01 r and sees 0 stem points).  The paper's law alone
     (Unveiling without predicted points: n_S = 0 keeps V_cu = 0) sees 0 points for 10 s; with the
     predicted stem points the next-best-view step sees >= 10 within 6 s (measured 3.8 s) and
     keeps the stem in view to the end, at <= 1.05 r and centred.
@@ -113,7 +139,7 @@ def test_paper_potential_on_predicted_points_does_not_unveil(lab):
     """The obvious alternative the extension replaces: the (bounded) paper potential applied to
     the predicted points as if seen.  A ray through the middle of a leaf has obstacle points on
     every side and the repulsions cancel: 0 stem points in 10 s on the default lab scene
-    (FINDINGS measured the same dithering through the QP)."""
+    (the lab measurements showed the same dithering through the QP)."""
 
     class PaperOnPredicted(Unveiling):
         def observe(self, camera_position, stem_points, obstacle_points, *, predicted_stem_points=None, **kwargs):

@@ -49,6 +49,26 @@ def test_labels_cover_stem_robot_and_vine(default_scene):
         assert labels[m.geom(name).id] == OBSTACLE
 
 
+def test_other_clusters_are_colliding_obstacles():
+    """Other clusters hang from the cane: obstacle-labelled, in ``vine_geoms``, colliding with the robot.
+
+    Bug caught: extra clusters labelled stem (perception would fit them), or invisible to
+    the contacts and ``min_vine_distance``.
+    """
+    scene = build_vine_scene(VineSceneParams.sample(5))
+    assert scene.params.other_clusters == 3
+    m = scene.model
+    others = [g for g in range(m.ngeom) if m.geom(g).name.startswith("other_cluster_")]
+    assert len(others) > 3 * 15
+    assert set(others) <= set(scene.vine_geoms.tolist())
+    assert np.all(scene.geom_labels[others] == OBSTACLE)
+    robot_geom = m.geom("grasp_gripper").id
+    assert all(m.geom_contype[robot_geom] & m.geom_conaffinity[g] for g in others)
+    # They hang below the cane, away from the held cluster.
+    cane = m.geom("cane").id
+    assert all(m.geom_pos[g][2] < m.geom_pos[cane][2] for g in others)
+
+
 def test_same_seed_same_scene_and_different_seeds_differ():
     a = build_vine_scene(VineSceneParams.sample(7)).spec.to_xml()
     b = build_vine_scene(VineSceneParams.sample(7)).spec.to_xml()
