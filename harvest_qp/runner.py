@@ -221,7 +221,9 @@ def _as_command(out: Any) -> Command:
             a, b, distance = pair
             pairs.append((str(a), str(b), float(distance)))
         except (TypeError, ValueError):
-            raise InvalidInputError(f"collision_pairs entries must be (name_a, name_b, distance), got {pair!r}") from None
+            raise InvalidInputError(
+                f"collision_pairs entries must be (name_a, name_b, distance), got {pair!r}"
+            ) from None
     return Command(qdot=qd, status=cmd.status, task_errors=errors, values=values, collision_pairs=pairs,
                    done=bool(cmd.done))
 
