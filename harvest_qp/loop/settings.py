@@ -59,6 +59,7 @@ SPEC: dict[str, dict[str, Any]] = {
         "integration_threshold": "pos|null",  # [N] integrate once n_c^T f exceeds it (null: from the start)
         "r_o": "pos|l",  # radius of S(p_sb, r_o) bounding O for p_gd; "l" = the estimated stem length
         "n_samples": "int+",  # Fibonacci samples of S(p_sb, l)
+        "max_swing_deg": "pos|null",  # p_gd within this angle of the hanging stem (null: the paper's hemisphere)
         "k_hold": "pos",  # [1/s] the grasping arm holds the crop still during the approach
         "feed_forward": "bool",  # eq:final_vc's term on the camera in the bimanual phase
     },
@@ -112,10 +113,10 @@ DEFAULTS: dict[str, Any] = {
     "switch": {"distance_factor": 1.05, "max_linear_speed": 0.01, "max_angular_speed": 0.025, "window": 0.5},
     "grasping": {"k_pg": 0.15, "k_og": 0.3, "k_fp": 0.001, "k_fi": 0.0002, "f_d": 3.0, "r_o": "l",
                  "max_speed": 0.05, "integration_threshold": 2.0,
-                 "n_samples": 500, "k_hold": 1.0, "feed_forward": True},
+                 "n_samples": 500, "max_swing_deg": 30.0, "k_hold": 1.0, "feed_forward": True},
     "perception": {"min_stem_points": 10, "max_base_distance": 0.2, "grasp_offset": 0.015},
     "roll": {"enabled": True, "k_roll": 1.0},
-    "obstacles": {"enabled": True, "max_distance": 0.25, "voxel": 0.02, "radius": 0.01, "cluster_radius": 0.075,
+    "obstacles": {"enabled": False, "max_distance": 0.25, "voxel": 0.02, "radius": 0.01, "cluster_radius": 0.075,
                   "cluster_length": 0.22},
     "safety": {"force_limit": None, "stem_lost_timeout": 5.0, "no_stem_timeout": 30.0, "max_qp_failures": 25},
     "precut": {"force_tolerance": 0.1, "position_tolerance": 0.005, "alignment_tolerance_deg": 5.0,

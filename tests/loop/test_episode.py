@@ -75,3 +75,29 @@ def test_default_scene_reaches_the_bimanual_phase_safely(default_episode):
     assert np.max(np.abs(log["value/force_nc"][after] - tension)) < 0.5
     assert metrics["force_max"] <= 2 * metrics["f_d"]
     assert metrics["true_tension_max"] <= 2 * metrics["f_d"]
+
+
+def test_force_limit_below_f_d_aborts_before_the_stem_tears(tmp_path):
+    """Safety: a force limit set below f_d ends the episode on the force limit, safely.
+
+    The abort must come from the force limit (reason logged), the stem must never tear (the
+    simulator's ground truth), the arms must come to rest, and the measured force along n_c
+    must never exceed the limit by more than the largest one-tick rise seen before the abort.
+    Catches: a force check on the wrong axis or sign, a missing abort, an abort that keeps
+    pulling."""
+    out = tmp_path / "limit"
+    code = main(["run", str(PAPER), "--seed", "0", "--out", str(out), "--no-figures", *LOW_RES,
+                 "--set", "safety.force_limit=1.5"])
+    metrics = json.loads((out / "metrics.json").read_text())
+    log = dict(np.load(out / "episode.npz"))
+    assert code == 1 and not metrics["success"]
+    assert metrics["abort_reason"] is not None and "above the limit 1.50 N" in metrics["abort_reason"]
+    assert not metrics["stem_torn"] and not np.any(log["truth/stem_torn"] > 0)
+    n_c = log["value/n_c"][-1]
+    along = log["force"] @ n_c
+    bimanual = log["value/phase"] >= 1
+    rises = np.diff(along[bimanual])
+    aborted = log["value/phase"] == 3
+    first = int(np.flatnonzero(aborted)[0])
+    assert np.max(along[first:]) <= 1.5 + np.max(rises[: first - int(np.flatnonzero(bimanual)[0])]) + 1e-9
+    assert np.abs(log["qdot"][-1]).max() < 1e-2  # at rest at the end
