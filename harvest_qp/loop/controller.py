@@ -111,6 +111,7 @@ class _Frame:
     camera_pose: np.ndarray
     stem: np.ndarray
     non_stem: np.ndarray
+    obstacles: np.ndarray
     fit: Any = None
 
 
@@ -130,6 +131,7 @@ class _State:
     n_stem: int = 0
     qp_failures_in_row: int = 0
     qp_failures: int = 0
+    backup_solves: int = 0
     precut_since: float | None = None
     frame: _Frame | None = None
     hold_pose: pin.SE3 | None = None
@@ -201,6 +203,12 @@ class HarvestController:
         self.collision = next((lim for lim in limits if isinstance(lim, CollisionAvoidance)), None)
         self.qp = TaskController(self.configuration, tasks, limits, dt=0.002, solver=qp["solver"],
                                  max_acceleration=self.max_acceleration)
+        backup = qp.get("backup_solver")
+        self.qp_backup = (
+            TaskController(self.configuration, tasks, self.qp.limits, dt=0.002, solver=backup,
+                           max_acceleration=self.max_acceleration)
+            if backup else None
+        )
         self.pinv = PseudoInverseMapper(self.configuration, damping=s["mapper"]["pinv_damping"])
         self._camera_id = self.configuration.frame_id("camera")
         self._gripper_id = self.configuration.frame_id("gripper")
@@ -247,6 +255,9 @@ class HarvestController:
         self.dt = float(robot.control_period)
         self.qp.dt = self.dt
         self.qp.reset(q0)
+        if self.qp_backup is not None:
+            self.qp_backup.dt = self.dt
+            self.qp_backup.reset(q0)
         self.posture_task.set_target(q0)
         self.configuration.update(q0)
         self.state = _State(hold_pose=self.configuration.frame_pose("gripper"))
@@ -280,7 +291,8 @@ class HarvestController:
             self._update_obstacle_spheres(cloud.points[labels == OBSTACLE], T_g)
         if st.phase != Phase.APPROACH:
             return
-        frame = _Frame(cloud.timestamp, p_c.copy(), cloud.camera_pose.copy(), stem, non_stem)
+        frame = _Frame(cloud.timestamp, p_c.copy(), cloud.camera_pose.copy(), stem, non_stem,
+                       cloud.points[labels == OBSTACLE])
         if st.n_stem >= s["perception"]["min_stem_points"]:
             fit = fit_stem(stem, T_g[:3, 3])
             if fit.valid and np.linalg.norm(fit.base - T_g[:3, 3]) <= s["perception"]["max_base_distance"]:
@@ -317,6 +329,24 @@ class HarvestController:
             centres = np.zeros((0, 3))
         self.collision.set_obstacle_spheres(centres, o["radius"])
 
+    def _grasp_obstacle_candidates(self, frame: _Frame) -> np.ndarray:
+        """W - S without the robot's own points and the held crop (both move with the gripper).
+
+        Deviation: the paper's O = (W - S) within S(p_sb, r_o) includes them. Measured on
+        seed 1: every free sample within 30 deg of the hanging stem was occupied by the held
+        crop's and gripper's own points, so no p_gd existed there and the episode never
+        switched. The crop cannot be an obstacle to where it is taken.
+        """
+        if not self.settings["grasping"]["exclude_held_crop"]:
+            return frame.non_stem
+        points = frame.obstacles
+        T_g = self._switch_gripper_pose
+        o = self.settings["obstacles"]
+        offset = points - T_g[:3, 3]
+        along = np.clip(offset @ T_g[:3, 1], 0.0, o["cluster_length"])
+        radial = offset - along[:, None] * T_g[:3, 1]
+        return points[np.einsum("ij,ij->i", radial, radial) > o["cluster_radius"] ** 2]
+
     def _target_within_swing(self, free, stem_base: np.ndarray, *, T_g: np.ndarray) -> np.ndarray | None:
         """p_gd of ``eq:attr_point`` over the free samples within ``grasping.max_swing_deg`` of the stem now.
 
@@ -335,9 +365,12 @@ class HarvestController:
         hanging /= np.linalg.norm(hanging)
         samples = free.samples
         directions = (samples - stem_base) / np.linalg.norm(samples - stem_base, axis=1)[:, None]
-        allowed = free.free & (directions @ hanging >= np.cos(np.radians(max_swing)))
-        if not np.any(allowed):
+        if not np.any(free.free):
             return None
+        allowed = free.free & (directions @ hanging >= np.cos(np.radians(max_swing)))
+        if not np.any(allowed):  # nothing free within the cone: the free sample nearest to it
+            closest = np.flatnonzero(free.free)[np.argmax(directions[free.free] @ hanging)]
+            return samples[closest].copy()
         candidates = samples[allowed]
         obstacles = free.projected_obstacles
         if len(obstacles) == 0:
@@ -369,7 +402,7 @@ class HarvestController:
         fit = frame.fit
         length = fit.length
         r_o = length if g["r_o"] == "l" else float(g["r_o"])
-        obstacles = obstacles_near_stem_base(frame.non_stem, fit.base, r_o)
+        obstacles = obstacles_near_stem_base(self._grasp_obstacle_candidates(frame), fit.base, r_o)
         free = compute_free_space(obstacles, fit.base, length, frame.camera_position, n_samples=g["n_samples"])
         if not free.valid or free.target is None:
             return False
@@ -528,7 +561,18 @@ class HarvestController:
             self.camera_task.set_reference(V_c)
             self.gripper_task.set_reference(V_g)
             self.roll_task.set_reference(roll)
+            previous = self.qp.previous_qdot.copy()
             result = self.qp.step(obs.q)
+            if not result.ok and self.qp_backup is not None:
+                # Stopgap until the QP core retries itself (issue 10 section 1): daqp answers
+                # slightly outside the constraints (2e-7..1e-6) and the core brakes; the same
+                # problem is re-solved by the backup backend from the same previous command.
+                self.qp_backup.previous_qdot = previous
+                backup = self.qp_backup.step(obs.q)
+                if backup.ok:
+                    st.backup_solves += 1
+                    result = backup
+                    result.status = f"{backup.status} (backup solver)"
             qdot, status = result.qdot, result.status
             if result.ok:
                 st.qp_failures_in_row = 0

@@ -59,6 +59,7 @@ SPEC: dict[str, dict[str, Any]] = {
         "integration_threshold": "pos|null",  # [N] integrate once n_c^T f exceeds it (null: from the start)
         "r_o": "pos|l",  # radius of S(p_sb, r_o) bounding O for p_gd; "l" = the estimated stem length
         "n_samples": "int+",  # Fibonacci samples of S(p_sb, l)
+        "exclude_held_crop": "bool",  # O for p_gd without the robot's points and the held crop
         "max_swing_deg": "pos|null",  # p_gd within this angle of the hanging stem (null: the paper's hemisphere)
         "k_hold": "pos",  # [1/s] the grasping arm holds the crop still during the approach
         "feed_forward": "bool",  # eq:final_vc's term on the camera in the bimanual phase
@@ -87,6 +88,7 @@ SPEC: dict[str, dict[str, Any]] = {
     },
     "qp": {
         "solver": "text",
+        "backup_solver": "text|null",  # re-solves a tick the main backend failed (null: none)
         "camera_task": {"level": "level", "weight": "weights6"},
         "gripper_task": {"level": "level", "weight": "weights6"},
         "roll_task": {"level": "level", "weight": "weight"},
@@ -113,7 +115,8 @@ DEFAULTS: dict[str, Any] = {
     "switch": {"distance_factor": 1.05, "max_linear_speed": 0.01, "max_angular_speed": 0.025, "window": 0.5},
     "grasping": {"k_pg": 0.15, "k_og": 0.3, "k_fp": 0.001, "k_fi": 0.0002, "f_d": 3.0, "r_o": "l",
                  "max_speed": 0.05, "integration_threshold": 2.0,
-                 "n_samples": 500, "max_swing_deg": 30.0, "k_hold": 1.0, "feed_forward": True},
+                 "n_samples": 500, "exclude_held_crop": True, "max_swing_deg": 30.0, "k_hold": 1.0,
+                 "feed_forward": True},
     "perception": {"min_stem_points": 10, "max_base_distance": 0.2, "grasp_offset": 0.015},
     "roll": {"enabled": True, "k_roll": 1.0},
     "obstacles": {"enabled": False, "max_distance": 0.25, "voxel": 0.02, "radius": 0.01, "cluster_radius": 0.075,
@@ -123,6 +126,7 @@ DEFAULTS: dict[str, Any] = {
                "hold_time": 1.0},
     "qp": {
         "solver": "daqp",
+        "backup_solver": "proxsuite",
         "camera_task": {"level": 1, "weight": [1.0, 1.0, 1.0, 1.0, 1.0, 0.0]},
         "gripper_task": {"level": 1, "weight": 1.0},
         "roll_task": {"level": 2, "weight": 1.0},
@@ -153,6 +157,7 @@ def _expected(kind: Any) -> str:
         "bool": "true or false", "pos|null": "a number > 0 or null", "pos|l": "a number > 0 or 'l'",
         "weights6": "a number >= 0 or a list of 6 numbers >= 0", "weight": "a number >= 0",
         "level": "an integer >= 1", "mapping": "a mapping", "list": "a list", "text": "a string",
+        "text|null": "a string or null",
     }[kind]
 
 
@@ -187,6 +192,8 @@ def _valid(kind: Any, value: Any) -> bool:
         return isinstance(value, list)
     if kind == "text":
         return isinstance(value, str)
+    if kind == "text|null":
+        return value is None or isinstance(value, str)
     raise AssertionError(kind)
 
 
