@@ -1,8 +1,9 @@
 """One call for the per-frame perception pipeline of ``subsec:scePC_proc`` and
 ``subsec:occlusion_control_signal``.
 
-classification -> stem model and p_sb -> free space and p_gd (grasping arm) -> unveiling
-pairs and V_cu (camera arm).
+classification -> stem model, p_sb and its quality -> free space and p_gd (grasping arm) ->
+unveiling pairs and V_cu (camera arm).  ``result.stem.trusted()`` and ``result.stem.quality``
+say whether p_sb can be used (see :class:`~harvest_qp.perception.stem.StemQuality`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.perception._validation import as_point, positive_int
 from harvest_qp.perception.classify import obstacles_near_stem_base, split_scene
 from harvest_qp.perception.free_space import FreeSpace, compute_free_space
@@ -70,6 +72,8 @@ def process_cloud(
     d_a: float = 0.01,
     k_c: float = 0.00025,
     min_stem_points: int = 10,
+    stem_radius: float | None = None,
+    target_selection: str = "clearance",
 ) -> PerceptionResult:
     """Run the perception pipeline on one scene cloud.
 
@@ -87,6 +91,12 @@ def process_cloud(
         d_a: influence distance of the unveiling potential [m].
         k_c: unveiling gain of ``eq:v_c2``.
         min_stem_points: fewer stem points make the stem model invalid.
+        stem_radius: known stem radius [m] for the near-surface correction of p_sb;
+            ``None`` estimates it (:func:`~harvest_qp.perception.stem.fit_stem`).
+        target_selection: ``"clearance"`` (default) chooses p_gd by the clearance of the
+            straight stem against every observed non-stem point
+            (:func:`~harvest_qp.perception.free_space.compute_free_space` with
+            ``scene_points``); ``"paper"`` uses ``eq:attr_point`` alone.
 
     Returns:
         A :class:`PerceptionResult`.  The unveiling part does not need the stem model and is
@@ -103,14 +113,30 @@ def process_cloud(
     # Checked here too so that a bad value fails on every frame, not only on frames where
     # the stem model is valid and the free space is computed.
     n_samples = positive_int("n_samples", n_samples)
+    if target_selection not in ("clearance", "paper"):
+        raise InvalidInputError(f"target_selection must be 'clearance' or 'paper', got {target_selection!r}")
     scene = split_scene(points, stem_mask)
 
-    stem = fit_stem(scene.stem, gripper, min_points=min_stem_points)
+    stem = fit_stem(
+        scene.stem,
+        gripper,
+        camera_position=camera,
+        non_stem_points=scene.non_stem,
+        stem_radius=stem_radius,
+        min_points=min_stem_points,
+    )
     grasp_obstacles = np.zeros((0, 3))
     free_space = None
     if stem.valid:
         grasp_obstacles = obstacles_near_stem_base(scene.non_stem, stem.base, stem.length if r_o is None else r_o)
-        free_space = compute_free_space(grasp_obstacles, stem.base, stem.length, camera, n_samples=n_samples)
+        free_space = compute_free_space(
+            grasp_obstacles,
+            stem.base,
+            stem.length,
+            camera,
+            n_samples=n_samples,
+            scene_points=scene.non_stem if target_selection == "clearance" else None,
+        )
 
     pairs = ray_obstacle_pairs(scene.stem, scene.non_stem, camera, d_a=d_a, d_o=d_o)
     return PerceptionResult(

@@ -71,9 +71,17 @@ def test_non_finite_rows_are_dropped(frame, result):
     assert np.linalg.norm(dropped.stem_base - result.stem_base) < 0.002
 
 
-def test_r_o_bounds_the_grasp_obstacles(frame):
+def test_r_o_bounds_the_grasp_obstacles(frame, result):
+    """O is exactly the non-stem points within r_o of p_sb (Table table:PCs), computed here by
+    brute force: catches r_o being ignored (the default l used instead), used as a diameter,
+    or the set coming back empty (the former test passed on an empty result)."""
     small = process_cloud(frame.points, frame.stem_mask, camera_position=CAMERA, gripper_position=GRIPPER, r_o=0.02)
-    assert (np.linalg.norm(small.grasp_obstacles - small.stem_base, axis=1) < 0.02).all()
+    non_stem = frame.points[~frame.stem_mask]
+    expected = non_stem[np.linalg.norm(non_stem - small.stem_base, axis=1) < 0.02]
+    assert len(expected) > 20
+    np.testing.assert_array_equal(small.grasp_obstacles, expected)
+    # The default r_o = l (about 0.06 m here) keeps more of them.
+    assert len(result.grasp_obstacles) > len(expected)
 
 
 def test_empty_cloud():

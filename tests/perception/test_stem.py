@@ -131,7 +131,7 @@ def test_two_tight_clumps_are_not_a_stem():
     clumps = np.vstack([rng.normal(scale=1e-4, size=(30, 3)), [0.05, 0, 0] + rng.normal(scale=1e-4, size=(30, 3))])
     model = fit_stem(clumps, gripper_position=[0.2, 0.0, 0.0])
     assert not model.valid
-    assert "not line-like" in model.reason
+    assert "clump" in model.reason
 
 
 @pytest.mark.parametrize(
