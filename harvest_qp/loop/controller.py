@@ -132,6 +132,7 @@ class _State:
     qp_failures_in_row: int = 0
     qp_failures: int = 0
     backup_solves: int = 0
+    force_filtered: float | None = None
     precut_since: float | None = None
     frame: _Frame | None = None
     hold_pose: pin.SE3 | None = None
@@ -544,7 +545,14 @@ class HarvestController:
                 if force_nc > self.force_limit:
                     self._abort(t, f"stem force {force_nc:.2f} N above the limit {self.force_limit:.2f} N")
                 else:
-                    self._check_precut(t, force_nc)
+                    # The pre-cut test uses the force low-passed over precut.force_time_constant:
+                    # with 0.2 N sensor noise the raw samples leave the +-10 % band on ~13 % of ticks.
+                    tau = s["precut"]["force_time_constant"]
+                    if st.force_filtered is None or tau == 0:
+                        st.force_filtered = force_nc
+                    else:
+                        st.force_filtered += (-np.expm1(-self.dt / tau)) * (force_nc - st.force_filtered)
+                    self._check_precut(t, st.force_filtered)
             roll, roll_angle = self._roll_reference(T_c, direction)
             values["roll_error"] = roll_angle
 

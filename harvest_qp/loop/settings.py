@@ -85,6 +85,7 @@ SPEC: dict[str, dict[str, Any]] = {
         "position_tolerance": "pos",  # [m] projected position error
         "alignment_tolerance_deg": "pos",
         "hold_time": "nonneg",  # [s]
+        "force_time_constant": "nonneg",  # [s] low-pass on the force for this test
     },
     "qp": {
         "solver": "text",
@@ -115,7 +116,7 @@ DEFAULTS: dict[str, Any] = {
     "switch": {"distance_factor": 1.05, "max_linear_speed": 0.01, "max_angular_speed": 0.025, "window": 0.5},
     "grasping": {"k_pg": 0.15, "k_og": 0.3, "k_fp": 0.001, "k_fi": 0.0002, "f_d": 3.0, "r_o": "l",
                  "max_speed": 0.05, "integration_threshold": 2.0,
-                 "n_samples": 500, "exclude_held_crop": True, "max_swing_deg": 30.0, "k_hold": 1.0,
+                 "n_samples": 500, "exclude_held_crop": False, "max_swing_deg": 30.0, "k_hold": 1.0,
                  "feed_forward": True},
     "perception": {"min_stem_points": 10, "max_base_distance": 0.2, "grasp_offset": 0.015},
     "roll": {"enabled": True, "k_roll": 1.0},
@@ -123,7 +124,7 @@ DEFAULTS: dict[str, Any] = {
                   "cluster_length": 0.22},
     "safety": {"force_limit": None, "stem_lost_timeout": 5.0, "no_stem_timeout": 30.0, "max_qp_failures": 25},
     "precut": {"force_tolerance": 0.1, "position_tolerance": 0.005, "alignment_tolerance_deg": 5.0,
-               "hold_time": 1.0},
+               "hold_time": 1.0, "force_time_constant": 0.2},
     "qp": {
         "solver": "daqp",
         "backup_solver": "proxsuite",

@@ -26,7 +26,8 @@ METRIC_KEYS = {
 }
 FIGURES = ["fig_exp_reach", "fig_exp_center", "fig_exp_unv", "fig_exp_ep", "fig_exp_eo", "fig_exp_f",
            "fig_exp_proc", "fig_PC_proc"]
-LOW_RES = ["--set", "camera.downsample=6", "--set", "perception.min_stem_points=6"]
+LOW_RES = ["--set", "camera.downsample=6", "--set", "perception.min_stem_points=6",
+           "--set", "episode.end_after_precut=1.0"]
 
 
 @pytest.fixture(scope="module")
@@ -66,10 +67,10 @@ def test_default_scene_reaches_the_bimanual_phase_safely(default_episode):
     scene = build_vine_scene()
     p_sb = log["value/p_sb"][-1]
     assert np.linalg.norm(p_sb - scene.stem_base) < 0.015  # the frozen estimate vs the true base
-    # Without contacts the measured (tared) force along n_c is the true stem tension.
+    # The measured (tared) force along n_c is the true stem tension (no contact disturbs the
+    # wrist on this scene: the ground truth counts none).
+    assert metrics["contacts"] == 0
     after = (log["t"] > metrics["t_bimanual_start"] + 1.0) & (log["value/phase"] < 3)
-    for key in [k for k in log if k.startswith("truth/contacts_")]:
-        after &= log[key] == 0
     tension = log["truth/stem_tension"][after]
     assert np.count_nonzero(after) > 1000
     assert np.max(np.abs(log["value/force_nc"][after] - tension)) < 0.5
