@@ -14,7 +14,7 @@ from harvest_qp.perception.classify import SceneSplit, obstacles_near_stem_base,
 from harvest_qp.perception.fibonacci import fibonacci_sphere, nearest_fibonacci_index
 from harvest_qp.perception.free_space import FreeSpace, ObstaclePlane, compute_free_space, fit_obstacle_plane
 from harvest_qp.perception.pipeline import PerceptionResult, process_cloud
-from harvest_qp.perception.stem import LineSegment, StemModel, fit_stem
+from harvest_qp.perception.stem import LineSegment, StemModel, StemQuality, fit_stem
 from harvest_qp.perception.unveiling import (
     NEAREST_AT_CAMERA,
     NEAREST_AT_STEM_POINT,
@@ -43,6 +43,7 @@ __all__ = [
     "RayObstaclePairs",
     "SceneSplit",
     "StemModel",
+    "StemQuality",
     "barrier_potential",
     "compute_free_space",
     "fibonacci_sphere",

@@ -196,7 +196,9 @@ def _point_spacing(points: NDArray[np.float64]) -> float:
     return float(np.median(distances[:, 1]))
 
 
-def _estimate_radius(points: NDArray[np.float64], labels: NDArray[np.intp], camera: NDArray[np.float64], pitch: float) -> float:
+def _estimate_radius(
+    points: NDArray[np.float64], labels: NDArray[np.intp], camera: NDArray[np.float64], pitch: float
+) -> float:
     """Stem radius [m] from the width of each cluster across its axis, as seen from the camera.
 
     The seen width of a cylinder of radius r is 2 r wherever it is seen from; pixels sample it
@@ -252,13 +254,21 @@ def _base_visibility(
     # keeps those inside a cone around it (a leaf in front of the base is in the cone too).
     to_base = base - camera
     base_range = float(np.linalg.norm(to_base))
-    rays = non_stem - camera
-    ranges = np.sqrt(np.einsum("ij,ij->i", rays, rays))
+    # |p - c|^2 and (p - c).u through products with the (n, 3) array itself: no (n, 3)
+    # temporaries, which dominate the cost on 848x480 frames (10^5 points).
+    unit = to_base / base_range
+    # einsum, not the matrix-vector product: numpy's BLAS gemv is several times slower on
+    # (n, 3) arrays (measured 1 ms vs 8-16 ms for 2e5 points).
+    squared_ranges = np.einsum("ij,ij->i", non_stem, non_stem) - 2.0 * np.einsum("ij,j->i", non_stem, camera)
+    squared_ranges += camera @ camera
+    along_base = np.einsum("ij,j->i", non_stem, unit) - camera @ unit
     cone = (max(max_gap, probe_length + radius + 2.0 * pitch) + pitch) / max(base_range - max_gap, 1e-3)
-    in_cone = rays @ (to_base / base_range) > np.cos(min(cone, 0.5)) * ranges
-    rays, ranges = rays[in_cone], ranges[in_cone]
+    cosine = np.cos(min(cone, 0.5))
+    in_cone = (along_base > 0.0) & (along_base * along_base > cosine * cosine * squared_ranges)
+    rays = np.compress(in_cone, non_stem, axis=0) - camera
     if rays.shape[0] == 0:
         return True, float("inf"), float("nan")
+    ranges = np.sqrt(np.einsum("ij,ij->i", rays, rays))
     offsets = rays - to_base
     gap = float(np.sqrt(np.einsum("ij,ij->i", offsets, offsets).min()))
     units = rays / ranges[:, None]

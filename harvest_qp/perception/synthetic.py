@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from harvest_qp.exceptions import ModelError
 from harvest_qp.perception._validation import as_point, positive_int
 from harvest_qp.validation import as_positive_scalar
 
@@ -326,7 +327,7 @@ class LabViews:
         self.robot = SimRobot(params, camera=None)
         self.scene = self.robot.scene
         self._labels = (STEM, OBSTACLE, ROBOT)
-        model, data = self.robot.model, self.robot.data
+        model = self.robot.model
         self.camera = RayCastCamera(
             model,
             CameraConfig() if camera is None else camera,
@@ -377,9 +378,7 @@ class LabViews:
         points = np.atleast_2d(np.asarray(points, dtype=np.float64))
         best = np.full(points.shape[0], np.inf)
         wood = {self.robot.model.geom("branch").id, self.robot.model.geom("cane").id}
-        surfaces = self._surfaces if not wood_only else [
-            self._surface_of(g) for g in sorted(wood)
-        ]
+        surfaces = self._surfaces if not wood_only else [self._surface_of(g) for g in sorted(wood)]
         for kind, size, position, rotation in surfaces:
             local = (points - position) @ rotation
             if kind == 0:  # plane
@@ -392,13 +391,20 @@ class LabViews:
             elif kind == 4:  # ellipsoid
                 d = self._ellipsoid_distance(local, size)
             else:
-                raise ValueError(f"unhandled geom type {kind}")
+                raise ModelError(
+                    f"LabViews.surface_distance: unhandled geom type {kind} (plane, sphere, capsule, ellipsoid only)"
+                )
             best = np.minimum(best, d)
         return best
 
     def _surface_of(self, g: int):
         model, data = self.robot.model, self.robot.data
-        return int(model.geom_type[g]), model.geom_size[g].copy(), data.geom_xpos[g].copy(), data.geom_xmat[g].reshape(3, 3).copy()
+        return (
+            int(model.geom_type[g]),
+            model.geom_size[g].copy(),
+            data.geom_xpos[g].copy(),
+            data.geom_xmat[g].reshape(3, 3).copy(),
+        )
 
     @staticmethod
     def _ellipsoid_distance(local: NDArray[np.float64], size: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -408,7 +414,9 @@ class LabViews:
         d = np.sqrt((diff**2).sum(axis=2)).min(axis=1)
         return np.where(inside, -d, d)
 
-    def segment_clearance(self, start: ArrayLike, end: ArrayLike, *, skip: float = 0.0, wood_only: bool = True) -> float:
+    def segment_clearance(
+        self, start: ArrayLike, end: ArrayLike, *, skip: float = 0.0, wood_only: bool = True
+    ) -> float:
         """Smallest surface distance [m] along the segment start -> end, 1 mm steps, ignoring the first ``skip`` [m]."""
         start, end = as_point("start", start), as_point("end", end)
         length = float(np.linalg.norm(end - start))

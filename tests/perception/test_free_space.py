@@ -167,6 +167,11 @@ def test_collinear_obstacles_remove_no_half_space():
         ({"stem_length": np.nan}, "stem_length must be finite and > 0"),
         ({"camera_position": [1.0, np.nan, 0.0]}, "camera_position must be finite"),
         ({"n_samples": 0}, "n_samples must be an integer >= 1"),
+        ({"scene_points": np.zeros((4, 2))}, r"scene_points must have shape \(n, 3\)"),
+        ({"scene_points": np.ones((4, 3)), "up": [0.0, 0.0, 0.0]}, "up must be a non-zero direction"),
+        ({"scene_points": np.ones((4, 3)), "max_elevation": 2.0}, r"max_elevation must be in \[-pi/2, pi/2\]"),
+        ({"scene_points": np.ones((4, 3)), "tie_break": "random"}, "tie_break must be 'paper' or 'camera'"),
+        ({"scene_points": np.ones((4, 3)), "clearance_cap": -1.0}, "clearance_cap must be finite and > 0"),
     ],
 )
 def test_invalid_arguments_raise(kwargs, message):
@@ -180,3 +185,29 @@ def test_invalid_arguments_raise(kwargs, message):
     n_samples = arguments.pop("n_samples", 100)
     with pytest.raises(InvalidInputError, match=message):
         compute_free_space(**arguments, n_samples=n_samples)
+
+
+def test_selection_keeps_the_stem_clear_of_a_wall_by_hand():
+    """A wall of observed points at x = -0.02 m behind the stem base (the camera at +x): the
+    paper's plane keeps the camera side of the wall, and the clearance selection must pick the
+    free sample whose straight stem from p_sb is farthest from the wall, i.e. straight towards
+    the camera (x = l), clear by l + 0.02 = 0.08 m (hand value).  Catches a clearance
+    measured to projected points only (it would see every free sample as equally far)."""
+    y, z = np.meshgrid(np.linspace(-0.1, 0.1, 81), np.linspace(-0.1, 0.1, 81))
+    wall = np.column_stack((np.full(y.size, -0.02), y.ravel(), z.ravel()))
+    camera = np.array([0.5, 0.0, 0.0])
+    result = compute_free_space(
+        wall[np.linalg.norm(wall, axis=1) < LENGTH], np.zeros(3), LENGTH, camera, n_samples=2000,
+        scene_points=wall, max_elevation=np.pi / 2,
+    )  # fmt: skip
+    assert result.valid
+    direction = result.target / LENGTH
+    assert direction[0] > 0.99
+    assert result.target_point_clearance == pytest.approx(0.03, abs=1e-9)  # capped at clearance_cap
+    # Uncapped, the clearance is the hand value.
+    uncapped = compute_free_space(
+        wall[np.linalg.norm(wall, axis=1) < LENGTH], np.zeros(3), LENGTH, camera, n_samples=2000,
+        scene_points=wall, max_elevation=np.pi / 2, clearance_cap=1.0,
+    )  # fmt: skip
+    assert uncapped.target_point_clearance == pytest.approx(LENGTH + 0.02, abs=2e-3)
+    assert uncapped.target[0] / LENGTH > 0.99

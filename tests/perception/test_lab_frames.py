@@ -20,8 +20,9 @@ from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_s
 from harvest_qp.perception.stem import StemModel
 from harvest_qp.perception.synthetic import LabFrame, LabViews, fibonacci_unit, view_poses
 
-# The default scene and sampled scenes; most of them were not used to tune the estimator
-# (tuning used seeds 1-20 with other views).
+# The default scene and sampled scenes, with views of their own (rng 1000 + seed).  The
+# thresholds were tuned on seeds 1-20 (other views); the hidden-base rule was revised once
+# (the short-fragment test) after a check on seeds 21-44.
 SEEDS = (None, 3, 21, 24, 27, 30, 33, 36, 39, 42)
 VIEWS_PER_SEED = 10
 
@@ -236,7 +237,10 @@ def test_process_cloud_on_a_lab_frame(lab):
     target as the parts called directly."""
     view = next(v for v in lab if v.model is not None and v.model.trusted())
     result = process_cloud(
-        view.frame.points, view.frame.stem_mask, camera_position=view.frame.camera_position, gripper_position=view.gripper
+        view.frame.points,
+        view.frame.stem_mask,
+        camera_position=view.frame.camera_position,
+        gripper_position=view.gripper,
     )
     np.testing.assert_allclose(result.stem_base, view.model.base)
     assert result.stem.quality == view.model.quality

@@ -142,9 +142,45 @@ def test_two_tight_clumps_are_not_a_stem():
         ({"gripper_position": [0.0, 0.0]}, r"gripper_position must have shape \(3,\)"),
         ({"min_points": 1}, "min_points must be an integer >= 2"),
         ({"max_spread_ratio": -1.0}, "max_spread_ratio must be finite and > 0"),
+        ({"max_residual": 0.0}, "max_residual must be finite and > 0"),
+        ({"base_estimator": "mean"}, "base_estimator must be 'extent' or 'paper'"),
+        ({"end_quantile": 0.3}, r"end_quantile must be in \[0, 0.25\)"),
+        ({"camera_position": [0.0, np.inf, 0.0]}, "camera_position must be finite"),
+        ({"non_stem_points": np.zeros((3, 4))}, r"non_stem_points must have shape \(n, 3\)"),
+        ({"stem_radius": -0.001}, "stem_radius must be finite and >= 0"),
     ],
 )
 def test_invalid_arguments_raise(kwargs, message):
     arguments = {"stem_points": np.zeros((20, 3)), "gripper_position": [0.0, 0.0, 1.0], **kwargs}
     with pytest.raises(InvalidInputError, match=message):
         fit_stem(**arguments)
+
+
+def test_quality_without_a_camera_leaves_the_hidden_base_unknown():
+    """Without camera_position there is no near-surface correction (radius 0) and no
+    visibility test: base_hidden is None and the model is not trusted."""
+    rng = np.random.default_rng(7)
+    points = bent_stem([0, 0, 0], [0, 0, -1], [0.2, 0, -1], 0.03, 0.03, n_points=400, noise=0.0, rng=rng)
+    model = fit_stem(points, [0.0, 0.0, -0.1])
+    assert model.valid
+    assert model.quality.base_hidden is None and model.quality.radius == 0.0
+    assert not model.trusted()
+    assert model.quality.n_points == 400
+    assert 0.0 < model.quality.base_uncertainty < 0.003
+
+
+def test_near_surface_correction_on_a_half_cylinder_by_hand():
+    """Only the near half of a cylinder of radius r is seen; its points lie pi r / 4 in front
+    of the axis on average (hand value for points spread uniformly across the image).  With
+    the camera given, p_sb must land on the axis, not pi r / 4 (2.4 mm for r = 3 mm) in front."""
+    radius, camera = 0.003, np.array([0.4, 0.0, -0.03])
+    lateral = np.linspace(-radius, radius, 9)[1:-1]
+    heights = np.linspace(0.0, -0.06, 60)
+    y, z = np.meshgrid(lateral, heights)
+    x = np.sqrt(radius**2 - y**2)  # the near (camera, +x) side of a vertical cylinder on the z axis
+    points = np.column_stack((x.ravel(), y.ravel(), z.ravel()))
+    corrected = fit_stem(points, [0.0, 0.0, -0.1], camera_position=camera, stem_radius=radius)
+    plain = fit_stem(points, [0.0, 0.0, -0.1])
+    assert plain.base[0] == pytest.approx(np.mean(x), abs=2e-4)  # in front of the axis
+    assert abs(corrected.base[0]) < 0.0006
+    assert abs(corrected.base[2]) < 0.0015

@@ -149,3 +149,32 @@ def test_seen_stem_hands_over_to_the_paper_mode():
     assert law.mode == "paper"
     law.observe(np.zeros(3), seen[:9], [[0.004, 0.0, 0.25]], predicted_stem_points=seen)
     assert law.mode == "predicted"
+
+
+def test_step_plans_at_most_every_nbv_period():
+    """At 30 Hz frames the step plans on every third frame (nbv_period 0.1 s) and keeps its
+    last twist in between, even if the view changed.  Catches: the period ignored (3x the cost)
+    or never re-planning."""
+    leaf = _leaf([0.08, 0.0, 0.03], [1.0, 0.0, 0.0], 0.05)
+    camera = ROI + np.array([0.35, 0.0, 0.0])
+    law = Unveiling(nbv_period=0.1)
+    law.observe(camera, [], leaf, predicted_stem_points=STEM, roi_centre=ROI, timestamp=0.0)
+    moving = law.raw.copy()
+    assert moving.any()
+    far = ROI + np.array([0.0, 0.35, 0.0])  # a clear side view (the leaf faces +x)
+    law.observe(far, [], [[0.5, 0.5, 0.5]], predicted_stem_points=STEM, roi_centre=ROI, timestamp=1 / 30)
+    np.testing.assert_array_equal(law.raw, moving)  # not re-planned yet
+    law.observe(far, [], [[0.5, 0.5, 0.5]], predicted_stem_points=STEM, roi_centre=ROI, timestamp=0.1)
+    assert law.clear_fraction == 1.0 and not law.raw.any()  # re-planned: clear, stop
+
+
+def test_voxel_memory_forgets_what_it_no_longer_sees():
+    """With a 5 s lifetime a voxel seen at t = 0 and not since is gone at t = 5.1 s; one seen
+    again at t = 3 s stays.  Catches: refresh times not updated (both would go) or no expiry."""
+    memory = VoxelMemory(0.01, lifetime=5.0)
+    memory.add(np.array([[0.001, 0.0, 0.0], [0.101, 0.0, 0.0]]), 0.0)
+    memory.add(np.array([[0.102, 0.001, 0.0]]), 3.0)
+    memory.add(np.zeros((0, 3)), 5.1)
+    np.testing.assert_allclose(memory.points, [[0.105, 0.005, 0.005]])
+    memory.add(np.zeros((0, 3)), 8.1)
+    assert memory.points.shape == (0, 3)

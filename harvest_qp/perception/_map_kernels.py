@@ -1,0 +1,580 @@
+"""Compiled (numba) kernels of :class:`harvest_qp.perception.obstacle_map.ObstacleMap`.
+
+The map is a dense voxel grid over a bounded workspace, stored block by block: 8x8x8
+cells per block, the 512 cells of a block contiguous, so a ray's consecutive cells share
+cache lines and the capsule query can skip whole empty blocks. Each cell holds an
+OctoMap log-odds value (float32, so the same arithmetic as OctoMap's ``OcTreeNode``) and
+the id of the last frame that updated it (at most one update per cell per frame, hits
+before misses, as OctoMap's ``insertPointCloud``).
+
+Cell keys are OctoMap's without the 2^15 offset: ``key = floor(x / resolution)``, cell
+centre ``(key + 0.5) * resolution``; ``ix = key - lo_key`` indexes the grid.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+BLOCK_SHIFT = 3
+BLOCK = 1 << BLOCK_SHIFT  # cells per block edge
+BLOCK_CELLS = BLOCK**3
+_MASK = BLOCK - 1
+
+# Point labels (same values as harvest_qp.interface).
+STEM = 0
+OBSTACLE = 1
+ROBOT = 2
+
+# Counters returned by integrate_frame.
+N_INVALID = 0  # non-finite point or label outside the known ones
+N_OUT_OF_RANGE = 1  # farther than max_range (or closer than min_range) from the camera
+N_INSERTED = 2  # obstacle points that updated a cell as a hit
+N_EXCLUDED = 3  # obstacle points inside an exclusion region
+N_OUTSIDE = 4  # obstacle points outside the grid
+N_STEM_ERASED = 5  # occupied cells forgotten because a stem point fell in them
+N_RAYS = 6  # clearing rays traced
+N_CELLS_CLEARED = 7  # cells that got a miss
+N_NO_RETURN_RAYS = 8  # clearing rays traced for pixels without a return
+N_COUNTERS = 9
+
+
+@njit(cache=True, inline="always")
+def cell_index(ix, iy, iz, nby, nbz):
+    """Linear index of grid cell (ix, iy, iz) in the block layout."""
+    block = ((ix >> BLOCK_SHIFT) * nby + (iy >> BLOCK_SHIFT)) * nbz + (iz >> BLOCK_SHIFT)
+    return (block << 9) | ((ix & _MASK) << 6) | ((iy & _MASK) << 3) | (iz & _MASK)
+
+
+@njit(cache=True)
+def index_to_cell(idx, nby, nbz):
+    """Grid cell (ix, iy, iz) of a linear index (inverse of :func:`cell_index`)."""
+    block = idx >> 9
+    local = idx & (BLOCK_CELLS - 1)
+    bz = block % nbz
+    rest = block // nbz
+    by = rest % nby
+    bx = rest // nby
+    return (bx << 3) | (local >> 6), (by << 3) | ((local >> 3) & _MASK), (bz << 3) | (local & _MASK)
+
+
+@njit(cache=True, inline="always")
+def _point_in_regions(px, py, pz, regions):
+    """True if the point lies in one of the capsules ``regions[k] = (x0, y0, z0, x1, y1, z1, r)``."""
+    for k in range(regions.shape[0]):
+        ax, ay, az = regions[k, 0], regions[k, 1], regions[k, 2]
+        dx, dy, dz = regions[k, 3] - ax, regions[k, 4] - ay, regions[k, 5] - az
+        wx, wy, wz = px - ax, py - ay, pz - az
+        dd = dx * dx + dy * dy + dz * dz
+        t = 0.0
+        if dd > 0.0:
+            t = (wx * dx + wy * dy + wz * dz) / dd
+            t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+        ex, ey, ez = wx - t * dx, wy - t * dy, wz - t * dz
+        if ex * ex + ey * ey + ez * ez <= regions[k, 6] * regions[k, 6]:
+            return True
+    return False
+
+
+@njit(cache=True, inline="always")
+def _mark_dirty(block, dirty, dirty_list, n_dirty):
+    if not dirty[block]:
+        dirty[block] = True
+        dirty_list[n_dirty[0]] = block
+        n_dirty[0] += 1
+
+
+@njit(cache=True)
+def _trace_ray(
+    ox, oy, oz, ex, ey, ez, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
+    dirty, dirty_list, n_dirty,
+):
+    """Apply a miss to every cell the segment origin -> end crosses, the end's own cell excluded.
+
+    The traversal is OctoMap's ``computeRayKeys`` (Amanatides & Woo): the origin's cell,
+    then each cell entered before the end's cell or before the segment ends. The origin
+    must lie in the grid; the walk stops when it leaves the grid. The linear index is
+    stepped incrementally (within a block or across to the next block) rather than
+    recomputed: this loop is the map update's main cost. Returns the number of cells that
+    got a miss.
+    """
+    inv = 1.0 / res
+    kox = int(np.floor(ox * inv))
+    koy = int(np.floor(oy * inv))
+    koz = int(np.floor(oz * inv))
+    kex = int(np.floor(ex * inv))
+    key_ey = int(np.floor(ey * inv))
+    kez = int(np.floor(ez * inv))
+    if kox == kex and koy == key_ey and koz == kez:
+        return 0
+    dx, dy, dz = ex - ox, ey - oy, ez - oz
+    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+    dx /= length
+    dy /= length
+    dz /= length
+    big = 1e300
+    sx = 1 if dx > 0.0 else (-1 if dx < 0.0 else 0)
+    sy = 1 if dy > 0.0 else (-1 if dy < 0.0 else 0)
+    sz = 1 if dz > 0.0 else (-1 if dz < 0.0 else 0)
+    tmx = ((kox + 0.5) * res + sx * res * 0.5 - ox) / dx if sx != 0 else big
+    tmy = ((koy + 0.5) * res + sy * res * 0.5 - oy) / dy if sy != 0 else big
+    tmz = ((koz + 0.5) * res + sz * res * 0.5 - oz) / dz if sz != 0 else big
+    tdx = res / abs(dx) if sx != 0 else big
+    tdy = res / abs(dy) if sy != 0 else big
+    tdz = res / abs(dz) if sz != 0 else big
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    # Grid cell and its end-cell offsets; the end key in grid coordinates.
+    ix, iy, iz = kox - lo_key[0], koy - lo_key[1], koz - lo_key[2]
+    jx, jy, jz = kex - lo_key[0], key_ey - lo_key[1], kez - lo_key[2]
+    if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+        return 0
+    # Index steps: inside a block, and when crossing into the next block (+1 direction).
+    bsx = (nby * nbz) << 9
+    bsy = nbz << 9
+    bsz = 1 << 9
+    cross_x = bsx - (_MASK << 6)
+    cross_y = bsy - (_MASK << 3)
+    cross_z = bsz - _MASK
+    idx = cell_index(ix, iy, iz, nby, nbz)
+    count = 0
+    while True:
+        if stamp[idx] != frame:
+            stamp[idx] = frame
+            old = log_odds[idx]
+            if old > clamp_min:
+                new = old + miss
+                if new < clamp_min:
+                    new = clamp_min
+                log_odds[idx] = new
+                if old > 0.0 and new <= 0.0:
+                    _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+            count += 1
+        if tmx < tmy:
+            if tmx < tmz:
+                if sx > 0:
+                    idx += cross_x if (ix & _MASK) == _MASK else 64
+                else:
+                    idx -= cross_x if (ix & _MASK) == 0 else 64
+                ix += sx
+                tmx += tdx
+                if ix < 0 or ix >= nx:
+                    return count
+            else:
+                if sz > 0:
+                    idx += cross_z if (iz & _MASK) == _MASK else 1
+                else:
+                    idx -= cross_z if (iz & _MASK) == 0 else 1
+                iz += sz
+                tmz += tdz
+                if iz < 0 or iz >= nz:
+                    return count
+        else:
+            if tmy < tmz:
+                if sy > 0:
+                    idx += cross_y if (iy & _MASK) == _MASK else 8
+                else:
+                    idx -= cross_y if (iy & _MASK) == 0 else 8
+                iy += sy
+                tmy += tdy
+                if iy < 0 or iy >= ny:
+                    return count
+            else:
+                if sz > 0:
+                    idx += cross_z if (iz & _MASK) == _MASK else 1
+                else:
+                    idx -= cross_z if (iz & _MASK) == 0 else 1
+                iz += sz
+                tmz += tdz
+                if iz < 0 or iz >= nz:
+                    return count
+        if ix == jx and iy == jy and iz == jz:
+            return count
+        if min(tmx, min(tmy, tmz)) > length:
+            return count
+
+
+@njit(cache=True)
+def _clip_to_box(ox, oy, oz, px, py, pz, lo, hi):
+    """Segment o -> p clipped to the box [lo, hi]: (t0, t1) in [0, 1], t0 > t1 when it misses."""
+    t0, t1 = 0.0, 1.0
+    o = (ox, oy, oz)
+    d = (px - ox, py - oy, pz - oz)
+    for a in range(3):
+        if d[a] == 0.0:
+            if o[a] < lo[a] or o[a] > hi[a]:
+                return 1.0, 0.0
+        else:
+            ta = (lo[a] - o[a]) / d[a]
+            tb = (hi[a] - o[a]) / d[a]
+            if ta > tb:
+                ta, tb = tb, ta
+            t0 = max(t0, ta)
+            t1 = min(t1, tb)
+    return t0, t1
+
+
+@njit(cache=True)
+def integrate_frame(
+    points, labels, pixels, origin, rotation, regions, stride, phase_row, phase_col, near_skip, min_range, max_range,
+    no_return, nr_stride, nr_phase_row, nr_phase_col, intrinsics, returned, res, lo_key, dims, nby, nbz,
+    log_odds, stamp, frame, hit, miss,
+    clamp_min, clamp_max, dirty, dirty_list, n_dirty, counters,
+):
+    """One camera frame into the map (see ``ObstacleMap.update`` for the rules).
+
+    Pass 1 inserts the obstacle points (one hit per cell), pass 2 erases the cells the stem
+    points fall in, pass 3 traces the clearing rays of the pixels on the ``stride`` grid
+    (one miss per cell, none where pass 1 or 2 acted this frame; those off the twice coarser
+    grid start ``near_skip`` [m] from the camera when it is > 0); pass 4, when
+    ``no_return[1] > no_return[0]``, traces the pixels of the ``nr_stride`` grid without any point from
+    ``no_return[0]`` to ``no_return[1]`` [m] along the pinhole rays of ``intrinsics``
+    ``(f, cx, cy)`` [pixels] (camera rotation ``rotation``; ``returned`` is an (h, w) scratch).
+    """
+    n = points.shape[0]
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    inv = 1.0 / res
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    lo = (lo_key[0] * res, lo_key[1] * res, lo_key[2] * res)
+    hi = ((lo_key[0] + nx) * res, (lo_key[1] + ny) * res, (lo_key[2] + nz) * res)
+    # Slightly inside the box, so the clipped end points fall in edge cells.
+    eps = 1e-9 * res
+    lo_in = (lo[0] + eps, lo[1] + eps, lo[2] + eps)
+    hi_in = (hi[0] - eps, hi[1] - eps, hi[2] - eps)
+    valid = np.zeros(n, dtype=np.bool_)
+    min2, max2 = min_range * min_range, max_range * max_range
+    for i in range(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        lab = labels[i]
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)) or lab < 0 or lab > 2:
+            counters[N_INVALID] += 1
+            continue
+        r2 = (px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2
+        if r2 > max2 or r2 < min2:
+            counters[N_OUT_OF_RANGE] += 1
+            continue
+        valid[i] = True
+        if lab != OBSTACLE:
+            continue
+        if _point_in_regions(px, py, pz, regions):
+            counters[N_EXCLUDED] += 1
+            continue
+        ix = int(np.floor(px * inv)) - lo_key[0]
+        iy = int(np.floor(py * inv)) - lo_key[1]
+        iz = int(np.floor(pz * inv)) - lo_key[2]
+        if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+            counters[N_OUTSIDE] += 1
+            continue
+        idx = cell_index(ix, iy, iz, nby, nbz)
+        if stamp[idx] == frame:
+            continue
+        stamp[idx] = frame
+        old = log_odds[idx]
+        new = old + hit
+        if new > clamp_max:
+            new = clamp_max
+        log_odds[idx] = new
+        counters[N_INSERTED] += 1
+        if old <= 0.0 and new > 0.0:
+            _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+    # The stem is what the arms must reach: an occupied cell a stem point falls in is
+    # forgotten (unless an obstacle point hit it in this frame), so a stem seen earlier as
+    # an obstacle (beyond the camera's stem range) leaves the map once it is recognised.
+    for i in range(n):
+        if not valid[i] or labels[i] != STEM:
+            continue
+        ix = int(np.floor(points[i, 0] * inv)) - lo_key[0]
+        iy = int(np.floor(points[i, 1] * inv)) - lo_key[1]
+        iz = int(np.floor(points[i, 2] * inv)) - lo_key[2]
+        if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+            continue
+        idx = cell_index(ix, iy, iz, nby, nbz)
+        if stamp[idx] == frame:
+            continue
+        stamp[idx] = frame
+        if log_odds[idx] > 0.0:
+            log_odds[idx] = 0.0
+            counters[N_STEM_ERASED] += 1
+            _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+    for i in range(n):
+        if not valid[i]:
+            continue
+        dr = pixels[i, 0] - phase_row
+        dc = pixels[i, 1] - phase_col
+        if stride > 1 and (dr % stride != 0 or dc % stride != 0):
+            continue
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        sx, sy, sz = ox, oy, oz
+        t0, t1 = _clip_to_box(ox, oy, oz, px, py, pz, lo_in, hi_in)
+        if near_skip > 0.0 and (dr % (2 * stride) != 0 or dc % (2 * stride) != 0):
+            # Within near_skip of the camera the rays of the twice coarser grid are close
+            # enough to cross every cell: the others start there (half the ray steps).
+            rng = np.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2)
+            if rng <= near_skip:
+                continue
+            t0 = max(t0, near_skip / rng)
+        if t0 > t1:
+            continue
+        if t0 > 0.0:
+            sx, sy, sz = ox + t0 * (px - ox), oy + t0 * (py - oy), oz + t0 * (pz - oz)
+        counters[N_RAYS] += 1
+        counters[N_CELLS_CLEARED] += _trace_ray(
+            sx, sy, sz, px, py, pz, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
+            dirty, dirty_list, n_dirty,
+        )
+    if no_return[1] <= no_return[0]:
+        return
+    # Pixels without a return (nothing within the camera's range, as the empty space behind
+    # a leaf that moved away): clear along their rays from no_return[0] to no_return[1].
+    h, w = returned.shape
+    returned[:, :] = False
+    for i in range(n):
+        r, c = pixels[i, 0], pixels[i, 1]
+        if 0 <= r < h and 0 <= c < w:
+            returned[r, c] = True  # any point, valid or not: that pixel saw something
+    for r in range(h):
+        if nr_stride > 1 and (r - nr_phase_row) % nr_stride != 0:
+            continue
+        for c in range(w):
+            if returned[r, c] or (nr_stride > 1 and (c - nr_phase_col) % nr_stride != 0):
+                continue
+            xc = (c + 0.5 - intrinsics[1]) / intrinsics[0]
+            yc = (r + 0.5 - intrinsics[2]) / intrinsics[0]
+            norm = np.sqrt(xc * xc + yc * yc + 1.0)
+            dx = (rotation[0, 0] * xc + rotation[0, 1] * yc + rotation[0, 2]) / norm
+            dy = (rotation[1, 0] * xc + rotation[1, 1] * yc + rotation[1, 2]) / norm
+            dz = (rotation[2, 0] * xc + rotation[2, 1] * yc + rotation[2, 2]) / norm
+            ax, ay, az = ox + no_return[0] * dx, oy + no_return[0] * dy, oz + no_return[0] * dz
+            bx, by, bz = ox + no_return[1] * dx, oy + no_return[1] * dy, oz + no_return[1] * dz
+            t0, t1 = _clip_to_box(ax, ay, az, bx, by, bz, lo_in, hi_in)
+            if t0 > t1:
+                continue
+            if t0 > 0.0:
+                ax, ay, az = ax + t0 * (bx - ax), ay + t0 * (by - ay), az + t0 * (bz - az)
+            counters[N_NO_RETURN_RAYS] += 1
+            counters[N_CELLS_CLEARED] += _trace_ray(
+                ax, ay, az, bx, by, bz, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
+                dirty, dirty_list, n_dirty,
+            )
+
+
+@njit(cache=True)
+def erase_regions(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_list, n_dirty):
+    """Forget (log-odds 0) every occupied cell whose centre lies in one of the capsule ``regions``; returns how many."""
+    erased = 0
+    for k in range(regions.shape[0]):
+        r = regions[k, 6]
+        lo_i = np.empty(3, np.int64)
+        hi_i = np.empty(3, np.int64)
+        for a in range(3):
+            lo_c = min(regions[k, a], regions[k, 3 + a]) - r
+            hi_c = max(regions[k, a], regions[k, 3 + a]) + r
+            lo_i[a] = max(int(np.floor(lo_c / res)) - lo_key[a], 0)
+            hi_i[a] = min(int(np.floor(hi_c / res)) - lo_key[a], dims[a] - 1)
+        one = regions[k : k + 1]
+        for ix in range(lo_i[0], hi_i[0] + 1):
+            cx = (ix + lo_key[0] + 0.5) * res
+            for iy in range(lo_i[1], hi_i[1] + 1):
+                cy = (iy + lo_key[1] + 0.5) * res
+                for iz in range(lo_i[2], hi_i[2] + 1):
+                    cz = (iz + lo_key[2] + 0.5) * res
+                    if not _point_in_regions(cx, cy, cz, one):
+                        continue
+                    idx = cell_index(ix, iy, iz, nby, nbz)
+                    if log_odds[idx] > 0.0:
+                        log_odds[idx] = 0.0
+                        erased += 1
+                        _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+    return erased
+
+
+@njit(cache=True)
+def rebuild_blocks(dirty_list, n_dirty, dirty, log_odds, block_cells, block_count):
+    """Refresh the list of occupied cells (log-odds > 0) of every dirty block, then clear the flags."""
+    for j in range(n_dirty):
+        b = dirty_list[j]
+        base = b << 9
+        c = 0
+        for local in range(BLOCK_CELLS):
+            if log_odds[base + local] > 0.0:
+                block_cells[b, c] = local
+                c += 1
+        block_count[b] = c
+        dirty[b] = False
+
+
+@njit(cache=True, inline="always")
+def _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd):
+    wx, wy, wz = px - ax, py - ay, pz - az
+    t = 0.0
+    if dd > 0.0:
+        t = (wx * dx + wy * dy + wz * dz) / dd
+        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+    ex, ey, ez = wx - t * dx, wy - t * dy, wz - t * dz
+    return np.sqrt(ex * ex + ey * ey + ez * ez)
+
+
+@njit(cache=True)
+def closest_cells(
+    w0, w1, radii, max_distance, cell_radius, min_separation, res, lo_key, dims, nby, nbz, block_cells,
+    block_count, scratch_index, scratch_distance, out_index, out_distance, out_count,
+):
+    """For each capsule ``w0[c]-w1[c]`` (radius ``radii[c]``), its closest occupied cells.
+
+    A cell counts as the sphere of radius ``cell_radius`` around its centre; its distance
+    is the capsule-sphere surface distance. The ``m = scratch_index.shape[0]`` closest
+    cells within ``max_distance`` are collected (blocks whose bounding sphere is farther
+    are skipped whole), then kept closest first, skipping a cell closer than
+    ``min_separation`` to one already kept (neighbouring cells of one surface give nearly
+    the same damper row), up to ``out_index.shape[1]`` cells: ``out_index[c]`` (linear cell
+    indices), ``out_distance[c]``, ``out_count[c]``.
+    """
+    m_max = scratch_index.shape[0]
+    k_max = out_index.shape[1]
+    nbx = dims[0] >> BLOCK_SHIFT
+    block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
+    half = 0.5 * BLOCK * res
+    sep2 = min_separation * min_separation
+    nb = (nbx, nby, nbz)
+    blo = np.empty(3, np.int64)
+    bhi = np.empty(3, np.int64)
+    for c in range(w0.shape[0]):
+        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+        dd = dx * dx + dy * dy + dz * dz
+        reach = radii[c] + max_distance + cell_radius  # centre distance that still counts
+        count = 0
+        worst = reach  # current admission bound on the centre distance
+        for a in range(3):
+            lo_c = min(w0[c, a], w1[c, a]) - reach
+            hi_c = max(w0[c, a], w1[c, a]) + reach
+            blo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
+            bhi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+        for bx in range(blo[0], bhi[0] + 1):
+            cx0 = (lo_key[0] + bx * BLOCK) * res
+            for by in range(blo[1], bhi[1] + 1):
+                cy0 = (lo_key[1] + by * BLOCK) * res
+                for bz in range(blo[2], bhi[2] + 1):
+                    b = (bx * nby + by) * nbz + bz
+                    nc = block_count[b]
+                    if nc == 0:
+                        continue
+                    cz0 = (lo_key[2] + bz * BLOCK) * res
+                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
+                    if db - block_half_diag > worst:
+                        continue
+                    for j in range(nc):
+                        local = block_cells[b, j]
+                        px = cx0 + ((local >> 6) + 0.5) * res
+                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
+                        pz = cz0 + ((local & _MASK) + 0.5) * res
+                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
+                        if d > worst:
+                            continue
+                        # Insert in the sorted top-m list.
+                        pos = count if count < m_max else m_max - 1
+                        while pos > 0 and scratch_distance[pos - 1] > d:
+                            scratch_distance[pos] = scratch_distance[pos - 1]
+                            scratch_index[pos] = scratch_index[pos - 1]
+                            pos -= 1
+                        scratch_distance[pos] = d
+                        scratch_index[pos] = (b << 9) | local
+                        if count < m_max:
+                            count += 1
+                        if count == m_max:
+                            worst = scratch_distance[m_max - 1]
+        kept = 0
+        for j in range(count):
+            if kept == k_max:
+                break
+            idx = scratch_index[j]
+            if sep2 > 0.0:
+                ix, iy, iz = index_to_cell(idx, nby, nbz)
+                far = True
+                for i in range(kept):
+                    jx, jy, jz = index_to_cell(out_index[c, i], nby, nbz)
+                    if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
+                        far = False
+                        break
+                if not far:
+                    continue
+            out_index[c, kept] = idx
+            out_distance[c, kept] = scratch_distance[j] - radii[c] - cell_radius
+            kept += 1
+        out_count[c] = kept
+
+
+@njit(cache=True)
+def cell_centres(indices, res, lo_key, nby, nbz, out):
+    """World centres [m] of linear cell ``indices``."""
+    for j in range(indices.shape[0]):
+        ix, iy, iz = index_to_cell(indices[j], nby, nbz)
+        out[j, 0] = (ix + lo_key[0] + 0.5) * res
+        out[j, 1] = (iy + lo_key[1] + 0.5) * res
+        out[j, 2] = (iz + lo_key[2] + 0.5) * res
+
+
+@njit(cache=True)
+def log_odds_at(points, res, lo_key, dims, nby, nbz, log_odds, out):
+    """Log-odds of the cells holding ``points`` (0 = unknown for points outside the grid or non-finite)."""
+    for j in range(points.shape[0]):
+        out[j] = 0.0
+        px, py, pz = points[j, 0], points[j, 1], points[j, 2]
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            continue
+        ix = int(np.floor(px / res)) - lo_key[0]
+        iy = int(np.floor(py / res)) - lo_key[1]
+        iz = int(np.floor(pz / res)) - lo_key[2]
+        if 0 <= ix < dims[0] and 0 <= iy < dims[1] and 0 <= iz < dims[2]:
+            out[j] = log_odds[cell_index(ix, iy, iz, nby, nbz)]
+
+
+@njit(cache=True)
+def occupied_indices(block_cells, block_count, out):
+    """Linear indices of all occupied cells into ``out``; returns how many."""
+    n = 0
+    for b in range(block_count.shape[0]):
+        for j in range(block_count[b]):
+            out[n] = (b << 9) | block_cells[b, j]
+            n += 1
+    return n
+
+
+@njit(cache=True)
+def gather_cells(index, distance, max_cells, res, lo_key, nby, nbz, out_cells, out_centres):
+    """Union of the capsules' cells (``index[c, j] >= 0``), at most ``max_cells`` of them.
+
+    When there are more, the ones closest to any capsule are kept. The kept cells are
+    written sorted into ``out_cells`` with their centres [m] in ``out_centres``; returns
+    how many.
+    """
+    n_all = index.shape[0] * index.shape[1]
+    cells = np.empty(n_all, np.int64)
+    best = np.empty(n_all)
+    n = 0
+    for c in range(index.shape[0]):
+        for j in range(index.shape[1]):
+            idx = index[c, j]
+            if idx < 0:
+                continue
+            found = -1
+            for i in range(n):
+                if cells[i] == idx:
+                    found = i
+                    break
+            if found < 0:
+                cells[n] = idx
+                best[n] = distance[c, j]
+                n += 1
+            elif distance[c, j] < best[found]:
+                best[found] = distance[c, j]
+    if n > max_cells:
+        order = np.argsort(best[:n], kind="mergesort")
+        kept = np.sort(cells[:n][order[:max_cells]])
+        n = max_cells
+        cells[:n] = kept
+    else:
+        cells[:n] = np.sort(cells[:n])
+    for i in range(n):
+        out_cells[i] = cells[i]
+    cell_centres(out_cells[:n], res, lo_key, nby, nbz, out_centres)
+    return n

@@ -1,0 +1,756 @@
+"""A persistent obstacle map built from the camera's labelled clouds, fed to the QP's collision rows.
+
+:class:`ObstacleMap` is an occupancy grid in the world frame updated from every camera frame
+(:class:`~harvest_qp.interface.PointCloud`) with OctoMap's probabilistic rules (Hornung et
+al. 2013): each obstacle point is a *hit* on its cell, each cell a ray crosses from the
+camera to a measured point is a *miss*, log-odds are summed and clamped, and a cell is
+occupied while its log-odds is above 0. So a leaf that moved away, or a noise point, is
+cleared after a few frames by the rays that now pass through it, while what has left the
+field of view is remembered. Unknown space counts as free, as in the paper (its collision
+constraints only know the robot and what is seen).
+
+What is inserted (the rules of the harvester, not of OctoMap):
+
+* only points labelled :data:`~harvest_qp.interface.OBSTACLE`; the robot's own points
+  (:data:`~harvest_qp.interface.ROBOT`) never, the stem (:data:`~harvest_qp.interface.STEM`)
+  never: an occupied cell a stem point falls in is forgotten unless an obstacle point hit
+  it in the same frame, so a stem seen as an obstacle beyond the camera's stem range leaves the map
+  once it is recognised as the stem;
+* never points inside the caller's exclusion regions (capsules, e.g. the cluster held by
+  the gripper, which moves with it, or the stem model); the occupied cells inside them
+  are forgotten at each update (``erase_excluded``), so one hit brings an obstacle back
+  once the region has moved on;
+* non-finite points and points farther than ``max_range`` from the camera are ignored
+  (neither inserted nor used for clearing; OctoMap would clear up to ``max_range`` along
+  them, but a return far beyond the camera's range is a faulty one).
+
+The grid is dense and bounded (``bounds``, the space the arms can reach) and the
+work is done by numba kernels (:mod:`._map_kernels`); clearing rays are traced for the
+pixels of a ``clear_stride`` grid whose phase turns every frame, so every pixel clears
+once every ``clear_stride**2`` frames, and near the camera, where rays crowd, only those
+of the twice coarser grid (see :class:`ObstacleMap`). Measured speeds and the choice of the defaults:
+``benchmarks/bench_map.py`` and the module constants below.
+
+:class:`MapCollisionFeed` turns the map into :class:`~harvest_qp.limits.CollisionAvoidance`
+obstacle spheres before each QP step: for each arm capsule, its closest occupied cells
+within the influence distance, each a sphere covering its cell (radius sqrt(3)/2 times
+the resolution), so each becomes a velocity-damper row with the limit's own d_s / d_i /
+gain, and its pair name tells the cell (``cell[kx,ky,kz]``, the cell's integer key).
+
+Typical use in a control loop::
+
+    obstacle_map = ObstacleMap()
+    feed = MapCollisionFeed(collision_limit, obstacle_map, controller.configuration)
+    # every tick, before controller.step(q):
+    if new_cloud is not None:
+        obstacle_map.update(new_cloud, exclude=[held_cluster_region])
+    feed.update(q)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.interface import PointCloud
+from harvest_qp.perception import _map_kernels as K
+from harvest_qp.validation import as_positive_scalar
+
+__all__ = [
+    "DEFAULT_BOUNDS",
+    "DEFAULT_CLEAR_RAYS",
+    "DEFAULT_MIN_SEPARATION",
+    "DEFAULT_RESOLUTION",
+    "CellQuery",
+    "ExclusionRegion",
+    "MapCollisionFeed",
+    "MapUpdateStats",
+    "ObstacleMap",
+]
+
+#: Cell edge [m]. 1 cm: the arms' capsules are 2-6.5 cm in radius, d_s is 1 cm; the
+#: map's capsule distance is within sqrt(3) cells of the truth (see ObstacleMap), 1.7 cm
+#: here; 2 cm cells would make it 3.5 cm, a third of the 10 cm influence distance.
+DEFAULT_RESOLUTION = 0.01
+#: Grid bounds [m] (lower corner, upper corner): where the arms work (bases at (0, +-0.36, 0.8),
+#: the vine at x ~0.4-0.9 m), from just behind the stand to 1.2 m in front of it, +-1.2 m
+#: sideways, 0.2-2.0 m high; obstacle points outside are not mapped. 7.1 M cells at 1 cm,
+#: 57 MB (log-odds, frame stamps, per-block lists of occupied cells).
+DEFAULT_BOUNDS = ((-0.4, -1.2, 0.2), (1.2, 1.2, 2.0))
+#: Cells of one capsule's rows at least this far apart [m] (MapCollisionFeed): the 4 closest
+#: cells of a wall are neighbours whose damper rows are nearly parallel, and daqp then
+#: returned solutions 1e-6 outside the constraints (rejected by the solver's 1e-7 check,
+#: so the controller fell back to a stop) in a gripper-to-wall approach; 3 cm apart, the
+#: rows of one capsule differ by ~30 deg and the same approach ran without a fallback.
+DEFAULT_MIN_SEPARATION = 0.03
+#: Clearing rays traced per frame (about; the pixel stride is the nearest integer to
+#: sqrt(pixels / DEFAULT_CLEAR_RAYS)): stride 2 at 283x160 and 6 at 848x480, rays 8.8 mm
+#: apart at 1 m in both, so at 1 cm every cell in front of the surfaces within ~1 m is
+#: crossed every frame.
+DEFAULT_CLEAR_RAYS = 12000
+
+
+def _logodds(probability: float) -> np.float32:
+    # As OctoMap (log in double, stored as float), so both maps hold the same values.
+    return np.float32(math.log(probability / (1.0 - probability)))
+
+
+@dataclass(frozen=True)
+class ExclusionRegion:
+    """A capsule [m] whose points are never obstacles: segment ``p0``-``p1``, ``radius``.
+
+    A sphere is a capsule with ``p0 == p1`` (:meth:`sphere`).
+    """
+
+    p0: tuple[float, float, float]
+    p1: tuple[float, float, float]
+    radius: float
+
+    @classmethod
+    def sphere(cls, center: ArrayLike, radius: float) -> ExclusionRegion:
+        """A sphere of ``radius`` [m] around ``center`` [m]."""
+        c = tuple(float(x) for x in np.asarray(center, dtype=float).ravel())
+        return cls(c, c, float(radius))  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class MapUpdateStats:
+    """What one :meth:`ObstacleMap.update` did with a frame (point counts unless said)."""
+
+    frame_rejected: str
+    """Why the whole frame was ignored ("" when it was used)."""
+    invalid: int
+    """Non-finite points or unknown labels (ignored)."""
+    out_of_range: int
+    """Points farther than ``max_range`` from the camera (ignored)."""
+    inserted: int
+    """Obstacle points that updated a cell as a hit (one per cell per frame)."""
+    excluded: int
+    """Obstacle points inside an exclusion region (not inserted)."""
+    outside_grid: int
+    """Obstacle points outside the grid bounds (not inserted)."""
+    stem_erased: int
+    """Occupied cells forgotten because a stem point fell in them."""
+    rays: int
+    """Clearing rays traced to measured points."""
+    no_return_rays: int
+    """Clearing rays traced for pixels without a return (``no_return_range``)."""
+    cells_cleared: int
+    """Cells that got a miss."""
+    region_erased: int
+    """Occupied cells forgotten because they lie in an exclusion region."""
+
+
+@dataclass(frozen=True)
+class CellQuery:
+    """The closest occupied cells to each capsule, closest first.
+
+    Attributes:
+        counts: ``(n,)`` number of cells found for each capsule.
+        distances: ``(n, k)`` surface distance [m] from each capsule to the sphere
+            covering each cell (``inf`` past ``counts``).
+        centres: ``(n, k, 3)`` cell centres [m] (NaN past ``counts``).
+        keys: ``(n, k, 3)`` integer cell keys ``floor(x / resolution)`` (0 past ``counts``).
+        indices: ``(n, k)`` the map's linear cell indices (-1 past ``counts``).
+    """
+
+    counts: NDArray[np.int64]
+    distances: NDArray[np.float64]
+    centres: NDArray[np.float64]
+    keys: NDArray[np.int64]
+    indices: NDArray[np.int64]
+
+    def min_distances(self) -> NDArray[np.float64]:
+        """``(n,)`` distance [m] to each capsule's closest cell (``inf`` when none in range)."""
+        return self.distances[:, 0].copy()
+
+
+def _fit_pinhole(points, pixels, pose) -> tuple[float, float, float] | None:
+    """Focal length and principal point [pixels] of the camera that took the cloud, or None.
+
+    ``col + 0.5 = f x / z + cx`` and ``row + 0.5 = f y / z + cy`` in the camera frame, fitted
+    by least squares on up to 2,000 points; None when fewer than 20 finite points or an
+    RMS residual above 0.5 pixel (not a pinhole image).
+    """
+    n = points.shape[0]
+    if n < 20:
+        return None
+    take = np.linspace(0, n - 1, min(n, 2000)).astype(np.int64)
+    pc = (points[take] - pose[:3, 3]) @ pose[:3, :3]
+    ok = np.all(np.isfinite(pc), axis=1) & (pc[:, 2] > 1e-6)
+    if ok.sum() < 20:
+        return None
+    x, y = pc[ok, 0] / pc[ok, 2], pc[ok, 1] / pc[ok, 2]
+    u, v = pixels[take][ok, 1] + 0.5, pixels[take][ok, 0] + 0.5
+    m = ok.sum()
+    A = np.zeros((2 * m, 3))
+    A[:m, 0], A[:m, 1] = x, 1.0
+    A[m:, 0], A[m:, 2] = y, 1.0
+    sol, *_ = np.linalg.lstsq(A, np.concatenate([u, v]), rcond=None)
+    rms = float(np.sqrt(np.mean((A @ sol - np.concatenate([u, v])) ** 2)))
+    if not np.all(np.isfinite(sol)) or sol[0] <= 0 or rms > 0.5:
+        return None
+    return float(sol[0]), float(sol[1]), float(sol[2])
+
+
+def _positive_int(value, name: str) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InvalidInputError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _as_regions(exclude) -> NDArray[np.float64]:
+    """Exclusion regions as an ``(n, 7)`` array ``(x0, y0, z0, x1, y1, z1, radius)``."""
+    if exclude is None:
+        return np.zeros((0, 7))
+    if isinstance(exclude, ExclusionRegion):
+        exclude = [exclude]
+    if isinstance(exclude, np.ndarray):
+        arr = np.asarray(exclude, dtype=float)
+    else:
+        rows = []
+        for region in exclude:
+            if isinstance(region, ExclusionRegion):
+                rows.append([*region.p0, *region.p1, region.radius])
+            else:
+                rows.append(np.asarray(region, dtype=float).ravel())
+        arr = np.array(rows, dtype=float) if rows else np.zeros((0, 7))
+    if arr.ndim == 1 and arr.size == 7:
+        arr = arr.reshape(1, 7)
+    if arr.ndim != 2 or arr.shape[1] != 7:
+        raise InvalidInputError(
+            f"exclude must be ExclusionRegion objects or an (n, 7) array of (x0, y0, z0, x1, y1, z1, radius), "
+            f"got shape {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)) or np.any(arr[:, 6] < 0):
+        raise InvalidInputError(f"exclude regions must be finite with radius >= 0 [m], got {arr.tolist()}")
+    return np.ascontiguousarray(arr)
+
+
+class ObstacleMap:
+    """Occupancy grid of what the camera has seen, in the world frame.
+
+    Args:
+        resolution: cell edge [m].
+        bounds: ``((x_min, y_min, z_min), (x_max, y_max, z_max))`` [m], the mapped box;
+            it is grown to whole 8-cell blocks aligned on multiples of ``resolution``.
+        max_range: points farther than this from the camera are ignored [m].
+        min_range: points closer than this to the camera are ignored [m].
+        prob_hit, prob_miss: occupancy probability of a hit / a miss (OctoMap's defaults).
+        clamp_min, clamp_max: probability clamps (OctoMap's defaults): a cell at
+            ``clamp_max`` (log-odds 3.51) is free after 9 frames of misses (-0.405 each);
+            an unknown cell is occupied after 1 hit (+0.847), a cell cleared down to
+            ``clamp_min`` (-2.0) after 3.
+        clear_stride: pixel stride of the clearing rays (their phase turns every frame);
+            None: the nearest integer to ``sqrt(pixels / clear_rays)``.
+        clear_rays: target number of clearing rays per frame when ``clear_stride`` is None.
+            With a stride > 1, within ``0.6 * resolution * f / (2 * stride)`` of the camera
+            (f: focal length [pixels] fitted once to the cloud; 0.33 m for the D415 at
+            283x160 and 848x480), where the rays of the twice coarser grid are 0.6 cell
+            apart, only those clear; the others start there (-25 % CPU, measured).
+        no_return_range: ``(start, end)`` [m]: pixels of the clearing grid with no point in
+            the cloud (nothing within the camera's depth range) clear their ray from
+            ``start`` to ``end`` (on a pixel grid twice as coarse as ``clear_stride``), so
+            a leaf that moved away from an empty background disappears too. Off (None)
+            by default, as in OctoMap: a missing return also comes from dropout, dark or
+            specular surfaces and objects nearer than the camera's minimum depth. The
+            rays follow a pinhole fitted to the cloud's pixels and points (kept per image
+            size for frames that cannot be fitted: too few points or worse than 0.5 pixel
+            RMS).
+        erase_excluded: at each update, erase the cells inside the exclusion regions.
+
+    Distances: a cell counts as the sphere of radius ``sqrt(3)/2 * resolution`` around its
+    centre (it covers the cell), so the distance from a capsule to the map is never more
+    than to the seen surface and at most ``sqrt(3) * resolution`` less.
+    """
+
+    def __init__(
+        self,
+        *,
+        resolution: float = DEFAULT_RESOLUTION,
+        bounds: tuple[ArrayLike, ArrayLike] = DEFAULT_BOUNDS,
+        max_range: float = 2.5,
+        min_range: float = 0.0,
+        prob_hit: float = 0.7,
+        prob_miss: float = 0.4,
+        clamp_min: float = 0.1192,
+        clamp_max: float = 0.971,
+        clear_stride: int | None = None,
+        clear_rays: int = DEFAULT_CLEAR_RAYS,
+        no_return_range: tuple[float, float] | None = None,
+        erase_excluded: bool = True,
+    ) -> None:
+        self.resolution = as_positive_scalar(resolution, "resolution")
+        self.max_range = as_positive_scalar(max_range, "max_range")
+        self.min_range = as_positive_scalar(min_range, "min_range", allow_zero=True)
+        if self.min_range >= self.max_range:
+            raise InvalidInputError(f"min_range ({min_range} m) must be below max_range ({max_range} m)")
+        for name, p in (("prob_hit", prob_hit), ("prob_miss", prob_miss), ("clamp_min", clamp_min),
+                        ("clamp_max", clamp_max)):  # fmt: skip
+            if not (isinstance(p, (int, float, np.floating)) and 0.0 < p < 1.0):
+                raise InvalidInputError(f"{name} must be a probability in (0, 1), got {p!r}")
+        if not (prob_hit > 0.5 > prob_miss and clamp_min < 0.5 < clamp_max):
+            raise InvalidInputError(
+                f"need prob_hit > 0.5 > prob_miss and clamp_min < 0.5 < clamp_max, got prob_hit={prob_hit}, "
+                f"prob_miss={prob_miss}, clamp_min={clamp_min}, clamp_max={clamp_max}"
+            )
+        self.hit = _logodds(prob_hit)
+        self.miss = _logodds(prob_miss)
+        self.clamp_min = _logodds(clamp_min)
+        self.clamp_max = _logodds(clamp_max)
+        self.clear_stride = None if clear_stride is None else _positive_int(clear_stride, "clear_stride")
+        self.clear_rays = _positive_int(clear_rays, "clear_rays")
+        self.erase_excluded = bool(erase_excluded)
+        if no_return_range is not None:
+            try:
+                start, end = (float(x) for x in no_return_range)
+            except (TypeError, ValueError):
+                raise InvalidInputError(
+                    f"no_return_range must be (start, end) [m] or None, got {no_return_range!r}"
+                ) from None
+            if not (np.isfinite(start) and np.isfinite(end) and 0.0 <= start < end):
+                raise InvalidInputError(f"no_return_range must satisfy 0 <= start < end [m], got {no_return_range!r}")
+            no_return_range = (start, end)
+        self.no_return_range = no_return_range
+        self._returned = np.zeros((1, 1), dtype=np.bool_)
+        self._pinhole: dict[tuple[int, int], tuple[float, float, float]] = {}
+        try:
+            lo = np.asarray(bounds[0], dtype=float).reshape(3)
+            hi = np.asarray(bounds[1], dtype=float).reshape(3)
+        except (TypeError, ValueError, IndexError):
+            raise InvalidInputError(f"bounds must be ((x, y, z) lower, (x, y, z) upper) [m], got {bounds!r}") from None
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
+            raise InvalidInputError(f"bounds must be finite with upper > lower [m], got {bounds!r}")
+        res = self.resolution
+        self.lo_key = np.floor(lo / res).astype(np.int64)
+        n_cells = np.ceil(hi / res).astype(np.int64) - self.lo_key
+        n_blocks = (n_cells + K.BLOCK - 1) // K.BLOCK
+        if int(np.prod(n_blocks)) * K.BLOCK_CELLS > 200_000_000:
+            raise InvalidInputError(
+                f"bounds {bounds!r} at resolution {resolution} m need {int(np.prod(n_blocks)) * K.BLOCK_CELLS} "
+                "cells; at most 200 M are allowed"
+            )
+        self.dims = (n_blocks * K.BLOCK).astype(np.int64)
+        self.n_blocks = n_blocks
+        self._nby, self._nbz = int(n_blocks[1]), int(n_blocks[2])
+        n_total = int(np.prod(self.dims))
+        self.log_odds = np.zeros(n_total, dtype=np.float32)
+        self._stamp = np.zeros(n_total, dtype=np.uint16)
+        nb = int(np.prod(n_blocks))
+        self._dirty = np.zeros(nb, dtype=np.bool_)
+        self._dirty_list = np.zeros(nb, dtype=np.int64)
+        self._n_dirty = np.zeros(1, dtype=np.int64)
+        self._block_cells = np.zeros((nb, K.BLOCK_CELLS), dtype=np.int16)
+        self._block_count = np.zeros(nb, dtype=np.int64)
+        self._frame = 0
+        self.frames = 0
+        #: Radius [m] of the sphere that covers a cell.
+        self.cell_radius = 0.5 * math.sqrt(3.0) * res
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def lower_corner(self) -> NDArray[np.float64]:
+        """World position [m] of the grid's lower corner."""
+        return self.lo_key * self.resolution
+
+    @property
+    def upper_corner(self) -> NDArray[np.float64]:
+        """World position [m] of the grid's upper corner."""
+        return (self.lo_key + self.dims) * self.resolution
+
+    @property
+    def num_occupied(self) -> int:
+        """Number of occupied cells."""
+        return int(self._block_count.sum())
+
+    def clear(self) -> None:
+        """Forget everything (all cells unknown, i.e. free)."""
+        self.log_odds[:] = 0.0
+        self._stamp[:] = 0
+        self._block_count[:] = 0
+        self._dirty[:] = False
+        self._n_dirty[0] = 0
+        self._frame = 0
+        self.frames = 0
+
+    def keys(self, points: ArrayLike) -> NDArray[np.int64]:
+        """Integer cell keys ``floor(p / resolution)`` of ``(n, 3)`` points [m]."""
+        return np.floor(np.asarray(points, dtype=float) * (1.0 / self.resolution)).astype(np.int64)
+
+    def occupied_centres(self) -> NDArray[np.float64]:
+        """``(n, 3)`` centres [m] of all occupied cells."""
+        idx = self._occupied_indices()
+        out = np.empty((idx.shape[0], 3))
+        K.cell_centres(idx, self.resolution, self.lo_key, self._nby, self._nbz, out)
+        return out
+
+    def occupied_keys(self) -> NDArray[np.int64]:
+        """``(n, 3)`` integer keys of all occupied cells."""
+        return self.keys(self.occupied_centres())
+
+    def _occupied_indices(self) -> NDArray[np.int64]:
+        out = np.empty(self.num_occupied, dtype=np.int64)
+        K.occupied_indices(self._block_cells, self._block_count, out)
+        return out
+
+    def log_odds_at(self, points: ArrayLike) -> NDArray[np.float32]:
+        """Log-odds of the cells holding ``(n, 3)`` points [m] (0: unknown or outside the grid)."""
+        pts = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
+        out = np.zeros(pts.shape[0], dtype=np.float32)
+        K.log_odds_at(pts, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds, out)
+        return out
+
+    def is_occupied(self, points: ArrayLike) -> NDArray[np.bool_]:
+        """Whether the cells holding ``(n, 3)`` points [m] are occupied."""
+        return self.log_odds_at(points) > 0.0
+
+    # ------------------------------------------------------------------ update
+    def update(
+        self, cloud: PointCloud, *, exclude: Sequence[ExclusionRegion] | ArrayLike | None = None
+    ) -> MapUpdateStats:
+        """Integrate one camera frame.
+
+        Args:
+            cloud: the frame (world-frame points, labels, camera pose, pixels).
+            exclude: regions whose points are never inserted (and whose cells are
+                erased when ``erase_excluded``): the cluster held by the gripper at its
+                current pose, the stem model, ...: :class:`ExclusionRegion` objects or an
+                ``(n, 7)`` array of ``(x0, y0, z0, x1, y1, z1, radius)`` [m].
+
+        A frame whose camera pose is not finite is ignored whole; invalid points are
+        skipped one by one (see :class:`MapUpdateStats`). Never raises on the cloud's
+        content; raises :class:`~harvest_qp.exceptions.InvalidInputError` when ``cloud``
+        is not a :class:`PointCloud` or ``exclude`` is malformed.
+        """
+        if not isinstance(cloud, PointCloud):
+            raise InvalidInputError(f"cloud must be a PointCloud, got {type(cloud).__name__}")
+        regions = _as_regions(exclude)
+        counters = np.zeros(K.N_COUNTERS, dtype=np.int64)
+        origin = np.ascontiguousarray(cloud.camera_pose[:3, 3], dtype=float)
+        if not np.all(np.isfinite(cloud.camera_pose)):
+            return self._stats("camera_pose is not finite", counters, 0)
+        if np.abs(origin).max() > 1e6:  # keeps every key computation far from integer overflow
+            return self._stats(f"camera position {origin.tolist()} is more than 1000 km away", counters, 0)
+        region_erased = 0
+        if self.erase_excluded and regions.shape[0]:
+            region_erased = K.erase_regions(
+                regions, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
+                self._dirty, self._dirty_list, self._n_dirty,
+            )  # fmt: skip
+        if len(cloud) == 0 and (self.no_return_range is None or tuple(cloud.image_size) not in self._pinhole):
+            self._finish_update()
+            return self._stats("", counters, region_erased)
+        self._next_frame()
+        h, w = cloud.image_size
+        stride = self.clear_stride
+        if stride is None:
+            stride = max(1, int(round(math.sqrt(max(h * w, 1) / self.clear_rays))))
+        phase = self.frames % (stride * stride)
+        # Rays without a return cross empty space all the way: half as dense is enough
+        # (7 mm apart at 0.4 m at 283x160) and halves their cost.
+        nr_stride = 2 * stride
+        nr_phase = self.frames % (nr_stride * nr_stride)
+        points = np.ascontiguousarray(cloud.points, dtype=np.float64)
+        pixels = np.ascontiguousarray(cloud.pixels, dtype=np.int32)
+        rotation = np.ascontiguousarray(cloud.camera_pose[:3, :3], dtype=float)
+        no_return = np.zeros(2)
+        intrinsics = np.zeros(3)
+        # The camera's pinhole, fitted once per image size (the first frame that allows it).
+        fit = self._pinhole.get((h, w))
+        if fit is None and (stride > 1 or self.no_return_range is not None):
+            fit = _fit_pinhole(points, pixels, cloud.camera_pose)
+            if fit is not None:
+                self._pinhole[(h, w)] = fit
+        near_skip = 0.0
+        if fit is not None and stride > 1:
+            # Rays of the 2 * stride grid are 2 * stride / f rad apart: up to this range they
+            # are at most 0.6 cell apart, so they alone cross every cell there.
+            near_skip = 0.6 * self.resolution * fit[0] / (2 * stride)
+        if self.no_return_range is not None:
+            if fit is not None:
+                no_return[:] = self.no_return_range
+                intrinsics[:] = fit
+                if self._returned.shape != (h, w):
+                    self._returned = np.zeros((h, w), dtype=np.bool_)
+        K.integrate_frame(
+            points, np.ascontiguousarray(cloud.labels, dtype=np.int8), pixels, origin, rotation, regions,
+            stride, phase // stride, phase % stride, near_skip, self.min_range, self.max_range, no_return,
+            nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
+            self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
+            self._stamp, self._frame, self.hit, self.miss, self.clamp_min, self.clamp_max,
+            self._dirty, self._dirty_list, self._n_dirty, counters,
+        )  # fmt: skip
+        self.frames += 1
+        self._finish_update()
+        return self._stats("", counters, region_erased)
+
+    def erase(self, regions: Sequence[ExclusionRegion] | ArrayLike) -> int:
+        """Forget (make unknown, i.e. free) the occupied cells whose centres lie in ``regions``; returns how many."""
+        arr = _as_regions(regions)
+        n = K.erase_regions(
+            arr, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
+            self._dirty, self._dirty_list, self._n_dirty,
+        )  # fmt: skip
+        self._finish_update()
+        return int(n)
+
+    def _next_frame(self) -> None:
+        self._frame += 1
+        if self._frame > np.iinfo(np.uint16).max:  # stamps wrap: forget them (one memset per ~36 min at 30 Hz)
+            self._stamp[:] = 0
+            self._frame = 1
+
+    def _finish_update(self) -> None:
+        n = int(self._n_dirty[0])
+        if n:
+            K.rebuild_blocks(self._dirty_list, n, self._dirty, self.log_odds, self._block_cells, self._block_count)
+            self._n_dirty[0] = 0
+
+    @staticmethod
+    def _stats(rejected: str, c: NDArray[np.int64], region_erased: int) -> MapUpdateStats:
+        return MapUpdateStats(
+            frame_rejected=rejected, invalid=int(c[K.N_INVALID]), out_of_range=int(c[K.N_OUT_OF_RANGE]),
+            inserted=int(c[K.N_INSERTED]), excluded=int(c[K.N_EXCLUDED]), outside_grid=int(c[K.N_OUTSIDE]),
+            stem_erased=int(c[K.N_STEM_ERASED]), rays=int(c[K.N_RAYS]), no_return_rays=int(c[K.N_NO_RETURN_RAYS]),
+            cells_cleared=int(c[K.N_CELLS_CLEARED]), region_erased=int(region_erased),
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ queries
+    def closest_cells(
+        self,
+        p0: ArrayLike,
+        p1: ArrayLike,
+        radii: ArrayLike,
+        *,
+        max_distance: float,
+        per_capsule: int = 4,
+        min_separation: float = 0.0,
+        candidates: int | None = None,
+    ) -> CellQuery:
+        """The ``per_capsule`` closest occupied cells within ``max_distance`` [m] of each capsule.
+
+        Args:
+            p0, p1: ``(n, 3)`` capsule end points [m] (world frame).
+            radii: ``(n,)`` capsule radii [m] (or one for all).
+            max_distance: largest surface distance [m] reported.
+            per_capsule: cells kept per capsule, closest first.
+            min_separation: a cell closer than this [m] to a closer kept cell of the same
+                capsule is skipped (0: the plain k closest).
+            candidates: how many closest cells the separation rule picks from (default
+                ``8 * per_capsule`` with a separation, else ``per_capsule``).
+        """
+        a = np.ascontiguousarray(np.asarray(p0, dtype=float).reshape(-1, 3))
+        b = np.ascontiguousarray(np.asarray(p1, dtype=float).reshape(-1, 3))
+        if a.shape != b.shape:
+            raise InvalidInputError(f"p0 and p1 must have the same shape (n, 3), got {a.shape} and {b.shape}")
+        r = np.ascontiguousarray(np.broadcast_to(np.asarray(radii, dtype=float), (a.shape[0],)))
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(r >= 0)):
+            raise InvalidInputError("capsule end points must be finite and radii finite and >= 0 [m]")
+        max_distance = as_positive_scalar(max_distance, "max_distance", allow_zero=True)
+        per_capsule = _positive_int(per_capsule, "per_capsule")
+        min_separation = as_positive_scalar(min_separation, "min_separation", allow_zero=True)
+        n, k = a.shape[0], int(per_capsule)
+        if candidates is None:
+            candidates = 8 * k if min_separation > 0 else k
+        if _positive_int(candidates, "candidates") < k:
+            raise InvalidInputError(f"candidates must be an integer >= per_capsule ({k}), got {candidates!r}")
+        index = np.full((n, k), -1, dtype=np.int64)
+        dist = np.full((n, k), np.inf)
+        count = np.zeros(n, dtype=np.int64)
+        scratch_i = np.zeros(int(candidates), dtype=np.int64)
+        scratch_d = np.zeros(int(candidates))
+        self._query(a, b, r, max_distance, min_separation, scratch_i, scratch_d, index, dist, count)
+        centres = np.full((n, k, 3), np.nan)
+        valid = index >= 0
+        flat = np.empty((int(valid.sum()), 3))
+        K.cell_centres(index[valid], self.resolution, self.lo_key, self._nby, self._nbz, flat)
+        centres[valid] = flat
+        keys = np.zeros((n, k, 3), dtype=np.int64)
+        keys[valid] = self.keys(flat)
+        return CellQuery(counts=count, distances=dist, centres=centres, keys=keys, indices=index)
+
+    def _query(self, a, b, r, max_distance, min_separation, scratch_i, scratch_d, index, dist, count) -> None:
+        """The compiled query on prepared arrays (no checks; for the per-tick feed)."""
+        K.closest_cells(
+            a, b, r, max_distance, self.cell_radius, min_separation, self.resolution, self.lo_key, self.dims,
+            self._nby, self._nbz, self._block_cells, self._block_count, scratch_i, scratch_d, index, dist, count,
+        )  # fmt: skip
+
+
+class MapCollisionFeed:
+    """Feeds an :class:`ObstacleMap` to a :class:`~harvest_qp.limits.CollisionAvoidance` before each QP step.
+
+    :meth:`update` finds, for each arm capsule, its ``per_capsule`` closest occupied cells
+    within the limit's influence distance plus ``margin`` (cells of one capsule at least
+    ``min_separation`` apart), and makes their union the limit's obstacle spheres (each
+    covering its cell), so the limit's own closest-pair selection turns them into damper
+    rows with its d_s / d_i / gain. The obstacle names in ``limit.capsule_names`` (hence
+    ``limit.pair_names()`` and the logged active pairs) are ``cell[kx,ky,kz]``, the cell's
+    integer key ``floor(x / resolution)``; unused slots are ``free_slot``.
+
+    The limit gets a fixed number of obstacle slots (``max_cells``) once, and
+    each update writes the cells into them in place, because
+    ``CollisionAvoidance.set_obstacle_spheres`` rebuilds the pair arrays (~55 us a call,
+    measured); unused slots are parked far below the world with radius 0, so the limit's
+    broadphase drops them. If the limit's arrays are not laid out as expected, each update
+    falls back to ``set_obstacle_spheres``.
+
+    Args:
+        limit: the collision limit to feed (its obstacle spheres are replaced).
+        obstacle_map: the map.
+        configuration: the robot (its model gives the kinematic chain of the capsules).
+        per_capsule: cells kept per capsule.
+        min_separation: a capsule's cells at least this far apart [m] (see
+            :data:`DEFAULT_MIN_SEPARATION`).
+        margin: extra query distance [m] beyond the limit's influence distance.
+        max_cells: obstacle slots given to the limit; when the capsules' cells are more, the
+            closest ones are kept. Every slot is paired with all 15 moving capsules by the
+            limit, and it keeps at most ``max_pairs`` (24) rows anyway.
+        capsules: the robot capsules to query (``CapsuleGeometry`` attached to frames);
+            default: the 15 moving capsules of :func:`harvest_qp.robot.description.collision_bodies`.
+    """
+
+    _PARK = np.array([0.0, 0.0, -1.0e3])  # where unused slots wait [m]
+
+    def __init__(
+        self,
+        limit,
+        obstacle_map: ObstacleMap,
+        configuration,
+        *,
+        per_capsule: int = 4,
+        min_separation: float = DEFAULT_MIN_SEPARATION,
+        margin: float = 0.01,
+        max_cells: int = 24,
+        capsules: Sequence | None = None,
+    ) -> None:
+        from harvest_qp.collision import kernels as collision_kernels
+        from harvest_qp.limits.collision_avoidance import KinematicTree
+        from harvest_qp.robot import description as desc
+
+        if not isinstance(obstacle_map, ObstacleMap):
+            raise InvalidInputError(f"obstacle_map must be an ObstacleMap, got {type(obstacle_map).__name__}")
+        if not hasattr(limit, "set_obstacle_spheres") or not hasattr(limit, "influence_distance"):
+            raise InvalidInputError(f"limit must be a CollisionAvoidance, got {type(limit).__name__}")
+        per_capsule = _positive_int(per_capsule, "per_capsule")
+        self.limit = limit
+        self.map = obstacle_map
+        self.configuration = configuration
+        self.per_capsule = int(per_capsule)
+        self.margin = as_positive_scalar(margin, "margin", allow_zero=True)
+        self.min_separation = as_positive_scalar(min_separation, "min_separation", allow_zero=True)
+        if capsules is None:
+            bodies = [b for b in desc.collision_bodies() if b.arm]
+            items = [(b.name, b.link, b.capsule.p0, b.capsule.p1, b.capsule.radius) for b in bodies]
+        else:
+            items = [(c.name, c.frame, c.p0, c.p1, c.radius) for c in capsules]
+        if not items or any(frame is None for _, frame, *_ in items):
+            raise InvalidInputError("capsules must be non-empty and each attached to a frame")
+        self.capsule_names = [name for name, *_ in items]
+        # Capsule end points in the joint frame that carries them; the world end points come
+        # from the collision package's compiled forward kinematics (2 us for both arms,
+        # against ~35 us reading pinocchio's placements from Python).
+        model = configuration.model
+        joints, a_local, b_local = [], [], []
+        for _, frame_name, p0, p1, _ in items:
+            frame = model.frames[configuration.frame_id(frame_name)]
+            joints.append(frame.parentJoint)
+            a_local.append(frame.placement.act(np.asarray(p0, dtype=float)))
+            b_local.append(frame.placement.act(np.asarray(p1, dtype=float)))
+        self._tree = KinematicTree(configuration)
+        self._capsule_world = collision_kernels.capsule_world
+        self._joints = np.array(joints, dtype=np.int64)
+        self._a_local = np.array(a_local)
+        self._b_local = np.array(b_local)
+        self.radii = np.array([r for *_, r in items], dtype=float)
+        n = len(items)
+        self._w0 = np.zeros((n, 3))
+        self._w1 = np.zeros((n, 3))
+        self._index = np.full((n, self.per_capsule), -1, dtype=np.int64)
+        self._dist = np.full((n, self.per_capsule), np.inf)
+        self._count = np.zeros(n, dtype=np.int64)
+        m = 8 * self.per_capsule if self.min_separation > 0 else self.per_capsule
+        self._scratch_i = np.zeros(m, dtype=np.int64)
+        self._scratch_d = np.zeros(m)
+        self._names: dict[int, str] = {}
+        self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
+        self._centres = np.tile(self._PARK, (self.slots, 1))
+        self._cells = np.zeros(self.slots, dtype=np.int64)
+        limit.set_obstacle_spheres(self._centres, 0.0)
+        self._first = len(limit.capsule_names) - self.slots
+        self._in_place = self._layout_ok()
+        self._slot_names = ["free_slot"] * self.slots
+        self._last = np.zeros(0, dtype=np.int64)
+        #: Linear indices of the cells fed at the last update.
+        self.cells = self._last
+
+    def _layout_ok(self) -> bool:
+        """Whether the limit keeps its obstacle spheres at the end of cap_p0 / cap_p1 / cap_radius."""
+        lim, first, n = self.limit, self._first, self.slots
+        try:
+            return (
+                len(lim.capsule_names) == first + n
+                and lim.cap_p0.shape == (first + n, 3) and lim.cap_p1.shape == (first + n, 3)
+                and lim.cap_radius.shape == (first + n,)
+                and np.array_equal(lim.cap_p0[first:], self._centres)
+                and np.array_equal(lim.cap_p1[first:], self._centres)
+            )  # fmt: skip
+        except (AttributeError, TypeError):
+            return False
+
+    def capsule_world(self, q: ArrayLike | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World end points ``(p0, p1)`` [m] of the queried capsules at ``q`` [rad] (default: the configuration's)."""
+        q = self.configuration.q if q is None else np.asarray(q, dtype=float)
+        tree = self._tree
+        tree.update(q)
+        self._capsule_world(self._joints, self._a_local, self._b_local, tree.joint_R, tree.joint_p, self._w0, self._w1)
+        return self._w0, self._w1
+
+    def update(self, q: ArrayLike | None = None) -> int:
+        """Refresh the limit's obstacle spheres from the map for joint positions ``q`` [rad]
+        (default: the configuration's current ones); returns how many cells were fed."""
+        w0, w1 = self.capsule_world(q)
+        if not (np.all(np.isfinite(w0)) and np.all(np.isfinite(w1))):
+            return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
+        self._index.fill(-1)
+        self.map._query(
+            w0, w1, self.radii, self.limit.influence_distance + self.margin, self.min_separation,
+            self._scratch_i, self._scratch_d, self._index, self._dist, self._count,
+        )  # fmt: skip
+        m = self.map
+        self._centres[:] = self._PARK
+        n = K.gather_cells(
+            self._index, self._dist, self.slots, m.resolution, m.lo_key, m._nby, m._nbz, self._cells, self._centres
+        )
+        cells = self._cells[:n]
+        if n == self._last.shape[0] and np.array_equal(cells, self._last):
+            return n  # same cells: the limit already has them
+        cells = cells.copy()
+        radii = np.zeros(self.slots)
+        radii[:n] = m.cell_radius
+        for j, idx in enumerate(cells):
+            name = self._names.get(int(idx))
+            if name is None:
+                if len(self._names) > 100_000:  # a long episode: keep the cache bounded
+                    self._names.clear()
+                kx, ky, kz = m.keys(self._centres[j])
+                name = self._names[int(idx)] = f"cell[{kx},{ky},{kz}]"
+            self._slot_names[j] = name
+        for j in range(n, min(self._last.shape[0], self.slots)):
+            self._slot_names[j] = "free_slot"
+        lim, first = self.limit, self._first
+        if self._in_place:
+            lim.cap_p0[first:] = self._centres
+            lim.cap_p1[first:] = self._centres
+            lim.cap_radius[first:] = radii
+        else:
+            lim.set_obstacle_spheres(self._centres, radii)
+        lim.capsule_names[first:] = self._slot_names
+        self._last = cells
+        self.cells = cells
+        return int(n)

@@ -1,0 +1,105 @@
+"""``harvest-qp sweep``: the sub-command's arguments and body, for ``harvest_qp.cli`` to mount.
+
+Wiring in ``harvest_qp/cli.py``::
+
+    from harvest_qp.sweep.cli import add_sweep_parser, sweep_main
+    add_sweep_parser(sub)                       # next to the other sub-parsers
+    ...
+    if args.command == "sweep":                 # inside the try: HarvestQPError -> exit code 2
+        return sweep_main(args)
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.sweep.command import CommandEpisode
+from harvest_qp.sweep.runner import run_sweep
+from harvest_qp.sweep.seeds import parse_seeds
+
+EpisodeFactory = Callable[[Path, Path], Callable[[int], Mapping[str, Any]]]
+
+
+def run_command_episode(config: Path, runs_dir: Path) -> Callable[[int], Mapping[str, Any]]:
+    """The default episode: ``python -m harvest_qp.cli run CONFIG --seed N --out RUNS_DIR/seed_N`` per seed.
+
+    One interpreter per episode (its crash or leak stays there); each seed keeps its run folder.
+    """
+    return CommandEpisode((sys.executable, "-m", "harvest_qp.cli", "run", str(config)), runs_dir=str(runs_dir))
+
+
+def add_sweep_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``sweep`` to the ``harvest-qp`` sub-commands."""
+    sweep = subparsers.add_parser(
+        "sweep",
+        help="run one episode per seed on randomised scenes, locally or on Ray, and summarise",
+        description="One closed-loop episode per seed (scene VineSceneParams.sample(seed)); writes sweep.csv "
+        "(one row per seed), sweep.md (success rate with a 95 % Wilson interval, failure reasons, medians) "
+        "and figures. Re-running the same command skips the seeds already done.",
+    )
+    sweep.add_argument("config", type=Path, help="YAML config of the episode")
+    sweep.add_argument(
+        "--seeds", default="0:100", help="'0:100' (seeds 0..99), '3', '1,2,5' or '0:10:2' (default 0:100)"
+    )
+    sweep.add_argument("--workers", type=int, default=None, help="parallel episodes (default: the CPUs available)")
+    sweep.add_argument("--out", type=Path, default=None, help="sweep folder (default: runs/sweep-<config name>)")
+    sweep.add_argument("--engine", choices=("local", "ray"), default="local", help="local processes (default) or Ray")
+    sweep.add_argument(
+        "--address", default=None, help="Ray head HOST:PORT (or 'auto'); default: a private local Ray instance"
+    )
+    sweep.add_argument(
+        "--episode-timeout", type=float, default=None, metavar="S", help="stop an episode after S seconds"
+    )
+    sweep.add_argument("--retry-failed", action="store_true", help="run again seeds that raised, died or timed out")
+    sweep.add_argument("--no-figures", action="store_true", help="skip the figures")
+    sweep.add_argument("--quiet", action="store_true", help="no progress line")
+    return sweep
+
+
+def sweep_main(args: argparse.Namespace, *, episode_for: EpisodeFactory = run_command_episode) -> int:
+    """Run the sweep the parsed ``args`` describe; print where the results are. Exit code 0.
+
+    Args:
+        args: from the parser of :func:`add_sweep_parser`.
+        episode_for: ``(config, runs_dir) -> episode``; the default runs ``harvest-qp run`` per seed.
+
+    Raises:
+        InvalidInputError: a missing config, bad seeds or arguments (the CLI turns it into exit code 2).
+    """
+    config = Path(args.config)
+    if not config.is_file():
+        raise InvalidInputError(f"CONFIG: {str(config)!r} is not a file")
+    seeds = parse_seeds(args.seeds)
+    out = Path(args.out) if args.out is not None else Path("runs") / f"sweep-{config.stem}"
+    fingerprint = {"config": config.name, "config_sha256": hashlib.sha256(config.read_bytes()).hexdigest()}
+    result = run_sweep(
+        episode_for(config.resolve(), (out / "episodes").resolve()),
+        seeds,
+        out_dir=out,
+        workers=args.workers,
+        engine=args.engine,
+        address=args.address,
+        progress=not args.quiet,
+        episode_timeout=args.episode_timeout,
+        retry_failed=args.retry_failed,
+        fingerprint=fingerprint,
+        figures=not args.no_figures,
+        title=f"Sweep of {config.name}",
+    )
+    summary = result.summary
+    low, high = summary.interval
+    print(
+        f"{summary.successes}/{summary.episodes} episodes succeeded "
+        f"({100 * summary.success_rate:.1f} %, 95 % CI {100 * low:.1f}-{100 * high:.1f} %); "
+        f"ran {len(result.ran)}, skipped {len(result.skipped)} already done"
+    )
+    print(f"results: {result.csv_path}\nreport:  {result.report_path}")
+    for path in result.figures.paths.values():
+        print(f"figure:  {path}")
+    return 0
