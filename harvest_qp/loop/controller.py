@@ -204,6 +204,12 @@ class HarvestController:
         self.collision = next((lim for lim in limits if isinstance(lim, CollisionAvoidance)), None)
         self.qp = TaskController(self.configuration, tasks, limits, dt=0.002, solver=qp["solver"],
                                  max_acceleration=self.max_acceleration)
+        self.obstacle_map = self.map_feed = None
+        if s["obstacle_map"]["enabled"] and self.collision is not None:
+            from harvest_qp.perception.obstacle_map import MapCollisionFeed, ObstacleMap
+
+            self.obstacle_map = ObstacleMap()
+            self.map_feed = MapCollisionFeed(self.collision, self.obstacle_map, self.configuration)
         backup = qp.get("backup_solver")
         self.qp_backup = (
             TaskController(self.configuration, tasks, self.qp.limits, dt=0.002, solver=backup,
@@ -288,6 +294,13 @@ class HarvestController:
                 predicted = self._predicted_stem(T_g)
             self.unveiling.observe(p_c, stem, non_stem, predicted_stem_points=predicted,
                                    roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
+        if self.obstacle_map is not None:
+            from harvest_qp.perception.obstacle_map import ExclusionRegion
+
+            o, y = s["obstacles"], T_g[:3, 1]
+            held = ExclusionRegion(tuple(T_g[:3, 3] - 0.03 * y), tuple(T_g[:3, 3] + (o["cluster_length"] + 0.03) * y),
+                                   o["cluster_radius"] + 0.02)
+            self.obstacle_map.update(cloud, exclude=[held])
         if self.collision is not None and s["obstacles"]["enabled"]:
             self._update_obstacle_spheres(cloud.points[labels == OBSTACLE], T_g)
         if st.phase != Phase.APPROACH:
@@ -570,6 +583,8 @@ class HarvestController:
             self.gripper_task.set_reference(V_g)
             self.roll_task.set_reference(roll)
             previous = self.qp.previous_qdot.copy()
+            if self.map_feed is not None:
+                self.map_feed.update(obs.q)
             result = self.qp.step(obs.q)
             if not result.ok and self.qp_backup is not None:
                 # Stopgap until the QP core retries itself (issue 10 section 1): daqp answers

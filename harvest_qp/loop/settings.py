@@ -74,6 +74,7 @@ SPEC: dict[str, dict[str, Any]] = {
         "enabled": "bool", "max_distance": "pos", "voxel": "pos", "radius": "nonneg",
         "cluster_radius": "nonneg", "cluster_length": "nonneg",
     },
+    "obstacle_map": {"enabled": "bool"},  # issue 11's map of the vine fed to the QP's collision rows
     "safety": {
         "force_limit": "pos|null",  # [N] abort above it; null = 2 f_d
         "stem_lost_timeout": "pos",  # [s] no stem point in the bimanual phase
@@ -122,6 +123,7 @@ DEFAULTS: dict[str, Any] = {
     "roll": {"enabled": True, "k_roll": 1.0},
     "obstacles": {"enabled": False, "max_distance": 0.25, "voxel": 0.02, "radius": 0.01, "cluster_radius": 0.075,
                   "cluster_length": 0.22},
+    "obstacle_map": {"enabled": False},
     "safety": {"force_limit": None, "stem_lost_timeout": 5.0, "no_stem_timeout": 30.0, "max_qp_failures": 25},
     "precut": {"force_tolerance": 0.1, "position_tolerance": 0.005, "alignment_tolerance_deg": 5.0,
                "hold_time": 1.0, "force_time_constant": 0.2},
