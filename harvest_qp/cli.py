@@ -1,4 +1,7 @@
-"""Command-line interface: ``harvest-qp demo``, ``harvest-qp check-config``.
+"""Command-line interface: ``harvest-qp run``, ``harvest-qp demo``, ``harvest-qp check-config``.
+
+``harvest-qp run tasks/paper.yaml`` runs the paper's experiment (Section ``sec:exper``) in
+the MuJoCo lab and writes ``metrics.json``, the ``.npz`` log and the figures.
 
 Headless by default; nothing is downloaded and no server is started unless asked.
 """
@@ -139,6 +142,31 @@ def run_sim_demo(
     }
 
 
+def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: str | None = None,
+              duration: float | None = None, overrides: list[str] | None = None, figures: bool = True) -> dict:
+    """``harvest-qp run``: one paper episode; returns its metrics (also written to ``out``)."""
+    from harvest_qp.loop.episode import run_paper_episode
+    from harvest_qp.loop.settings import load_settings
+
+    settings = load_settings(config, overrides or [])
+    if duration is not None and not (np.isfinite(duration) and duration > 0):
+        raise HarvestQPError(f"--duration must be a number of seconds > 0; got {duration}")
+    if seed < 0:
+        raise HarvestQPError(f"--seed must be an integer >= 0; got {seed}")
+    report = run_paper_episode(settings, seed=seed, mapper=mapper, duration=duration, out_dir=out,
+                               config_name=Path(config).stem, figures=figures)
+    report.metrics["out_dir"] = str(report.out_dir)
+    return report.metrics
+
+
+_RUN_SUMMARY = (
+    "success", "phase_reached", "abort_reason", "t_bimanual_start", "final_distance_to_roi_center",
+    "final_theta_deg", "visible_stem_points_start", "visible_stem_points_switch", "visible_stem_points_end",
+    "final_position_error", "final_alignment_deg", "final_cutter_stem_angle_deg", "force_mean_last_1s",
+    "force_max", "min_collision_distance", "contacts", "stem_torn", "qp_failures", "realtime_factor", "out_dir",
+)
+
+
 def _print_summary(title: str, summary: dict) -> None:
     print(title)
     for key, value in summary.items():
@@ -149,6 +177,17 @@ def _print_summary(title: str, summary: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="harvest-qp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run the paper's experiment headless (tasks/paper.yaml) and write "
+                         "metrics.json, the log and the figures")
+    run.add_argument("config", type=Path, help="settings file, e.g. tasks/paper.yaml")
+    run.add_argument("--seed", type=int, default=0, help="0: the default scene; N > 0: a randomised scene")
+    run.add_argument("--out", type=Path, default=None, help="output folder (default runs/<config>-<seed>/)")
+    run.add_argument("--mapper", choices=("qp", "pinv"), default=None,
+                     help="QP (default) or the paper's pseudo-inverse on the same references")
+    run.add_argument("--duration", type=float, default=None, help="episode length [s]")
+    run.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                     help="override a setting, e.g. --set grasping.f_d=2.5 (repeatable)")
+    run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     demo = sub.add_parser("demo", help="run the QP demo headless on the MuJoCo vine scene and print a summary")
     demo.add_argument("--config", type=Path, default=None,
                       help="YAML task config (default: tasks/sim_reach_stem.yaml; "
@@ -164,6 +203,15 @@ def main(argv: list[str] | None = None) -> int:
     check.add_argument("config", type=Path)
     args = parser.parse_args(argv)
     try:
+        if args.command == "run":
+            metrics = run_paper(args.config, seed=args.seed, out=args.out, mapper=args.mapper,
+                                duration=args.duration, overrides=args.overrides, figures=not args.no_figures)
+            _print_summary(f"harvest_qp paper episode ({args.config.name}, seed {args.seed}, "
+                           f"{metrics['mapper']})", {k: metrics.get(k) for k in _RUN_SUMMARY})
+            if not metrics["success"]:
+                failed = [k for k, ok in metrics["criteria"].items() if not ok]
+                print(f"  failed criteria: {', '.join(failed)}")
+            return 0 if metrics["success"] else 1
         if args.command == "demo" and args.kinematic:
             path = args.config or tasks_dir() / "reach_targets.yaml"
             summary = run_reach_demo(path, duration=args.duration, solver=args.solver)
@@ -183,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.config}: {len(config.tasks)} tasks, {len(config.limits)} limits, dt={config.dt} s: OK")
             return 0
     except HarvestQPError as err:
-        print(f"harvest-qp: error: {err}", file=sys.stderr)
+        print(f"harvest-qp: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     return 0
 

@@ -14,8 +14,15 @@ records the status and the error message, and ends the episode.
 Controller protocol::
 
     class MyController:
-        def reset(self, robot: RobotInterface) -> None: ...
+        def reset(self, robot: RobotInterface) -> None: ...   # read the initial state only
         def step(self, obs: Observation) -> Command | np.ndarray: ...
+
+A controller needs no robot handle after ``reset``: the observation carries the robot
+clock (``obs.time``) and ``obs.tare_force()``, which zeroes the wrist force sensor (as a
+real F/T sensor's tare) from the next tick on. A :class:`Command` may also carry named
+per-tick values (``values``, scalars or fixed-shape arrays, logged as ``value/<name>``),
+the collision pairs its QP step had active (``collision_pairs``: ``(name_a, name_b,
+distance [m])``), and ``done=True`` to end the episode after this tick.
 
 Log keys (N control ticks, F camera frames):
 
@@ -25,6 +32,10 @@ Log keys (N control ticks, F camera frames):
 * ``stem_points`` (N,) int32: STEM points in the latest cloud (-1 before the first frame),
   ``cloud_time`` (N,) [s]: capture time of the latest cloud (NaN before the first);
 * ``task_error/<name>`` (N,): the controller's task errors (NaN on ticks without them);
+* ``value/<name>`` (N, ...): the controller's named per-tick values (NaN where absent);
+* ``collision/pair_names`` (P,) str ``"a|b"``: every collision pair that was active at
+  least once; ``collision/active_pair`` (N, K) int32 index into it (-1 = none) and
+  ``collision/active_distance`` (N, K) float32 [m] per tick, K the most pairs active at once;
 * ``truth/<name>``: the robot's ``ground_truth()`` per tick when it has one (simulation);
 * ``frame_time``, ``frame_n_points``, ``frame_stem_points`` (F,), ``frame_camera_pose`` (F, 4, 4);
   with ``log_clouds``: ``cloud_points`` (P, 3) float32, ``cloud_labels`` (P,) int8,
@@ -42,7 +53,7 @@ import math
 import time
 import traceback
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -74,6 +85,8 @@ class Observation:
         force: wrist force (3,) [N, world] (see :meth:`RobotInterface.wrist_force`).
         cloud: the latest camera frame received so far (None before the first).
         new_cloud: True when ``cloud`` arrived at this tick.
+        tare_force: zeroes the wrist force sensor at its current reading (the robot's
+            :meth:`RobotInterface.tare_force`); readings from the next tick on are tared.
     """
 
     time: float
@@ -82,6 +95,7 @@ class Observation:
     force: NDArray[np.float64]
     cloud: PointCloud | None
     new_cloud: bool
+    tare_force: Callable[[], None] = field(default=lambda: None, repr=False)
 
 
 @dataclass
@@ -92,11 +106,19 @@ class Command:
         qdot: joint velocities (12,) [rad/s].
         status: solver/controller status, logged per tick (e.g. ``"ok"``, ``"infeasible"``).
         task_errors: task name -> scalar error, logged per tick.
+        values: name -> scalar or fixed-shape array, logged per tick as ``value/<name>``
+            (the shape of a name's first value fixes it for the episode).
+        collision_pairs: ``(name_a, name_b, distance [m])`` of the collision rows active
+            in this tick's QP.
+        done: end the episode after this tick (e.g. a controller that has stopped).
     """
 
     qdot: ArrayLike
     status: str = "ok"
     task_errors: Mapping[str, float] = field(default_factory=dict)
+    values: Mapping[str, ArrayLike] = field(default_factory=dict)
+    collision_pairs: Sequence[tuple[str, str, float]] = ()
+    done: bool = False
 
 
 @runtime_checkable
@@ -185,7 +207,25 @@ def _as_command(out: Any) -> Command:
         if not isinstance(name, str):
             raise InvalidInputError(f"task error names must be str, got {name!r}")
         errors[name] = float(value)
-    return Command(qdot=qd, status=cmd.status, task_errors=errors)
+    values = {}
+    for name, value in dict(cmd.values).items():
+        if not isinstance(name, str):
+            raise InvalidInputError(f"value names must be str, got {name!r}")
+        try:
+            values[name] = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"value {name!r} must be numeric, got {value!r}") from None
+    pairs = []
+    for pair in cmd.collision_pairs:
+        try:
+            a, b, distance = pair
+            pairs.append((str(a), str(b), float(distance)))
+        except (TypeError, ValueError):
+            raise InvalidInputError(
+                f"collision_pairs entries must be (name_a, name_b, distance), got {pair!r}"
+            ) from None
+    return Command(qdot=qd, status=cmd.status, task_errors=errors, values=values, collision_pairs=pairs,
+                   done=bool(cmd.done))
 
 
 class _Log:
@@ -202,6 +242,9 @@ class _Log:
         self.stem_points = np.full(n, -1, np.int32)
         self.cloud_time = np.full(n, np.nan)
         self.task_errors: dict[str, NDArray[np.float64]] = {}
+        self.values: dict[str, NDArray[np.float64]] = {}
+        self.pair_index: dict[str, int] = {}
+        self.pair_events: list[tuple[int, int, float]] = []  # (tick, pair index, distance)
         self.truth = {k: np.full((n, *np.shape(v)), np.nan) for k, v in (truth or {}).items()}
         self.controller_time = np.full(n, np.nan) if log_timing else None
         self.log_clouds = log_clouds
@@ -221,6 +264,43 @@ class _Log:
                 self.task_errors[name] = np.full(self.n, np.nan)
             self.task_errors[name][k] = value
 
+    def value(self, k: int, values: Mapping[str, NDArray[np.float64]]) -> None:
+        for name, value in values.items():
+            if name not in self.values:
+                self.values[name] = np.full((self.n, *value.shape), np.nan)
+            if self.values[name].shape[1:] != value.shape:
+                raise InvalidInputError(
+                    f"value {name!r} changed shape from {self.values[name].shape[1:]} to {value.shape}"
+                )
+            self.values[name][k] = value
+
+    def pairs(self, k: int, pairs: Sequence[tuple[str, str, float]]) -> None:
+        for a, b, distance in pairs:
+            name = f"{a}|{b}"
+            index = self.pair_index.setdefault(name, len(self.pair_index))
+            self.pair_events.append((k, index, distance))
+
+    def pair_arrays(self, k: int) -> dict[str, NDArray[Any]]:
+        names = sorted(self.pair_index, key=self.pair_index.get)
+        width = max([len(n) for n in names] + [1])
+        counts = np.zeros(max(k, 1), dtype=np.int64)
+        for tick, _, _ in self.pair_events:
+            counts[tick] += 1
+        columns = int(counts.max()) if self.pair_events else 0
+        index = np.full((k, columns), -1, np.int32)
+        distance = np.full((k, columns), np.nan, np.float32)
+        fill = np.zeros(max(k, 1), dtype=np.int64)
+        for tick, pair, d in self.pair_events:
+            if tick < k:
+                index[tick, fill[tick]] = pair
+                distance[tick, fill[tick]] = d
+                fill[tick] += 1
+        return {
+            "collision/pair_names": np.array(names, dtype=f"<U{width}"),
+            "collision/active_pair": index,
+            "collision/active_distance": distance,
+        }
+
     def arrays(self, k: int) -> dict[str, NDArray[Any]]:
         """The first ``k`` ticks as a dict of arrays."""
         width = max([len(s) for s in self.status[:k]] + [1])
@@ -236,6 +316,9 @@ class _Log:
         }
         for name, values in self.task_errors.items():
             out[f"task_error/{name}"] = values[:k]
+        for name, values in self.values.items():
+            out[f"value/{name}"] = values[:k]
+        out.update(self.pair_arrays(k))
         for name, values in self.truth.items():
             out[f"truth/{name}"] = values[:k]
         if self.controller_time is not None:
@@ -273,6 +356,7 @@ def run_episode(
     stop_at_end: bool = True,
     log_clouds: bool = False,
     log_timing: bool = False,
+    ground_truth: Callable[[], Mapping[str, Any]] | None = None,
 ) -> EpisodeResult:
     """Run ``controller`` on ``robot`` for ``duration`` seconds at the robot's control rate.
 
@@ -286,6 +370,8 @@ def run_episode(
         log_clouds: also log every camera frame's points and labels.
         log_timing: log the controller's wall-clock time per step (makes logs differ
             between runs).
+        ground_truth: what to log as ``truth/<name>`` per tick (default: the robot's
+            ``ground_truth()`` method, if it has one). Never shown to the controller.
 
     Returns:
         The :class:`EpisodeResult` (also when the controller failed).
@@ -299,8 +385,10 @@ def run_episode(
     if not isinstance(duration, (int, float)) or not np.isfinite(duration) or duration <= 0:
         raise InvalidInputError(f"duration must be a finite time > 0 [s], got {duration!r}")
     n_ticks = int(round(duration / robot.control_period))
-    truth_fn = getattr(robot, "ground_truth", None)
-    truth0 = truth_fn() if callable(truth_fn) else None
+    truth_fn = ground_truth if ground_truth is not None else getattr(robot, "ground_truth", None)
+    if truth_fn is not None and not callable(truth_fn):
+        truth_fn = None
+    truth0 = truth_fn() if truth_fn is not None else None
     log = _Log(n_ticks, truth0, log_timing, log_clouds)
 
     status, error = "completed", None
@@ -325,6 +413,7 @@ def run_episode(
                 force=robot.wrist_force(),
                 cloud=latest,
                 new_cloud=cloud is not None,
+                tare_force=robot.tare_force,
             )
             log.t[k], log.q[k], log.qdot[k], log.force[k] = obs.time, obs.q, obs.qdot, obs.force
             if latest is not None:
@@ -352,12 +441,16 @@ def run_episode(
             log.qdot_cmd[k] = cmd.qdot
             log.status[k] = cmd.status
             log.task(k, cmd.task_errors)
+            log.value(k, cmd.values)
+            log.pairs(k, cmd.collision_pairs)
             robot.send_joint_velocities(cmd.qdot)
             k += 1
             try:
                 robot.step()
             except HarvestQPError as exc:
                 status, error = "robot_error", "robot.step failed: " + _format_error(exc)
+                break
+            if cmd.done:
                 break
     finally:
         # Whatever happened (controller error, end of episode, Ctrl-C), leave the arms at rest.

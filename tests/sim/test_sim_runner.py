@@ -168,3 +168,65 @@ def test_write_npz_is_deterministic_and_loadable(tmp_path):
     assert str(loaded["b"]) == "text" and loaded["c/d"].dtype == np.int8
     with pytest.raises(InvalidInputError, match="object"):
         write_npz(tmp_path / "z.npz", {"bad": np.array([None, 1], dtype=object)})
+
+
+class _Tarer:
+    """Pulls the held cluster away from the stem, then tares through the observation only."""
+
+    def __init__(self, tare_at: float) -> None:
+        self.tare_at = tare_at
+        self.forces: list[tuple[float, np.ndarray]] = []
+
+    def reset(self, robot) -> None:  # keeps no handle: everything below comes from obs
+        self.q0 = robot.joint_positions()
+
+    def step(self, obs: Observation) -> Command:
+        if abs(obs.time - self.tare_at) < 1e-9:
+            obs.tare_force()
+        self.forces.append((obs.time, np.array(obs.force)))
+        return Command(qdot=np.zeros(12), values={"scalar": obs.time, "vec": obs.q[:3]},
+                       collision_pairs=[("a", "b", 0.05)] if obs.time < 0.01 else [("a", "c", 0.04), ("a", "b", 0.03)])
+
+
+def test_observation_tares_the_wrist_sensor_without_a_robot_handle():
+    """A controller tares the F/T sensor via ``obs.tare_force`` (issue 10 section 5).
+
+    Catches: an Observation whose tare does nothing or tares another sensor. Oracle: the
+    untared reading (the held cluster's weight is compensated but not the stem/weld
+    offsets) differs from zero, and right after the tare it reads ~0."""
+    robot = SimRobot(camera=None, force=ForceSensorConfig(noise_std=0.0))
+    controller = _Tarer(tare_at=0.1)
+    result = run_episode(robot, controller, duration=0.2)
+    assert result.ok
+    before = np.array([f for t, f in controller.forces if t < 0.1 - 1e-9])
+    after = np.array([f for t, f in controller.forces if t > 0.1 + 1e-9])
+    assert np.linalg.norm(before, axis=1).min() > 1.0  # the untared reading: the cluster's weight
+    assert np.abs(after).max() < 0.05
+
+
+def test_values_and_collision_pairs_are_logged_per_tick(tmp_path):
+    """Named per-tick values and active collision pairs reach the log (issue 10 section 5)."""
+    robot = SimRobot(camera=None)
+    result = run_episode(robot, _Tarer(tare_at=-1.0), duration=0.02, log_path=tmp_path / "p.npz")
+    log = np.load(result.log_path)
+    assert log["value/scalar"].shape == (10,) and log["value/vec"].shape == (10, 3)
+    np.testing.assert_allclose(log["value/scalar"], log["t"])
+    names = list(log["collision/pair_names"])
+    assert names == ["a|b", "a|c"]
+    index, distance = log["collision/active_pair"], log["collision/active_distance"]
+    assert index.shape == (10, 2)
+    assert list(index[0]) == [0, -1] and distance[0, 0] == pytest.approx(0.05)
+    assert list(index[-1]) == [1, 0]
+    np.testing.assert_allclose(distance[-1], [0.04, 0.03], rtol=1e-6)
+
+
+def test_command_done_ends_the_episode():
+    class Quitter:
+        def reset(self, robot):
+            pass
+
+        def step(self, obs):
+            return Command(qdot=np.zeros(12), done=obs.time >= 0.01 - 1e-9)
+
+    result = run_episode(SimRobot(camera=None), Quitter(), duration=1.0)
+    assert result.ok and result.n_ticks == 6

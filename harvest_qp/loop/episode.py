@@ -1,0 +1,152 @@
+"""One paper episode end to end: scene, robot, :class:`HarvestController`, runner, metrics, figures.
+
+This is what ``harvest-qp run CONFIG`` executes (:func:`run_paper_episode`). The ground truth
+that the metrics need (true stem base and end, stem tension, contacts) is logged by the
+runner as ``truth/<name>`` next to the controller's own log and is never shown to the
+controller.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from harvest_qp.exceptions import ConfigError, InvalidInputError
+from harvest_qp.interface import ROBOT
+from harvest_qp.loop.controller import HarvestController, Phase
+from harvest_qp.runner import EpisodeResult, run_episode
+
+__all__ = ["build_robot", "run_paper_episode", "EpisodeReport", "episode_ground_truth"]
+
+
+@dataclasses.dataclass
+class EpisodeReport:
+    """What :func:`run_paper_episode` produced."""
+
+    metrics: dict[str, Any]
+    out_dir: Path
+    log_path: Path
+    figures: list[Path]
+    result: EpisodeResult
+    controller: HarvestController
+
+
+def scene_params(settings: dict, seed: int):
+    """The vine scene of an episode: the default scene for seed 0, a sampled one otherwise."""
+    from harvest_qp.sim import VineSceneParams
+
+    overrides = dict(settings["scene"]["params"])
+    names = {f.name for f in dataclasses.fields(VineSceneParams)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise ConfigError(f"scene.params: unknown key(s) {unknown}; expected VineSceneParams fields: {sorted(names)}")
+    try:
+        if seed > 0 and settings["scene"]["randomize"]:
+            return VineSceneParams.sample(seed, **overrides)
+        overrides.setdefault("seed", seed)
+        return VineSceneParams(**overrides)
+    except (InvalidInputError, TypeError) as err:
+        raise ConfigError(f"scene.params: {err}") from None
+
+
+def build_robot(settings: dict, seed: int):
+    """A :class:`~harvest_qp.sim.SimRobot` for the settings' camera, force sensor and scene."""
+    from harvest_qp.sim import CameraConfig, ForceSensorConfig, SimRobot
+    from harvest_qp.sim.robot import SensorFaults
+
+    camera = {k: v for k, v in settings["camera"].items() if k != "frame_loss"}
+    force = dict(settings["force_sensor"])
+    try:
+        return SimRobot(scene_params(settings, seed), seed=seed, camera=CameraConfig(**camera),
+                        force=ForceSensorConfig(**force),
+                        faults=SensorFaults(frame_loss=float(settings["camera"]["frame_loss"])))
+    except InvalidInputError as err:
+        raise ConfigError(f"camera/force_sensor settings: {err}") from None
+
+
+def episode_ground_truth(robot) -> callable:
+    """Per-tick ground truth for the metrics: the robot's own plus stem end and robot contacts."""
+    model, data = robot.model, robot.data
+    stem_end = model.site("stem_end").id
+    labels = robot.scene.geom_labels
+    base = getattr(robot, "ground_truth", lambda: {})
+
+    def truth() -> dict[str, Any]:
+        out = dict(base())
+        out["stem_end"] = data.site_xpos[stem_end].copy()
+        if not any(key.startswith("contacts_") for key in out):
+            count = 0
+            for i in range(data.ncon):
+                c = data.contact[i]
+                if labels[c.geom1] == ROBOT or labels[c.geom2] == ROBOT:
+                    count += 1
+            out["robot_contacts"] = count
+        return out
+
+    return truth
+
+
+def environment_capsules_for(robot, names) -> list:
+    from harvest_qp.episodes import environment_capsules
+
+    try:
+        return environment_capsules(robot.model, robot.data, names)
+    except (InvalidInputError, KeyError) as err:
+        raise ConfigError(f"qp.environment: {err}") from None
+
+
+def run_paper_episode(
+    settings: dict,
+    *,
+    seed: int = 0,
+    mapper: str | None = None,
+    duration: float | None = None,
+    out_dir: str | Path | None = None,
+    config_name: str = "paper",
+    figures: bool = True,
+) -> EpisodeReport:
+    """Run one episode of the paper's experiment and write metrics.json, the log and the figures.
+
+    Args:
+        settings: checked settings (:func:`harvest_qp.loop.settings.load_settings`).
+        seed: 0 = the default scene; N > 0 = ``VineSceneParams.sample(N)`` (and the sensor
+            noise seed).
+        mapper: ``"qp"`` or ``"pinv"`` (default: the settings' ``mapper.kind``).
+        duration: episode length [s] (default: ``episode.duration``).
+        out_dir: output folder (default ``runs/<config>-<seed>``, ``-pinv`` appended for pinv).
+        figures: write the PNG figures.
+    """
+    from harvest_qp.loop.metrics import compute_metrics
+
+    mapper = mapper or settings["mapper"]["kind"]
+    duration = float(duration if duration is not None else settings["episode"]["duration"])
+    if out_dir is None:
+        out_dir = Path("runs") / f"{config_name}-{seed}{'-pinv' if mapper == 'pinv' else ''}"
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    robot = build_robot(settings, seed)
+    environment = environment_capsules_for(robot, settings["qp"]["environment"])
+    controller = HarvestController(settings, environment=environment, mapper=mapper)
+    wall0 = time.perf_counter()
+    result = run_episode(
+        robot, controller, duration=duration, log_path=None, log_timing=True,
+        metadata={"config": config_name, "mapper": mapper, "phase_names": ",".join(p.name.lower() for p in Phase)},
+        ground_truth=episode_ground_truth(robot),
+    )
+    wall = time.perf_counter() - wall0
+    metrics = compute_metrics(result.log, robot, controller, settings, mapper=mapper, seed=seed,
+                              realtime_factor=result.sim_time / wall if wall > 0 else float("inf"))
+    log = dict(result.log)
+    from harvest_qp.runner import write_npz
+
+    log_path = write_npz(out_dir / "episode.npz", log)
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    paths: list[Path] = []
+    if figures:
+        from harvest_qp.loop.figures import write_figures
+
+        paths = write_figures(log, controller, settings, out_dir, metrics)
+    return EpisodeReport(metrics, out_dir, log_path, paths, result, controller)

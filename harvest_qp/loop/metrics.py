@@ -1,0 +1,186 @@
+"""Episode metrics (``metrics.json``) and the ``success`` criteria of the paper episode.
+
+Computed after the episode from the runner's log: the controller's own per-tick values
+(``value/*``) for what the paper plots, and the simulator's ground truth (``truth/*``, the
+scene) for what a robot cannot measure (true stem base, contacts, tear, capsule distances).
+
+``success`` is all of (issue 7, section 5):
+
+* camera inside the ROI at the end: distance to the *true* stem base <= 1.02 r, and the
+  true theta < 2 deg;
+* visible stem points at the end >= 3x those at the start (start counted as at least 1);
+  "at the end" is the median over the frames of the last 0.5 s, "at the start" the first frame;
+* mean force along n_c over the last second within 10 % of f_d, never above 2 f_d
+  after the tare;
+* alignment < 5 deg and projected position error < 5 mm at the end;
+* no contact, no tear, no abort.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from harvest_qp.configuration import Configuration
+from harvest_qp.limits import CollisionAvoidance
+from harvest_qp.loop.controller import Phase
+
+__all__ = ["compute_metrics", "SUCCESS_KEYS"]
+
+SUCCESS_KEYS = (
+    "inside_roi", "centred", "unveiled", "force_settled", "force_below_2fd", "aligned",
+    "position_error_small", "no_contact", "no_tear", "no_abort",
+)
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na < 1e-12 or nb < 1e-12:
+        return float("nan")
+    return float(np.degrees(np.arccos(np.clip(a @ b / (na * nb), -1.0, 1.0))))
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+def min_capsule_distance(q_log: np.ndarray, environment, every: int = 10) -> float:
+    """Smallest surface distance [m] over every capsule pair (arm-arm, arm-stand, arm-vine)."""
+    configuration = Configuration.dual_ur5e()
+    collision = CollisionAvoidance.dual_ur5e(configuration, environment=environment)
+    best = math.inf
+    for q in q_log[::every]:
+        configuration.update(q)
+        best = min(best, float(collision.distances(configuration).min()))
+    if len(q_log):
+        configuration.update(q_log[-1])
+        best = min(best, float(collision.distances(configuration).min()))
+    return best
+
+
+def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str, seed: int,
+                    realtime_factor: float) -> dict[str, Any]:
+    """The metrics of one episode (see the module docstring)."""
+    from harvest_qp.loop.episode import environment_capsules_for
+
+    g = settings["grasping"]
+    f_d, radius = float(g["f_d"]), float(settings["reaching"]["radius"])
+    t = log["t"]
+    n = len(t)
+    phase = log["value/phase"]
+    st = controller.state
+    # --- camera, from the true stem base
+    p_sb_true = np.asarray(robot.scene.stem_base, float)
+    p_c, z_c, x_c = log["value/p_c"][-1], log["value/z_c"][-1], log["value/x_c"][-1]
+    distance_true = float(np.linalg.norm(p_sb_true - p_c))
+    theta_true = _angle_deg(z_c, p_sb_true - p_c)
+    theta_paper = float(np.degrees(log["value/theta"][-1]))
+    # --- stem points
+    frame_time, frame_stem = log["frame_time"], log["frame_stem_points"]
+    start = int(frame_stem[0]) if len(frame_stem) else 0
+    end_frames = frame_stem[frame_time >= frame_time[-1] - 0.5] if len(frame_stem) else np.zeros(1)
+    end = int(np.median(end_frames))
+    t_switch = st.t_switch
+    at_switch = None
+    if t_switch is not None and len(frame_time):
+        before = np.flatnonzero(frame_time <= t_switch + 1e-9)
+        at_switch = int(frame_stem[before[-1]]) if len(before) else None
+    # --- grasping arm
+    force_nc = log["value/force_nc"]
+    last = t >= t[-1] - 1.0 + 1e-9
+    bimanual = phase >= Phase.BIMANUAL
+    bimanual &= phase != Phase.ABORT
+    force_mean = float(np.nanmean(force_nc[last])) if np.any(np.isfinite(force_nc[last])) else float("nan")
+    force_max = float(np.nanmax(force_nc)) if np.any(np.isfinite(force_nc)) else float("nan")
+    tension = log.get("truth/stem_tension")
+    tension_mean = float(np.mean(tension[last])) if tension is not None else float("nan")
+    tension_max = float(np.max(tension)) if tension is not None else float("nan")
+    position_error = float(log["value/position_error"][-1])
+    alignment = float(np.degrees(log["value/alignment"][-1]))
+    # cutter: the blade closes along x_c; angle between x_c and the true stem seen in the image plane
+    stem_end_true = log["truth/stem_end"][-1] if "truth/stem_end" in log else robot.scene.stem_end
+    stem_dir = p_sb_true - stem_end_true
+    stem_in_image = stem_dir - (stem_dir @ z_c) * z_c
+    cutter_angle = _angle_deg(x_c, stem_in_image)
+    if math.isfinite(cutter_angle):
+        cutter_angle = min(cutter_angle, 180.0 - cutter_angle)
+    # --- safety from the ground truth
+    contact_keys = [k for k in log if k.startswith("truth/contacts_")] or ["truth/robot_contacts"]
+    in_contact = np.zeros(n, dtype=bool)
+    for key in contact_keys:
+        if key in log:
+            in_contact |= np.nan_to_num(log[key]) > 0
+    contacts = int(np.count_nonzero(in_contact))  # ticks with at least one robot contact
+    torn = bool(np.any(log["truth/stem_torn"] > 0)) if "truth/stem_torn" in log else False
+    environment = environment_capsules_for(robot, ["branch", "cane"])
+    min_distance = min_capsule_distance(log["q"], environment)
+    configuration = Configuration.dual_ur5e()
+    q = log["q"]
+    violation = float(np.max(np.maximum(configuration.lower_limits - q, 0.0).max(initial=0.0),
+                             initial=0.0))
+    violation = max(violation, float(np.maximum(q - configuration.upper_limits, 0.0).max(initial=0.0)))
+    peak_speed = float(np.abs(log["qdot"]).max()) if n else 0.0
+    reached = Phase(int(phase[-1])) if n else Phase.APPROACH
+    if reached == Phase.ABORT:
+        reached_name = "abort"
+    else:
+        reached_name = reached.name.lower()
+    metrics: dict[str, Any] = {
+        "seed": int(seed),
+        "mapper": mapper,
+        "episode_status": str(log["episode_status"]),
+        "duration": float(n * float(log["control_period"])),
+        "phase_reached": reached_name,
+        "t_bimanual_start": _finite(t_switch) if t_switch is not None else None,
+        "t_precut": _finite(st.t_precut) if st.t_precut is not None else None,
+        "final_distance_to_roi_center": distance_true,
+        "final_distance_to_estimated_roi_center": float(log["value/roi_distance"][-1]),
+        "roi_radius": radius,
+        "final_theta_deg": theta_true,
+        "final_theta_estimated_roi_deg": theta_paper,
+        "visible_stem_points_start": start,
+        "visible_stem_points_switch": at_switch,
+        "visible_stem_points_end": end,
+        "final_position_error": _finite(position_error),
+        "final_alignment_deg": _finite(alignment),
+        "final_cutter_stem_angle_deg": _finite(cutter_angle),
+        "force_mean_last_1s": _finite(force_mean),
+        "force_max": _finite(force_max),
+        "true_tension_mean_last_1s": _finite(tension_mean),
+        "true_tension_max": _finite(tension_max),
+        "f_d": f_d,
+        "min_collision_distance": _finite(min_distance),
+        "contacts": contacts,
+        "contacts_by_kind": {k.removeprefix("truth/contacts_"): int(np.count_nonzero(np.nan_to_num(log[k]) > 0))
+                             for k in contact_keys if k in log},
+        "min_vine_distance": (_finite(float(np.nanmin(log["truth/min_vine_distance"])))
+                              if "truth/min_vine_distance" in log else None),
+        "stem_torn": torn,
+        "max_joint_limit_violation": violation,
+        "peak_joint_speed": peak_speed,
+        "qp_failures": int(st.qp_failures),
+        "qp_backup_solves": int(st.backup_solves),
+        "abort_reason": st.abort_reason,
+        "stem_base_error_at_switch": (
+            float(np.linalg.norm(st.p_sb - p_sb_true)) if st.p_sb is not None else None
+        ),
+        "estimated_stem_length": _finite(st.stem_length),
+        "realtime_factor": float(realtime_factor),
+    }
+    checks = {
+        "inside_roi": distance_true <= 1.02 * radius,
+        "centred": theta_true < 2.0,
+        "unveiled": end >= 3 * max(start, 1),
+        "force_settled": math.isfinite(force_mean) and abs(force_mean - f_d) <= 0.1 * f_d,
+        "force_below_2fd": math.isfinite(force_max) and force_max <= 2.0 * f_d,
+        "aligned": math.isfinite(alignment) and alignment < 5.0,
+        "position_error_small": math.isfinite(position_error) and position_error < 0.005,
+        "no_contact": contacts == 0,
+        "no_tear": not torn,
+        "no_abort": st.abort_reason is None,
+    }
+    metrics["criteria"] = {k: bool(v) for k, v in checks.items()}
+    metrics["success"] = bool(all(checks.values()))
+    return metrics
