@@ -22,6 +22,7 @@ from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import HarvestQPError
 from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.robot.paths import tasks_dir
+from harvest_qp.sweep.cli import add_sweep_parser, sweep_main
 from harvest_qp.tasks import FramePoseTask
 
 
@@ -143,7 +144,8 @@ def run_sim_demo(
 
 
 def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: str | None = None,
-              duration: float | None = None, overrides: list[str] | None = None, figures: bool = True) -> dict:
+              duration: float | None = None, overrides: list[str] | None = None, figures: bool = True,
+              viewer: str = "none", realtime: bool = True, host: str = "127.0.0.1", port: int = 7000) -> dict:
     """``harvest-qp run``: one paper episode; returns its metrics (also written to ``out``)."""
     from harvest_qp.loop.episode import run_paper_episode
     from harvest_qp.loop.settings import load_settings
@@ -153,10 +155,42 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
         raise HarvestQPError(f"--duration must be a number of seconds > 0; got {duration}")
     if seed < 0:
         raise HarvestQPError(f"--seed must be an integer >= 0; got {seed}")
-    report = run_paper_episode(settings, seed=seed, mapper=mapper, duration=duration, out_dir=out,
-                               config_name=Path(config).stem, figures=figures)
+    live = None
+
+    def with_viewer(robot, controller):
+        # The viewer only observes: it wraps the controller, nothing in the loop imports it.
+        nonlocal live
+        from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController
+
+        live = LiveViewer(vine=robot.model, host=host, port=port)  # prints the URL
+        return ViewedController(controller, live, pacer=RealTimePacer() if realtime else None)
+
+    try:
+        report = run_paper_episode(settings, seed=seed, mapper=mapper, duration=duration, out_dir=out,
+                                   config_name=Path(config).stem, figures=figures,
+                                   wrap_controller=with_viewer if viewer == "meshcat" else None)
+    finally:
+        if live is not None:
+            live.close()  # draws the last tick, stops the worker and the server
     report.metrics["out_dir"] = str(report.out_dir)
     return report.metrics
+
+
+def replay_run(run_dir: Path, *, html: Path | None = None, fps: float = 30.0, host: str = "127.0.0.1",
+               port: int = 7000) -> int:
+    """``harvest-qp replay``: serve a saved episode with a time slider, or write one offline HTML file."""
+    from harvest_qp.viewer import export_episode_html, replay, wait_for_interrupt
+
+    if html is not None:
+        path = export_episode_html(run_dir, html, fps=fps)
+        print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB): open it in any browser, offline")
+        return 0
+    viewer = replay(run_dir, fps=fps, host=host, port=port)
+    try:
+        wait_for_interrupt(f"replaying {run_dir} at {viewer.url} (Open Controls > Animations); Ctrl-C to quit")
+    finally:
+        viewer.close()
+    return 0
 
 
 _RUN_SUMMARY = (
@@ -188,6 +222,24 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                      help="override a setting, e.g. --set grasping.f_d=2.5 (repeatable)")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    run.add_argument("--viewer", choices=("none", "meshcat"), default="none",
+                     help="show the episode live in a browser (meshcat)")
+    speed = run.add_mutually_exclusive_group()
+    speed.add_argument("--realtime", dest="realtime", action="store_true", default=True,
+                       help="with --viewer: pace the loop to wall-clock time (default)")
+    speed.add_argument("--fast", dest="realtime", action="store_false",
+                       help="with --viewer: run as fast as the loop goes")
+    run.add_argument("--host", default="127.0.0.1",
+                     help="viewer address (default 127.0.0.1: this machine only; 0.0.0.0 serves every interface)")
+    run.add_argument("--port", type=int, default=7000, help="viewer web port (an error if it is taken)")
+    replay = sub.add_parser("replay", help="replay a saved episode in the browser (meshcat, time slider)")
+    replay.add_argument("run_dir", type=Path, help="run directory holding episode.npz, or a .npz file")
+    replay.add_argument("--html", type=Path, default=None,
+                        help="write one self-contained HTML file that plays offline instead of serving")
+    replay.add_argument("--fps", type=float, default=30.0, help="animation frames per second of episode time")
+    replay.add_argument("--host", default="127.0.0.1", help="viewer address (default 127.0.0.1)")
+    replay.add_argument("--port", type=int, default=7000, help="viewer web port (an error if it is taken)")
+    add_sweep_parser(sub)
     demo = sub.add_parser("demo", help="run the QP demo headless on the MuJoCo vine scene and print a summary")
     demo.add_argument("--config", type=Path, default=None,
                       help="YAML task config (default: tasks/sim_reach_stem.yaml; "
@@ -205,13 +257,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "run":
             metrics = run_paper(args.config, seed=args.seed, out=args.out, mapper=args.mapper,
-                                duration=args.duration, overrides=args.overrides, figures=not args.no_figures)
+                                duration=args.duration, overrides=args.overrides, figures=not args.no_figures,
+                                viewer=args.viewer, realtime=args.realtime, host=args.host, port=args.port)
             _print_summary(f"harvest_qp paper episode ({args.config.name}, seed {args.seed}, "
                            f"{metrics['mapper']})", {k: metrics.get(k) for k in _RUN_SUMMARY})
             if not metrics["success"]:
                 failed = [k for k, ok in metrics["criteria"].items() if not ok]
                 print(f"  failed criteria: {', '.join(failed)}")
             return 0 if metrics["success"] else 1
+        if args.command == "replay":
+            return replay_run(args.run_dir, html=args.html, fps=args.fps, host=args.host, port=args.port)
+        if args.command == "sweep":
+            return sweep_main(args)
         if args.command == "demo" and args.kinematic:
             path = args.config or tasks_dir() / "reach_targets.yaml"
             summary = run_reach_demo(path, duration=args.duration, solver=args.solver)

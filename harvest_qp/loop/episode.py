@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -107,6 +108,7 @@ def run_paper_episode(
     out_dir: str | Path | None = None,
     config_name: str = "paper",
     figures: bool = True,
+    wrap_controller: Callable[[Any, Any], Any] | None = None,
 ) -> EpisodeReport:
     """Run one episode of the paper's experiment and write metrics.json, the log and the figures.
 
@@ -118,6 +120,9 @@ def run_paper_episode(
         duration: episode length [s] (default: ``episode.duration``).
         out_dir: output folder (default ``runs/<config>-<seed>``, ``-pinv`` appended for pinv).
         figures: write the PNG figures.
+        wrap_controller: ``(robot, controller) -> controller`` applied before the episode
+            runs, e.g. a live viewer that observes each tick (``harvest_qp.viewer``); the
+            wrapped object must keep the runner's reset/step protocol.
     """
     from harvest_qp.loop.metrics import compute_metrics
 
@@ -130,10 +135,13 @@ def run_paper_episode(
     robot = build_robot(settings, seed)
     environment = environment_capsules_for(robot, settings["qp"]["environment"])
     controller = HarvestController(settings, environment=environment, mapper=mapper)
+    episode_controller = controller if wrap_controller is None else wrap_controller(robot, controller)
     wall0 = time.perf_counter()
     result = run_episode(
-        robot, controller, duration=duration, log_path=None, log_timing=True,
-        metadata={"config": config_name, "mapper": mapper, "phase_names": ",".join(p.name.lower() for p in Phase)},
+        robot, episode_controller, duration=duration, log_path=None, log_timing=True,
+        metadata={"config": config_name, "mapper": mapper, "phase_names": ",".join(p.name.lower() for p in Phase),
+                  # the replay viewer rebuilds the vine from the scene's seed (0 = the default scene)
+                  **({"scene_sample_seed": seed} if seed > 0 else {})},
         ground_truth=episode_ground_truth(robot),
     )
     wall = time.perf_counter() - wall0
