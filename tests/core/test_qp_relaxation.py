@@ -6,7 +6,7 @@ import quadprog
 from harvest_qp import TaskController
 from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.robot.description import HOME_Q
-from harvest_qp.tasks import DampingTask, FrameTwistTask
+from harvest_qp.tasks import HARD, DampingTask, FrameTwistTask
 
 DT = 0.002
 A_MAX = 10.0
@@ -88,3 +88,31 @@ def test_relaxation_is_the_least_that_makes_the_rows_feasible(configuration, rng
         # The command stays within the widened box: no joint changes speed more than needed.
         assert np.all(np.abs(step.qdot - prev) <= A_MAX * DT + s + 1e-8)
     assert relaxed >= 3, "the scenario must actually require relaxation"
+
+
+def test_safe_stop_keeps_collision_rows(configuration, rng):
+    """When the QP is infeasible (a hard task beyond the speed limit) the stop does not drive pairs together.
+
+    From states with a pair approaching fast near d_s, the stop QP brakes within the acceleration
+    limit and keeps the dampers: no pair (coal) goes below d_s. Bug caught: the joint-wise brake,
+    which took a pair from 10.9 mm to 7.6 mm (2.4 mm below d_s).
+    """
+    from benchmarks.bench_fuzz import CoalGeometry
+
+    collision = CollisionAvoidance.dual_ur5e(configuration, safety_distance=0.02, influence_distance=0.12, gain=0.5)
+    geometry = CoalGeometry(configuration, collision)
+    impossible = FrameTwistTask("gripper", level=HARD)
+    impossible.set_reference([50.0, 0, 0, 0, 0, 0])  # beyond any speed limit: infeasible
+    worst = np.inf
+    for _ in range(3):
+        q, prev = _approaching_fast(configuration, rng, collision, speed=1.0)
+        controller = TaskController(configuration, [impossible, DampingTask(12)], [collision], dt=DT,
+                                    max_acceleration=A_MAX)
+        controller.previous_qdot = prev.copy()
+        for _ in range(100):
+            step = controller.step(q)
+            assert step.status.startswith("fallback") and "stop QP failed" not in step.status, step.status
+            q = q + step.qdot * DT
+            worst = min(worst, geometry.min_distance(q)[0])
+        assert np.max(np.abs(step.qdot)) < 0.2, "the arms are coming to rest"
+    assert worst >= collision.safety_distance - 1e-4
