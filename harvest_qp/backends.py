@@ -6,10 +6,19 @@
 * ``proxsuite``: a kept ``proxqp.dense.QP`` with tight absolute tolerances, the
   duality-gap check and ``eps_primal_inf = 1e-12``; its defaults declare feasible
   QPs with near-duplicate collision rows infeasible and return wrong solutions.
-* ``qpsolvers:<name>``: any backend of :mod:`qpsolvers` (e.g. ``qpsolvers:quadprog``).
+* ``quadprog`` (also ``qpsolvers:quadprog``): Goldfarb-Idnani dual active set called
+  directly, because :mod:`qpsolvers` turns quadprog's "constraints are inconsistent"
+  into ``None`` and infeasibility could not be told from a crash.
+* ``qpsolvers:<name>``: any other backend of :mod:`qpsolvers`.
 
 Every backend failure becomes a :class:`~harvest_qp.exceptions.SolverError` that
-carries the QP, and every returned solution is checked (finite, feasible).
+carries the QP; infeasibility is :class:`~harvest_qp.exceptions.InfeasibleProblemError`
+in every backend. Every returned solution is checked: finite, and feasible to
+:data:`FEASIBILITY_TOLERANCE` *relative to the scale of each row* (a row ``g x <= h``
+is judged by ``(g x - h) / (1 + |h| + |g| |x|)``): an absolute tolerance rejected
+DAQP solutions off by 2e-7..1e-6 on rows whose terms are ~1 (FINDINGS, "QP core").
+A rejected solution raises :class:`SolverAccuracyError`; the solver then re-solves
+the QP with a second backend.
 """
 
 from __future__ import annotations
@@ -24,8 +33,17 @@ if TYPE_CHECKING:
     from harvest_qp.solver import QPProblem
 
 _INF = 1e30
-#: Largest constraint violation accepted in a returned solution.
+#: Largest scale-relative constraint violation accepted in a returned solution
+#: (see :func:`harvest_qp.qp_kernels.max_scaled_violation`).
 FEASIBILITY_TOLERANCE = 1e-7
+
+
+class SolverAccuracyError(SolverError):
+    """A backend returned a solution outside the constraints by more than the tolerance."""
+
+
+class SolverCyclingError(SolverError):
+    """An active-set backend cycled or hit its iteration limit (DAQP exitflag -2 / -4)."""
 
 
 class Backend(Protocol):
@@ -37,12 +55,12 @@ class Backend(Protocol):
 def _checked(x, problem: QPProblem, backend: str) -> np.ndarray:
     if x is None:
         raise SolverError(f"{backend} returned no solution", problem=problem, backend=backend)
-    violation = problem.violation(x)
+    violation = problem.scaled_violation(x)
     if violation == np.inf:
         raise SolverError(f"{backend} returned a non-finite solution", problem=problem, backend=backend)
     if violation > FEASIBILITY_TOLERANCE:
-        raise SolverError(
-            f"{backend} returned a solution violating the constraints by {violation:.3g}",
+        raise SolverAccuracyError(
+            f"{backend} returned a solution violating the constraints by {violation:.3g} (relative to row scale)",
             problem=problem,
             backend=backend,
         )
@@ -70,6 +88,14 @@ class DaqpBackend:
         self._lower = np.full(2 * n + n_in, -_INF)
         self._sense = np.zeros(2 * n + n_in, dtype=np.int32)
         self._n_eq = 0
+
+    @staticmethod
+    def _error(flag: int) -> type[SolverError]:
+        if flag == -1:
+            return InfeasibleProblemError
+        if flag in (-2, -4):
+            return SolverCyclingError
+        return SolverError
 
     def solve(self, problem: QPProblem) -> np.ndarray:
         n, n_eq, n_in = problem.n, problem.A.shape[0], problem.G.shape[0]
@@ -99,8 +125,11 @@ class DaqpBackend:
             self._shape = (n, n_in)
             if flag < 0:
                 self._model = None
-                raise SolverError(
-                    f"daqp setup failed (exitflag {flag})", problem=problem, backend=self.name, status=flag
+                raise self._error(flag)(
+                    f"daqp setup failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
+                    problem=problem,
+                    backend=self.name,
+                    status=flag,
                 )
         else:
             if rows_changed:
@@ -110,8 +139,7 @@ class DaqpBackend:
         x, _, flag, _ = self._model.solve()
         if flag < 0:
             self._model = None  # start from scratch next time: a bad active set is not reused
-            kind = InfeasibleProblemError if flag == -1 else SolverError
-            raise kind(
+            raise self._error(flag)(
                 f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
                 problem=problem,
                 backend=self.name,
@@ -157,7 +185,7 @@ class ProxsuiteBackend:
             s.check_duality_gap = True
             s.eps_duality_gap_abs = self.eps_abs
             s.eps_duality_gap_rel = 0.0
-            s.max_iter = 10_000
+            s.max_iter = 1_000  # a failing solve must not stall the 2 ms loop (quadprog is tried first)
             s.verbose = False
             s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
             qp.init(problem.H, problem.f, A, b, C, l, u, l_box, u_box)
@@ -167,10 +195,63 @@ class ProxsuiteBackend:
         self._qp.solve()
         status = self._qp.results.info.status
         if status != px.QPSolverOutput.PROXQP_SOLVED:
+            # A warm start from another step's solution can end in a false infeasibility
+            # report: solve once more from a cold start before believing it.
+            self._qp.settings.initial_guess = px.InitialGuess.NO_INITIAL_GUESS
+            self._qp.solve()
+            self._qp.settings.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
+            status = self._qp.results.info.status
+        if status != px.QPSolverOutput.PROXQP_SOLVED:
+            info = self._qp.results.info
             self._qp = None
             kind = InfeasibleProblemError if "INFEASIBLE" in str(status) else SolverError
-            raise kind(f"proxsuite failed: {status}", problem=problem, backend=self.name, status=status)
+            # With eps_primal_inf = 1e-12 (needed against false reports on near-duplicate
+            # rows) an infeasible QP ends at the iteration limit with the dual residual
+            # converged and the primal residual stuck: report that as infeasible.
+            if status == px.QPSolverOutput.PROXQP_MAX_ITER_REACHED and info.pri_res > 1e-6 and info.dua_res < 1e-6:
+                kind = InfeasibleProblemError
+            raise kind(
+                f"proxsuite failed: {status} (primal residual {info.pri_res:.3g}, dual {info.dua_res:.3g})",
+                problem=problem,
+                backend=self.name,
+                status=status,
+            )
         return _checked(self._qp.results.x.copy(), problem, self.name)
+
+
+class QuadprogBackend:
+    """quadprog called directly (dense Goldfarb-Idnani); needs a positive definite Hessian."""
+
+    name = "quadprog"
+
+    def __init__(self) -> None:
+        try:
+            import quadprog
+        except ImportError as err:
+            raise SolverNotAvailableError(
+                "quadprog is not installed: pip install quadprog", backend=self.name
+            ) from err
+        self._quadprog = quadprog
+
+    def solve(self, problem: QPProblem) -> np.ndarray:
+        n = problem.n
+        eye = np.eye(n)
+        # quadprog: min 1/2 x^T G x - a^T x  s.t.  C^T x >= b, the first meq rows equalities.
+        C = np.vstack([problem.A, -problem.G, -eye, eye])
+        bound = np.concatenate([problem.b, -problem.h, -problem.upper, problem.lower])
+        keep = np.abs(bound) < _INF / 2
+        keep[: problem.A.shape[0]] = True
+        C, bound = C[keep], bound[keep]
+        H = 0.5 * (problem.H + problem.H.T)
+        try:
+            if C.shape[0]:
+                x = self._quadprog.solve_qp(H, -problem.f, C.T.copy(), bound, problem.A.shape[0])[0]
+            else:  # quadprog rejects an empty constraint matrix
+                x = self._quadprog.solve_qp(H, -problem.f)[0]
+        except ValueError as err:
+            kind = InfeasibleProblemError if "inconsistent" in str(err) else SolverError
+            raise kind(f"quadprog: {err}", problem=problem, backend=self.name, status=str(err)) from err
+        return _checked(x, problem, self.name)
 
 
 class QpsolversBackend:
@@ -195,12 +276,13 @@ class QpsolversBackend:
         G = np.vstack([problem.G, eye, -eye])
         h = np.concatenate([problem.h, problem.upper, -problem.lower])
         keep = h < _INF / 2
+        G, h = (G[keep], h[keep]) if keep.any() else (None, None)  # some backends reject 0-row G
         P = 0.5 * (problem.H + problem.H.T)
         A = problem.A if problem.A.shape[0] else None
         b = problem.b if problem.A.shape[0] else None
         try:
             x = self._qpsolvers.solve_qp(
-                P, problem.f, G[keep], h[keep], A, b, solver=self.solver
+                P, problem.f, G, h, A, b, solver=self.solver
             )
         except Exception as err:  # every backend raises its own types
             raise SolverError(
@@ -212,15 +294,17 @@ class QpsolversBackend:
 
 
 def make_backend(name: str) -> Backend:
-    """Backend by name: ``daqp``, ``proxsuite`` or ``qpsolvers:<solver>``."""
+    """Backend by name: ``daqp``, ``proxsuite``, ``quadprog`` or ``qpsolvers:<solver>``."""
     if name == "daqp":
         return DaqpBackend()
     if name == "proxsuite":
         return ProxsuiteBackend()
+    if name in ("quadprog", "qpsolvers:quadprog"):
+        return QuadprogBackend()
     if name.startswith("qpsolvers:"):
         return QpsolversBackend(name.split(":", 1)[1])
     raise SolverNotAvailableError(
-        f"unknown QP backend {name!r}; use 'daqp', 'proxsuite' or 'qpsolvers:<name>' "
+        f"unknown QP backend {name!r}; use 'daqp', 'proxsuite', 'quadprog' or 'qpsolvers:<name>' "
         "(e.g. 'qpsolvers:quadprog')",
         backend=name,
     )

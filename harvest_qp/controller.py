@@ -3,9 +3,13 @@
 :class:`TaskController` owns the configuration, tasks, limits and a persistent
 :class:`~harvest_qp.solver.Solver`. Its :meth:`~TaskController.step` returns a
 :class:`ControlStep` whose ``qdot`` is always finite and inside the joint position
-and velocity limits: when the QP cannot be solved (backend failure, infeasible
-constraints, non-finite input) it decelerates the previous command to zero within
-the acceleration limit and reports the failure in ``status``.
+and velocity limits. The solver already retries failed backends and relaxes the
+acceleration limit by the least amount needed (see :mod:`harvest_qp.solver`); only
+when the QP still cannot be solved (a hard task beyond the limits, non-finite input)
+does the controller stop the arms: a small QP that brakes each joint towards zero
+within the acceleration limit while keeping every limit row, collision dampers
+included, so no pair is driven into another while braking. Where even that cannot
+be computed (no valid measurement) it decelerates the previous command joint by joint.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import HarvestQPError
+from harvest_qp.limits.collision_avoidance import CollisionAvoidance
 from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
 from harvest_qp.limits.joint_position_limit import JointPositionLimit
 from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
@@ -36,16 +41,44 @@ class ControlStep:
     qdot: np.ndarray
     """Joint velocity command [rad/s]."""
     status: str
-    """``"ok"``, ``"ok: relaxed JointAccelerationLimit"`` when braking harder than the
-    acceleration limit was needed to stay safe, or ``"fallback: <reason>"`` when the
-    arms are being brought to rest."""
+    """``"ok"``; ``"ok: relaxed JointAccelerationLimit to <a> rad/s^2"`` when a joint had
+    to change speed faster than the acceleration limit to keep a position limit or a
+    collision row (by the least amount needed, ``a`` the largest commanded
+    acceleration); ``"ok: separation asked lowered by ..."`` when a pair inside the safety
+    distance separates more slowly than its row asked, to stay within the acceleration limit;
+    ``"ok: retried ..."`` when a second backend solved the QP; or
+    ``"fallback: <reason>"`` when the arms are being brought to rest."""
     conflicts: list = field(default_factory=list)
     """Joints whose limit boxes conflicted this tick (the higher-priority limit won)."""
+    acceleration: np.ndarray | None = None
+    """Commanded acceleration ``(qdot - previous qdot) / dt`` [rad/s^2] of this tick."""
+    active_pairs: list[tuple[str, str, float]] = field(default_factory=list)
+    """Collision pairs that were rows of the QP this tick: both bodies' names and the
+    surface distance [m] (from every :class:`CollisionAvoidance` among the limits)."""
 
     @property
     def ok(self) -> bool:
         """True when the QP was solved (possibly with the acceleration limit relaxed)."""
         return self.status.startswith(OK)
+
+    @property
+    def max_acceleration(self) -> float:
+        """Largest commanded joint acceleration of this tick [rad/s^2] (0 when unknown)."""
+        return 0.0 if self.acceleration is None else float(np.max(np.abs(self.acceleration), initial=0.0))
+
+
+class _BrakeTask(Task):
+    """Joint-space target ``qdot = target`` [rad/s] used by the safe stop."""
+
+    def __init__(self, nv: int) -> None:
+        super().__init__(nv, weight=1.0, level=1)
+        self.target = np.zeros(nv)
+
+    def compute(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.eye(self.dim), self.target
+
+    def compute_rows(self, configuration: Configuration, dt: float) -> tuple[None, np.ndarray]:
+        return None, self.target
 
 
 class TaskController:
@@ -85,6 +118,9 @@ class TaskController:
             limits.append(JointAccelerationLimit(configuration, max_acceleration=self.max_acceleration))
         self.limits = limits
         self.solver = Solver(solver)
+        self._stop_solver = Solver(solver)
+        self._brake = _BrakeTask(configuration.nv)
+        self._collisions = [limit for limit in limits if isinstance(limit, CollisionAvoidance)]
         self.previous_qdot = np.zeros(configuration.nv)
         self.last_error: HarvestQPError | Exception | None = None
         self.solver_solution = None
@@ -97,24 +133,56 @@ class TaskController:
 
     def step(self, q: np.ndarray) -> ControlStep:
         """Joint velocities [rad/s] for the measured joint positions ``q`` [rad]. Never raises."""
+        measured = False
         try:
             self.configuration.update(q)
+            measured = True
             # previous_qdot is this controller's own finite output: skip re-validating it.
             solution = self.solver._solve(self.configuration, self.tasks, self.limits, self.dt, self.previous_qdot)
             self.solver_solution = solution
-            status = OK if not solution.relaxed else f"{OK}: relaxed {', '.join(solution.relaxed)}"
-            result = ControlStep(qdot=solution.qdot, status=status, conflicts=solution.conflicts)
+            accel = (solution.qdot - self.previous_qdot) / self.dt
+            status = OK
+            if solution.relaxed:
+                peak = float(np.max(np.abs(accel)))
+                status = f"{OK}: relaxed {', '.join(solution.relaxed)} to {peak:.4g} rad/s^2"
+            elif solution.row_relaxation is not None and np.any(solution.row_relaxation > 0):
+                status = f"{OK}: separation asked lowered by up to {np.max(solution.row_relaxation):.3g} m/s"
+            elif solution.retries:
+                status = f"{OK}: retried after {'; '.join(solution.retries)}"
+            result = ControlStep(qdot=solution.qdot, status=status, conflicts=solution.conflicts, acceleration=accel)
         except Exception as err:  # the loop must keep commanding the robot: stop it safely
             self.last_error = err
-            result = ControlStep(qdot=self.safe_stop(), status=f"{FALLBACK}: {type(err).__name__}: {err}")
+            qdot, how = self._safe_stop_command(measured)
+            result = ControlStep(
+                qdot=qdot,
+                status=f"{FALLBACK}: {type(err).__name__}: {err}{how}",
+                acceleration=(qdot - np.nan_to_num(self.previous_qdot)) / self.dt,
+            )
+        if measured:
+            result.active_pairs = [pair for limit in self._collisions for pair in limit.active_pair_distances()]
         self.previous_qdot = result.qdot
         return result
+
+    def _safe_stop_command(self, measured: bool) -> tuple[np.ndarray, str]:
+        """The stop QP when the state is known, else the joint-wise brake; and a note for the status."""
+        if measured and np.all(np.isfinite(self.previous_qdot)):
+            self._brake.target[:] = self.safe_stop()
+            try:
+                solution = self._stop_solver._solve(
+                    self.configuration, [self._brake], self.limits, self.dt, self.previous_qdot
+                )
+                return solution.qdot, ""
+            except Exception as err:  # noqa: BLE001 - fall through to the plain brake
+                return self.safe_stop(), f" (stop QP failed: {type(err).__name__})"
+        return self.safe_stop(), ""
 
     def safe_stop(self) -> np.ndarray:
         """Previous command decelerated towards zero by at most ``max_acceleration * dt``.
 
         Also clipped to the joint velocity limits and, where ``q`` is known, to the
-        position limits, so the stop itself never drives a joint out of range.
+        position limits, so the stop itself never drives a joint out of range. This is
+        the joint-wise brake; :meth:`step` uses it as the target of a stop QP that also
+        keeps the collision rows.
         """
         prev = np.nan_to_num(self.previous_qdot, nan=0.0, posinf=0.0, neginf=0.0)
         step = self.max_acceleration * self.dt

@@ -163,3 +163,48 @@ def max_violation(x, lower, upper, A, b, G, h):
             acc += G[r, i] * x[i]
         worst = max(worst, acc)
     return worst
+
+
+@njit(cache=True)
+def max_scaled_violation(x, lower, upper, A, b, G, h):
+    """Largest violation of the constraints, each row relative to its own scale.
+
+    A row ``g x <= h`` counts ``(g x - h) / (1 + |h| + sum_i |g_i x_i|)``, a bound
+    ``x_i <= u_i`` counts ``(x_i - u_i) / (1 + |u_i|)``: a rounding error on terms of
+    size ~1 is ~1e-16 whatever the row's units. A non-finite ``x`` is infinite.
+    """
+    worst = 0.0
+    for i in range(x.shape[0]):
+        if not np.isfinite(x[i]):
+            return np.inf
+        if lower[i] > -1e29:
+            worst = max(worst, (lower[i] - x[i]) / (1.0 + abs(lower[i])))
+        if upper[i] < 1e29:
+            worst = max(worst, (x[i] - upper[i]) / (1.0 + abs(upper[i])))
+    for r in range(A.shape[0]):
+        acc = -b[r]
+        size = 1.0 + abs(b[r])
+        for i in range(x.shape[0]):
+            term = A[r, i] * x[i]
+            acc += term
+            size += abs(term)
+        worst = max(worst, abs(acc) / size)
+    for r in range(G.shape[0]):
+        if h[r] >= 1e29:
+            continue
+        acc = -h[r]
+        size = 1.0 + abs(h[r])
+        for i in range(x.shape[0]):
+            term = G[r, i] * x[i]
+            acc += term
+            size += abs(term)
+        worst = max(worst, acc / size)
+    return worst
+
+
+@njit(cache=True)
+def top_up_diagonal(H, floor, value):
+    """``H[i, i] += max(value - floor[i], 0)``: a diagonal of at least ``value`` where tasks left less."""
+    for i in range(H.shape[0]):
+        if floor[i] < value:
+            H[i, i] += value - floor[i]

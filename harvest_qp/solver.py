@@ -2,7 +2,7 @@
 
 For each priority level ``k = 1, 2, ...`` (in increasing order) the solver computes
 
-    min_qdot  sum_{tasks at k} || W^1/2 (J qdot - v) ||^2 + eps ||qdot||^2
+    min_qdot  sum_{tasks at k} || W^1/2 (J qdot - v) ||^2 + qdot^T E qdot
     s.t.      lower <= qdot <= upper                    (joint limits)
               G qdot <= h                               (collision dampers)
               J_0 qdot = v_0                            (hard tasks, level 0)
@@ -12,6 +12,26 @@ so that a lower level only optimises within the optimal set of the levels above
 it: a cascade of QPs (strict priorities). With a single soft level it is one QP.
 The equality rows of earlier levels are compressed to an orthonormal basis (an SVD),
 so redundant rows never make the solver see dependent equalities.
+
+``E`` is a diagonal regularization that only tops the Hessian's diagonal up to
+``regularization`` where joint-space tasks (damping, posture) do not already put
+that much weight: with a ``DampingTask`` of weight ``lambda^2 >= regularization``
+the QP is exactly the damped least-squares problem (a constant ``eps I`` made
+"QP == damped pseudo-inverse" wrong by 3.4e-5 at lambda = 1e-3, FINDINGS "QP core").
+
+Robustness (nothing here runs when the first backend succeeds):
+
+1. A backend failure of any kind (accuracy, cycling, infeasibility report) is
+   retried with the next backend of ``fallback_backends`` (quadprog called directly,
+   then proxsuite with tight settings and a 1,000-iteration cap: at 10,000 iterations one
+   failing proxsuite solve took seconds).
+2. When every backend fails, the problem is checked for a relaxation: the
+   acceleration box (priority >= :data:`RELAXABLE_PRIORITY`) is widened by the least
+   amount (a slack QP, ``min ||s||^2``) that makes the safety constraints
+   feasible, and the separation speed that collision rows ask of pairs already
+   inside the safety distance is lowered, at most to "no further approach", by the
+   least amount that fits in that box. Only when even that is infeasible (e.g. a
+   hard task beyond the speed limit) is the failure reported.
 """
 
 from __future__ import annotations
@@ -23,15 +43,16 @@ import numpy as np
 
 from harvest_qp.backends import Backend, make_backend
 from harvest_qp.configuration import Configuration
-from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError
+from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
 from harvest_qp.limits.limit import Limit
 from harvest_qp.qp_kernels import (
     accumulate_diagonal,
     accumulate_task,
-    add_to_diagonal,
     clip_inplace,
     intersect_boxes,
+    max_scaled_violation,
     max_violation,
+    top_up_diagonal,
 )
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
@@ -40,6 +61,10 @@ from harvest_qp.validation import as_positive_scalar, as_vector
 INF = 1e30
 #: Box limits from this priority on (acceleration limits) yield to infeasibility.
 RELAXABLE_PRIORITY = 2
+#: Widening [rad/s] added on top of the least relaxation so the re-solved QP is not degenerate.
+RELAXATION_MARGIN = 1e-9
+#: Backends tried, in order, after the chosen one fails (those not installed are skipped).
+DEFAULT_FALLBACK_BACKENDS = ("quadprog", "proxsuite")
 
 
 @dataclass
@@ -68,8 +93,14 @@ class QPProblem:
         return QPProblem(**{k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in vars(self).items()})
 
     def violation(self, x: np.ndarray) -> float:
-        """Largest constraint violation of ``x`` (0 when feasible)."""
+        """Largest absolute constraint violation of ``x`` (0 when feasible)."""
         return max_violation(np.asarray(x, dtype=float), self.lower, self.upper, self.A, self.b, self.G, self.h)
+
+    def scaled_violation(self, x: np.ndarray) -> float:
+        """Largest violation of ``x``, each row relative to its scale (see ``max_scaled_violation``)."""
+        return max_scaled_violation(
+            np.asarray(x, dtype=float), self.lower, self.upper, self.A, self.b, self.G, self.h
+        )
 
 
 @dataclass
@@ -90,7 +121,13 @@ class Solution:
     upper: np.ndarray | None = None
     conflicts: list[BoxConflict] = field(default_factory=list)
     relaxed: list[str] = field(default_factory=list)
-    """Limits dropped because the QP was infeasible with them (acceleration limits)."""
+    """Limits relaxed because the QP was infeasible with them (acceleration limits)."""
+    box_relaxation: np.ndarray | None = None
+    """Per joint, how far [rad/s] the relaxable box was widened (None: not relaxed)."""
+    row_relaxation: np.ndarray | None = None
+    """Per inequality row, how much [m/s] of the separation speed asked was given up."""
+    retries: list[str] = field(default_factory=list)
+    """Backend failures that a later backend recovered, e.g. ``"daqp: SolverCyclingError"``."""
 
 
 def _priority(item) -> int:
@@ -136,22 +173,36 @@ class Solver:
 
     Args:
         backend: ``"daqp"`` (default, persistent model), ``"proxsuite"`` (dense, with
-            settings that stay exact on collision rows) or any :mod:`qpsolvers`
-            backend name prefixed by ``"qpsolvers:"`` (e.g. ``"qpsolvers:quadprog"``).
-        regularization: ``eps`` added to the Hessian diagonal (keeps it definite).
+            settings that stay exact on collision rows), ``"quadprog"`` or any
+            :mod:`qpsolvers` backend name prefixed by ``"qpsolvers:"``.
+        regularization: smallest diagonal entry of every level's Hessian: where
+            joint-space tasks put less weight on a joint, the difference is added
+            (keeps the Hessian definite without perturbing damped problems).
+        fallback_backends: backends tried in order when ``backend`` fails
+            (default: quadprog, then proxsuite; those not installed are skipped).
     """
 
-    def __init__(self, backend: str = "daqp", *, regularization: float = 1e-10) -> None:
+    def __init__(
+        self,
+        backend: str = "daqp",
+        *,
+        regularization: float = 1e-10,
+        fallback_backends: Sequence[str] | None = None,
+    ) -> None:
         self.backend_name = backend
-        self._backends: dict[int, Backend] = {}
+        self._backends: dict[tuple[str, int], Backend] = {}
         self._box_key: tuple = ()
         self._box_list: list[Limit] = []
         self.regularization = as_positive_scalar(regularization, "regularization", allow_zero=True)
+        names = DEFAULT_FALLBACK_BACKENDS if fallback_backends is None else tuple(fallback_backends)
+        self.fallback_backends = tuple(name for name in names if name != backend)
+        self._unavailable: set[str] = set()
 
-    def _backend(self, level: int) -> Backend:
-        if level not in self._backends:
-            self._backends[level] = make_backend(self.backend_name)
-        return self._backends[level]
+    def _backend(self, level: int, name: str | None = None) -> Backend:
+        key = (name or self.backend_name, level)
+        if key not in self._backends:
+            self._backends[key] = make_backend(key[0])
+        return self._backends[key]
 
     def solve(
         self,
@@ -164,14 +215,18 @@ class Solver:
     ) -> Solution:
         """Joint velocities [rad/s] for the tasks under the limits at the current state.
 
-        Acceleration limits (box priority >= 2) yield to the safety limits: when the
-        QP is infeasible with them (an arm too fast to brake before an obstacle) it is
-        solved again without them and ``Solution.relaxed`` names what was dropped.
+        Acceleration limits (box priority >= 2) yield to the safety limits by the least
+        amount needed (``Solution.relaxed`` names them, ``Solution.box_relaxation``
+        says by how much); see the module docstring.
 
         Raises:
-            SolverError: the backend failed (the exception carries the QP).
-            InfeasibleProblemError: the safety constraints admit no solution.
+            InvalidInputError: no task.
+            SolverError: every backend failed (the exception carries the QP).
+            InfeasibleProblemError: the safety constraints admit no solution even
+                with the acceleration limits relaxed.
         """
+        if not tasks:
+            raise InvalidInputError("tasks must contain at least one Task, got an empty sequence")
         dt = as_positive_scalar(dt, "dt")
         if previous_qdot is not None:
             previous_qdot = as_vector(previous_qdot, configuration.nv, "previous_qdot")
@@ -183,7 +238,7 @@ class Solver:
         box_limits = self._box_limits(limits, n)
         for i, limit in enumerate(box_limits):
             limit.fill_box(configuration, dt, previous_qdot, self._lowers[i], self._uppers[i])
-        G_rows, h_rows = [], []
+        G_rows, h_rows, separating = [], [], []
         for limit in limits:
             if limit.has_box:
                 continue
@@ -196,6 +251,7 @@ class Solver:
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
+                separating.append(np.full(len(rows.h), bool(getattr(limit, "separation_rows", False))))
         if len(G_rows) == 1:
             G, h = G_rows[0], h_rows[0]
         elif G_rows:
@@ -215,15 +271,29 @@ class Solver:
             )
         else:
             A, b = np.zeros((0, n)), np.zeros(0)
+        k = len(box_limits)
+        lower, upper, conflicts = _intersect(box_limits, self._lowers[:k], self._uppers[:k], n)
+        retries: list[str] = []
         try:
-            return self._cascade(n, by_level, box_limits, A, b, G, h)
-        except InfeasibleProblemError:
-            # Box limits are sorted by priority: the relaxable ones are the tail.
-            safe = [limit for limit in box_limits if limit.priority < RELAXABLE_PRIORITY]
-            if len(safe) == len(box_limits):
-                raise
-            solution = self._cascade(n, by_level, safe, A, b, G, h)
-            solution.relaxed = [type(limit).__name__ for limit in box_limits[len(safe) :]]
+            return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries)
+        except SolverNotAvailableError:
+            raise
+        except SolverError as err:
+            sep = np.concatenate(separating) if separating else np.zeros(0, dtype=bool)
+            relaxed = self._least_relaxation(n, box_limits, lower, upper, A, b, G, h, sep, retries)
+            if relaxed is None:
+                raise err
+            lower2, upper2, h2, box_slack, row_slack = relaxed
+            try:
+                solution = self._cascade(n, by_level, lower2, upper2, conflicts, A, b, G, h2, retries)
+            except SolverError:
+                raise err from None
+            if np.any(box_slack > 0):
+                solution.relaxed = [
+                    type(limit).__name__ for limit in box_limits if limit.priority >= RELAXABLE_PRIORITY
+                ]
+            solution.box_relaxation = box_slack
+            solution.row_relaxation = row_slack
             return solution
 
     def _box_limits(self, limits: Sequence[Limit], n: int) -> list[Limit]:
@@ -236,29 +306,67 @@ class Solver:
             self._uppers = np.empty((max(len(self._box_list), 1), n))
         return self._box_list
 
-    def _cascade(self, n, by_level, box_limits, A, b, G, h) -> Solution:
+    # ------------------------------------------------------------------ backends
+    def _solve_qp(self, level: int, problem: QPProblem, retries: list[str]) -> np.ndarray:
+        """Solve with the chosen backend, then with each fallback backend, until one succeeds."""
+        try:
+            return self._backend(level).solve(problem)
+        except SolverNotAvailableError:
+            raise  # a misconfigured backend is reported, not papered over
+        except SolverError as first:
+            first.problem = problem.copy()  # a snapshot: G and h are reused buffers
+            failures = [f"{self.backend_name}: {type(first).__name__}"]
+            for name in self.fallback_backends:
+                if name in self._unavailable:
+                    continue
+                try:
+                    x = self._backend(level, name).solve(problem)
+                except SolverNotAvailableError:
+                    self._unavailable.add(name)
+                    continue
+                except SolverError as err:
+                    failures.append(f"{name}: {type(err).__name__}")
+                    continue
+                retries.extend(failures)
+                return x
+            raise first
+
+    def _solve_any(self, problem: QPProblem) -> np.ndarray | None:
+        """Auxiliary QP (relaxation) with each backend in turn; None when all report failure."""
+        for name in (self.backend_name, *self.fallback_backends):
+            if name in self._unavailable:
+                continue
+            try:
+                return make_backend(name).solve(problem)
+            except SolverNotAvailableError:
+                self._unavailable.add(name)
+            except SolverError:
+                continue
+        return None
+
+    # ------------------------------------------------------------------ cascade
+    def _cascade(self, n, by_level, lower, upper, conflicts, A, b, G, h, retries) -> Solution:
         """Solve the levels in order, each within the optimal set of those before."""
-        k = len(box_limits)
-        lower, upper, conflicts = _intersect(box_limits, self._lowers[:k], self._uppers[:k], n)
-        solution = Solution(qdot=None, lower=lower, upper=upper, conflicts=conflicts)
+        solution = Solution(qdot=None, lower=lower, upper=upper, conflicts=conflicts, retries=retries)
         levels = sorted(by_level) or [1]
         for level in levels:
             entries = by_level.get(level, [])
             H = np.zeros((n, n))
-            add_to_diagonal(H, self.regularization if entries else max(self.regularization, 1e-12))
             f = np.zeros(n)
+            floor = np.zeros(n)  # weight joint-space tasks already put on each joint
             for task, J, v in entries:
                 if J is None:  # joint-space task: J = I
                     accumulate_diagonal(H, f, task.weight, v)
+                    floor += task.weight
                 else:
                     accumulate_task(H, f, J, task.weight, v)
+            # Top the diagonal up to the regularization only where it is missing, so a
+            # damped problem stays exactly the damped least-squares problem.
+            reg = self.regularization if entries else max(self.regularization, 1e-12)
+            top_up_diagonal(H, floor, reg)
             problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
             solution.problems.append(problem)
-            try:
-                x = self._backend(level).solve(problem)
-            except SolverError as err:
-                err.problem = problem.copy()  # a snapshot: G and h are reused buffers
-                raise
+            x = self._solve_qp(level, problem, retries)
             # Backends meet bounds to their tolerance; clip so joint limits hold exactly.
             x = clip_inplace(x, lower, upper)
             if level != levels[-1] and entries:
@@ -272,6 +380,64 @@ class Solver:
         solution.qdot = x
         return solution
 
+    # ------------------------------------------------------------------ relaxation
+    def _least_relaxation(self, n, box_limits, lower, upper, A, b, G, h, separating, retries):
+        """Least widening of the relaxable box, then least separation given up, that make the QP feasible.
+
+        Stage 1: ``min ||s||^2`` over ``(x, s)`` with ``x`` in the safety box (speed and
+        position limits), ``lower - s <= x <= upper + s``, ``A x = b`` and ``G x <= h``
+        where separating rows ask at most "no further approach" (``h >= 0``). At a
+        collision-free state inside the limits ``x = 0`` is feasible, so this never fails there.
+        Stage 2 (rows with ``h < 0`` only): within the widened box, ``min ||t||^2`` with
+        ``G x <= h + t``, ``0 <= t <= -h``: as much separation as the box allows.
+
+        Returns ``(lower, upper, h, box_slack, row_slack)`` or None when even this is infeasible.
+        """
+        safe = [limit for limit in box_limits if limit.priority < RELAXABLE_PRIORITY]
+        k = len(safe)
+        safe_lower, safe_upper, _ = _intersect(safe, self._lowers[:k], self._uppers[:k], n)
+        m = G.shape[0]
+        h_floor = np.where(separating & (h < 0), 0.0, h)
+        eye = np.eye(n)
+        # Stage 1 over z = [x, s].
+        finite_lo, finite_hi = lower > -INF / 2, upper < INF / 2
+        G1 = np.vstack([
+            np.hstack([G, np.zeros((m, n))]),
+            np.hstack([eye, -eye])[finite_hi],
+            np.hstack([-eye, -eye])[finite_lo],
+        ])
+        h1 = np.concatenate([h_floor, upper[finite_hi], -lower[finite_lo]])
+        H1 = np.diag(np.concatenate([np.full(n, 1e-9), np.ones(n)]))
+        stage1 = QPProblem(
+            H=H1, f=np.zeros(2 * n),
+            lower=np.concatenate([safe_lower, np.zeros(n)]), upper=np.concatenate([safe_upper, np.full(n, INF)]),
+            A=np.hstack([A, np.zeros((A.shape[0], n))]), b=b, G=G1, h=h1,
+        )
+        z = self._solve_any(stage1)
+        if z is None:
+            return None
+        box_slack = np.maximum(z[n:], 0.0)
+        box_slack = np.where(box_slack > 0, box_slack + RELAXATION_MARGIN, 0.0)
+        lower2 = np.maximum(lower - box_slack, safe_lower)
+        upper2 = np.minimum(upper + box_slack, safe_upper)
+        row_slack = np.zeros(m)
+        asking = np.flatnonzero(separating & (h < 0))
+        if asking.size:
+            p = asking.size
+            E = np.zeros((m, p))
+            E[asking, np.arange(p)] = 1.0
+            stage2 = QPProblem(
+                H=np.diag(np.concatenate([np.full(n, 1e-9), np.ones(p)])), f=np.zeros(n + p),
+                lower=np.concatenate([lower2, np.zeros(p)]), upper=np.concatenate([upper2, -h[asking]]),
+                A=np.hstack([A, np.zeros((A.shape[0], p))]), b=b, G=np.hstack([G, -E]), h=h.copy(),
+            )
+            z2 = self._solve_any(stage2)
+            if z2 is None:
+                return None
+            t = np.clip(z2[n:], 0.0, -h[asking])
+            row_slack[asking] = np.minimum(t + RELAXATION_MARGIN, -h[asking])
+        return lower2, upper2, h + row_slack, box_slack, row_slack
+
 
 def solve_ik(
     configuration: Configuration,
@@ -283,8 +449,6 @@ def solve_ik(
     previous_qdot: np.ndarray | None = None,
 ) -> np.ndarray:
     """One-shot convenience: joint velocities [rad/s] solving the task QP (see :class:`Solver`)."""
-    if not tasks:
-        raise InvalidInputError("solve_ik needs at least one task")
     return Solver(solver).solve(configuration, tasks, limits, dt, previous_qdot=previous_qdot).qdot
 
 

@@ -178,24 +178,29 @@ def _add_point_row(px, py, pz, joint, support, joint_type, joint_R, joint_p, axi
 
 @njit(cache=True)
 def damper_rows(
-    selected, pair_a, pair_b, cap_joint, w0, w1, dist, s_arr, t_arr,
+    n_rows, row_pair, row_s, row_t, row_d, pair_a, pair_b, cap_joint, w0, w1,
     support, joint_type, joint_R, joint_p, axis, idx_v,
-    safety, influence, gain, G, h, normals,
+    safety, influence, gain, recovery_time, G, h, normals,
 ):
-    """Velocity-damper rows ``-n^T (J_a - J_b) qdot <= gain (d - d_s) / (d_i - d_s)``.
+    """Velocity-damper rows ``-n^T (J_a - J_b) qdot <= h(d)``, one per witness pair.
 
-    ``n`` is the unit vector from the witness point on ``b`` to the one on ``a``, so
-    ``n^T (J_a - J_b) qdot`` is the rate of change of the distance. Rows past
-    ``len(selected)`` are left inactive (zero, bound 1e30).
+    Row ``r`` constrains the distance between the point ``s = row_s[r]`` of capsule
+    ``a`` and ``t = row_t[r]`` of ``b`` of pair ``row_pair[r]`` (surface distance
+    ``row_d[r]``). ``n`` is the unit vector from the witness point on ``b`` to the one on
+    ``a``, so ``n^T (J_a - J_b) qdot`` is the rate of change of the distance. Outside the
+    safety distance ``h = gain (d - d_s) / (d_i - d_s)`` (the damper); inside it the row
+    asks for the separation speed ``(d_s - d) / recovery_time`` if that is larger (the
+    solver lowers it to what the acceleration limit allows). Rows past ``n_rows``
+    are left inactive (zero, bound 1e30).
     """
     G[:] = 0.0
     h[:] = 1e30
-    for r in range(selected.shape[0]):
-        k = selected[r]
+    for r in range(n_rows):
+        k = row_pair[r]
         a = pair_a[k]
         b = pair_b[k]
-        s = s_arr[k]
-        t = t_arr[k]
+        s = row_s[r]
+        t = row_t[r]
         pax = w0[a, 0] + s * (w1[a, 0] - w0[a, 0])
         pay = w0[a, 1] + s * (w1[a, 1] - w0[a, 1])
         paz = w0[a, 2] + s * (w1[a, 2] - w0[a, 2])
@@ -222,18 +227,104 @@ def damper_rows(
                        -1.0, nx, ny, nz, G, r)
         _add_point_row(pbx, pby, pbz, cap_joint[b], support, joint_type, joint_R, joint_p, axis, idx_v,
                        1.0, nx, ny, nz, G, r)
-        h[r] = gain * (dist[k] - safety) / (influence - safety)
+        d = row_d[r]
+        bound = gain * (d - safety) / (influence - safety)
+        if d < safety:
+            bound = min(bound, (d - safety) / recovery_time)
+        h[r] = bound
+
+
+@njit(cache=True)
+def _point(w0, w1, c, u):
+    return (w0[c, 0] + u * (w1[c, 0] - w0[c, 0]), w0[c, 1] + u * (w1[c, 1] - w0[c, 1]),
+            w0[c, 2] + u * (w1[c, 2] - w0[c, 2]))
+
+
+@njit(cache=True)
+def end_point_rows(
+    n, close, pair_a, pair_b, cap_radius, w0, w1, s_arr, t_arr, influence, min_offset, max_extra,
+    row_pair, row_s, row_t, row_d,
+):
+    """Extra witness rows at the segments' end points; returns how many were added after row ``n``.
+
+    The capsule distance is the minimum of smooth pieces (interior-interior and the
+    four end-point-to-segment distances). One row on the closest piece does not stop
+    another piece from shrinking: two near-parallel links can turn about the witness
+    point while their other ends close in, and the witness jumps there one tick too
+    late. Every end-point piece within ``d_i`` whose witness points lie more than
+    ``min_offset`` [m] from the main witness gets its own damper row (the closest
+    ``max_extra`` of them), so each piece, hence the minimum, is held above ``d_s``.
+    """
+    cand_pair = np.empty(4 * n, dtype=np.int64)
+    cand_s = np.empty(4 * n)
+    cand_t = np.empty(4 * n)
+    cand_d = np.empty(4 * n)
+    m = 0
+    taken = np.empty((5, 6))  # witness points already given a row for this pair
+    for r in range(n):
+        k = close[r]
+        a = pair_a[k]
+        b = pair_b[k]
+        taken[0, 0], taken[0, 1], taken[0, 2] = _point(w0, w1, a, s_arr[k])
+        taken[0, 3], taken[0, 4], taken[0, 5] = _point(w0, w1, b, t_arr[k])
+        n_taken = 1
+        for e in range(4):
+            if e < 2:
+                px, py, pz = _point(w0, w1, a, float(e))
+                dist, _, t = segment_distance(px, py, pz, px, py, pz,
+                                              w0[b, 0], w0[b, 1], w0[b, 2], w1[b, 0], w1[b, 1], w1[b, 2])
+                s = float(e)
+            else:
+                px, py, pz = _point(w0, w1, b, float(e - 2))
+                dist, _, s = segment_distance(px, py, pz, px, py, pz,
+                                              w0[a, 0], w0[a, 1], w0[a, 2], w1[a, 0], w1[a, 1], w1[a, 2])
+                t = float(e - 2)
+            d = dist - cap_radius[a] - cap_radius[b]
+            if d >= influence:
+                continue
+            ax, ay, az = _point(w0, w1, a, s)
+            bx, by, bz = _point(w0, w1, b, t)
+            duplicate = False
+            for j in range(n_taken):
+                offset = max(
+                    np.sqrt((ax - taken[j, 0]) ** 2 + (ay - taken[j, 1]) ** 2 + (az - taken[j, 2]) ** 2),
+                    np.sqrt((bx - taken[j, 3]) ** 2 + (by - taken[j, 4]) ** 2 + (bz - taken[j, 5]) ** 2),
+                )
+                if offset < min_offset:
+                    duplicate = True
+                    break
+            if duplicate:
+                continue
+            taken[n_taken, 0], taken[n_taken, 1], taken[n_taken, 2] = ax, ay, az
+            taken[n_taken, 3], taken[n_taken, 4], taken[n_taken, 5] = bx, by, bz
+            n_taken += 1
+            cand_pair[m] = k
+            cand_s[m] = s
+            cand_t[m] = t
+            cand_d[m] = d
+            m += 1
+    order = np.argsort(cand_d[:m], kind="mergesort")
+    extra = min(m, max_extra)
+    for i in range(extra):
+        c = order[i]
+        row_pair[n + i] = cand_pair[c]
+        row_s[n + i] = cand_s[c]
+        row_t[n + i] = cand_t[c]
+        row_d[n + i] = cand_d[c]
+    return extra
 
 
 @njit(cache=True)
 def collision_step(
     q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p,
     cap_joint, cap_p0, cap_p1, cap_radius, w0, w1, pair_a, pair_b, dist, s_arr, t_arr,
-    support, safety, influence, gain, max_rows, G, h, normals, selected,
+    support, safety, influence, gain, recovery_time, max_rows, max_extra, min_offset,
+    G, h, normals, selected, row_pair, row_s, row_t, row_d,
 ):
     """Kinematics, broadphase, distances, N-closest selection and damper rows in one call.
 
-    Returns the number of active rows; ``selected[:n]`` holds their pair indices.
+    Returns ``(n_pairs, n_rows)``: ``selected[:n_pairs]`` holds the pair indices of the
+    first ``n_pairs`` rows (their closest points), rows ``n_pairs..n_rows`` are end-point rows.
     """
     forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
     capsule_world(cap_joint, cap_p0, cap_p1, joint_R, joint_p, w0, w1)
@@ -253,10 +344,18 @@ def collision_step(
         close = close[order[:max_rows]]
         n = max_rows
     for r in range(n):
-        selected[r] = close[r]
+        k = close[r]
+        selected[r] = k
+        row_pair[r] = k
+        row_s[r] = s_arr[k]
+        row_t[r] = t_arr[k]
+        row_d[r] = dist[k]
+    extra = 0
+    if max_extra > 0:
+        extra = end_point_rows(n, close, pair_a, pair_b, cap_radius, w0, w1, s_arr, t_arr, influence,
+                               min_offset, max_extra, row_pair, row_s, row_t, row_d)
     damper_rows(
-        close, pair_a, pair_b, cap_joint, w0, w1, dist, s_arr, t_arr,
-        support, joint_type, joint_R, joint_p, axis, idx_v, safety, influence, gain, G, h, normals,
+        n + extra, row_pair, row_s, row_t, row_d, pair_a, pair_b, cap_joint, w0, w1,
+        support, joint_type, joint_R, joint_p, axis, idx_v, safety, influence, gain, recovery_time, G, h, normals,
     )
-    return n
-
+    return n, n + extra

@@ -9,6 +9,20 @@ influence distance and ``xi`` [m/s] the approach speed allowed at ``d = d_i``.
 A bounding-sphere broadphase skips far pairs, then the ``max_pairs`` closest pairs
 within ``d_i`` are kept every step (a fixed pair subset would let the arms collide).
 Point clouds enter as obstacle spheres (:meth:`CollisionAvoidance.set_obstacle_spheres`).
+
+Two deviations from a single damper row per pair, each from a measured failure:
+
+* The capsule distance is a minimum of smooth pieces (the closest points of the
+  segments' interiors and the four end-point-to-segment distances). A row on the
+  closest piece alone let near-parallel links turn about their witness point while
+  their other ends closed in, and the witness jumped there a tick too late. End-point
+  pieces within ``d_i`` whose witness lies more than ``end_point_offset`` from the
+  closest points get their own damper row (at most ``max_extra_rows`` of them).
+* Inside ``d_s`` the row asks for the separation speed ``(d_s - d) / recovery_time``
+  instead of the damper's slow ``xi (d_s - d) / (d_i - d_s)``; the solver lowers what
+  the acceleration limit cannot give (to "no further approach" at worst), so a
+  penetrating state is escaped, not frozen. These rows are marked relaxable by
+  :attr:`CollisionAvoidance.separation_rows`.
 """
 
 from __future__ import annotations
@@ -39,6 +53,15 @@ class CapsuleGeometry:
     p0: tuple[float, float, float]
     p1: tuple[float, float, float]
     radius: float
+
+
+def _as_count(value, name: str, *, minimum: int = 0) -> int:
+    """An integer >= ``minimum`` (a bool, float with a fraction, string or None is rejected)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)):
+        raise InvalidInputError(f"{name} must be an integer >= {minimum}, got {value!r} ({type(value).__name__})")
+    if not np.isfinite(value) or int(value) != value or value < minimum:
+        raise InvalidInputError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
 
 
 class KinematicTree:
@@ -96,10 +119,16 @@ class CollisionAvoidance(Limit):
         safety_distance: ``d_s`` [m], never to be crossed.
         influence_distance: ``d_i`` [m], rows are active below it.
         gain: ``xi`` [m/s], approach speed allowed at ``d_i``.
-        max_pairs: rows kept per step (the closest pairs).
+        max_pairs: pairs kept per step (the closest ones), one row each at their closest points.
+        max_extra_rows: end-point rows added on top (default ``max(4, max_pairs // 3)``).
+        end_point_offset: an end-point piece gets a row when its witness points lie
+            more than this [m] from the pair's closest points.
+        recovery_time: inside ``d_s``, the separation speed asked is ``(d_s - d) / recovery_time`` [s].
     """
 
     priority = 5
+    #: Rows with a negative bound ask for separation and may be lowered to "no approach".
+    separation_rows = True
 
     def __init__(
         self,
@@ -112,6 +141,9 @@ class CollisionAvoidance(Limit):
         influence_distance: float = 0.10,
         gain: float = 0.5,
         max_pairs: int = 24,
+        max_extra_rows: int | None = None,
+        end_point_offset: float = 0.01,
+        recovery_time: float = 0.02,
     ) -> None:
         self.safety_distance = as_positive_scalar(safety_distance, "safety_distance", allow_zero=True)
         self.influence_distance = as_positive_scalar(influence_distance, "influence_distance")
@@ -120,9 +152,12 @@ class CollisionAvoidance(Limit):
                 f"influence_distance ({influence_distance}) must exceed safety_distance ({safety_distance})"
             )
         self.gain = as_positive_scalar(gain, "gain")
-        if int(max_pairs) < 1:
-            raise InvalidInputError(f"max_pairs must be >= 1, got {max_pairs}")
-        self.max_pairs = int(max_pairs)
+        self.max_pairs = _as_count(max_pairs, "max_pairs", minimum=1)
+        self.max_extra_rows = (
+            max(4, self.max_pairs // 3) if max_extra_rows is None else _as_count(max_extra_rows, "max_extra_rows")
+        )
+        self.end_point_offset = as_positive_scalar(end_point_offset, "end_point_offset")
+        self.recovery_time = as_positive_scalar(recovery_time, "recovery_time")
         self.tree = KinematicTree(configuration)
         model = configuration.model
         names, joints, p0, p1, radius = [], [], [], [], []
@@ -130,8 +165,24 @@ class CollisionAvoidance(Limit):
             if cap.frame is not None:
                 raise InvalidInputError(f"environment primitive {cap.name!r} must be fixed in the world (frame=None)")
         for cap in list(capsules) + list(environment):
-            if cap.radius < 0 or not np.isfinite(cap.radius):
-                raise InvalidInputError(f"capsule {cap.name!r} radius must be >= 0, got {cap.radius}")
+            if not isinstance(cap, CapsuleGeometry):
+                raise InvalidInputError(f"capsules must be CapsuleGeometry, got {type(cap).__name__}: {cap!r}")
+            try:
+                cap_radius = float(cap.radius)
+            except (TypeError, ValueError):
+                cap_radius = np.nan
+            if not np.isfinite(cap_radius) or cap_radius < 0:
+                raise InvalidInputError(f"capsule {cap.name!r} radius must be finite and >= 0 [m], got {cap.radius!r}")
+            for end in ("p0", "p1"):
+                point = getattr(cap, end)
+                try:
+                    point = np.asarray(point, dtype=float)
+                except (TypeError, ValueError):
+                    point = np.full(1, np.nan)
+                if point.shape != (3,) or not np.all(np.isfinite(point)):
+                    raise InvalidInputError(
+                        f"capsule {cap.name!r} {end} must be 3 finite coordinates [m], got {getattr(cap, end)!r}"
+                    )
             if cap.frame is None:
                 joint, placement = 0, None
             else:
@@ -177,13 +228,34 @@ class CollisionAvoidance(Limit):
         return cls(configuration, capsules, desc.self_collision_pairs(), **kwargs)
 
     def set_obstacle_spheres(self, centers: np.ndarray, radii: np.ndarray | float) -> None:
-        """Replace the obstacle spheres (world centres [m], radii [m]); e.g. from a point cloud."""
-        centers = np.asarray(centers, dtype=float)
+        """Replace the obstacle spheres (world centres [m], radii [m]); e.g. from a point cloud.
+
+        Raises:
+            InvalidInputError: centres not (n, 3) finite numbers, radii neither a scalar nor
+                n values, or a radius negative or non-finite.
+        """
+        try:
+            centers = np.asarray(centers, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(
+                f"obstacle centers must be an (n, 3) array of numbers [m], got {centers!r}"
+            ) from None
         if centers.ndim != 2 or centers.shape[1] != 3:
             raise InvalidInputError(f"obstacle centers must have shape (n, 3), got {centers.shape}")
-        radii = np.broadcast_to(np.asarray(radii, dtype=float), (centers.shape[0],))
-        if not (np.all(np.isfinite(centers)) and np.all(np.isfinite(radii)) and np.all(radii >= 0)):
-            raise InvalidInputError("obstacle centers must be finite and radii finite and >= 0")
+        try:
+            radii = np.asarray(radii, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"obstacle radii must be numbers [m], got {radii!r}") from None
+        if radii.ndim > 1 or (radii.ndim == 1 and radii.shape[0] != centers.shape[0]):
+            raise InvalidInputError(
+                f"obstacle radii must be a scalar or one per centre ({centers.shape[0]}), got shape {radii.shape}"
+            )
+        radii = np.broadcast_to(radii, (centers.shape[0],))
+        if not np.all(np.isfinite(centers)):
+            raise InvalidInputError(f"obstacle centers must be finite, got {centers[~np.isfinite(centers).all(1)][:3]}")
+        if not (np.all(np.isfinite(radii)) and np.all(radii >= 0)):
+            bad = radii[~(np.isfinite(radii) & (radii >= 0))][:3]
+            raise InvalidInputError(f"obstacle radii must be finite and >= 0 [m], got {bad}")
         r = self._robot
         nr = len(r["names"])
         self.capsule_names = r["names"] + [f"obstacle_{i}" for i in range(centers.shape[0])]
@@ -202,11 +274,17 @@ class CollisionAvoidance(Limit):
         self._dist = np.full(n_pairs, np.inf)
         self._s = np.zeros(n_pairs)
         self._t = np.zeros(n_pairs)
-        self._G = np.zeros((self.max_pairs, self.tree.support.shape[0] - 1))
-        self._h = np.full(self.max_pairs, 1e30)
-        self.normals = np.zeros((self.max_pairs, 3))
+        rows = self.max_pairs + self.max_extra_rows
+        self._G = np.zeros((rows, self.tree.support.shape[0] - 1))
+        self._h = np.full(rows, 1e30)
+        self.normals = np.zeros((rows, 3))
         self._selected = np.zeros(self.max_pairs, dtype=np.int64)
+        self._row_pair = np.zeros(rows, dtype=np.int64)
+        self._row_s = np.zeros(rows)
+        self._row_t = np.zeros(rows)
+        self._row_d = np.zeros(rows)
         self.active_pairs = self._selected[:0]
+        self.num_rows = 0
 
     @property
     def num_candidate_pairs(self) -> int:
@@ -233,12 +311,27 @@ class CollisionAvoidance(Limit):
 
     def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
         tree = self.tree
-        n_rows = kernels.collision_step(
+        n_pairs, n_rows = kernels.collision_step(
             configuration.q, tree.parent, tree.idx_v, tree.joint_type, tree.axis, tree.place_R, tree.place_p,
             tree.joint_R, tree.joint_p, self.cap_joint, self.cap_p0, self.cap_p1, self.cap_radius,
             self._w0, self._w1, self.pair_a, self.pair_b, self._dist, self._s, self._t,
-            tree.support, self.safety_distance, self.influence_distance, self.gain, self.max_pairs,
-            self._G, self._h, self.normals, self._selected,
+            tree.support, self.safety_distance, self.influence_distance, self.gain, self.recovery_time,
+            self.max_pairs, self.max_extra_rows, self.end_point_offset,
+            self._G, self._h, self.normals, self._selected, self._row_pair, self._row_s, self._row_t, self._row_d,
         )
-        self.active_pairs = self._selected[:n_rows]
+        # Rows 0..n_pairs-1 belong to active_pairs in order; end-point rows follow.
+        self.active_pairs = self._selected[:n_pairs]
+        self.num_rows = n_rows
         return LimitRows(G=self._G, h=self._h)
+
+    def active_pair_distances(self) -> list[tuple[str, str, float]]:
+        """Pairs that were rows of the last :meth:`compute`: both capsule names and distance [m]."""
+        names = self.capsule_names
+        return [
+            (names[self.pair_a[k]], names[self.pair_b[k]], float(self._dist[k])) for k in self.active_pairs
+        ]
+
+    @property
+    def row_pairs(self) -> np.ndarray:
+        """Pair index of every row of the last :meth:`compute` (closest-point rows, then end-point rows)."""
+        return self._row_pair[: self.num_rows]
