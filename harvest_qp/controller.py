@@ -28,7 +28,7 @@ from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
 from harvest_qp.limits.limit import Limit
 from harvest_qp.solver import Solver
 from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_nonnegative_vector, as_positive_scalar
+from harvest_qp.validation import as_nonnegative_vector, as_positive_scalar, check_limits, check_tasks
 
 OK = "ok"
 FALLBACK = "fallback"
@@ -105,10 +105,11 @@ class TaskController:
         max_acceleration: float | np.ndarray = 10.0,
     ) -> None:
         self.configuration = configuration
-        self.tasks = list(tasks)
+        # A wrong task or limit fails here, naming it, instead of safe-stopping every tick.
+        self.tasks = check_tasks(tasks, configuration)
         self.dt = as_positive_scalar(dt, "dt")
         self.max_acceleration = as_nonnegative_vector(max_acceleration, configuration.nv, "max_acceleration")
-        limits = list(limits)
+        limits = check_limits(limits, configuration)
         kinds = {type(limit) for limit in limits}
         if JointPositionLimit not in kinds:
             limits.append(JointPositionLimit(configuration, max_acceleration=self.max_acceleration))

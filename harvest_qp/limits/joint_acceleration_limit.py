@@ -22,6 +22,11 @@ class JointAccelerationLimit(Limit):
     def __init__(self, configuration: Configuration, *, max_acceleration: float | np.ndarray = 10.0):
         self.max_acceleration = as_nonnegative_vector(max_acceleration, configuration.nv, "max_acceleration")
         self._zeros = np.zeros(configuration.nv)
+        self._model = configuration.model
+
+    def check_configuration(self, configuration: Configuration) -> None:
+        """Raise :class:`~harvest_qp.exceptions.DimensionError` unless the limit fits ``configuration``'s model."""
+        self._check_joint_vectors(configuration, max_acceleration=self.max_acceleration)
 
     def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
         lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
@@ -29,6 +34,8 @@ class JointAccelerationLimit(Limit):
         return LimitRows(lower=lower, upper=upper)
 
     def fill_box(self, configuration: Configuration, dt: float, previous_qdot, lower, upper) -> None:
-        # previous_qdot is validated once by the solver for all limits.
+        # The compiled bounds read max_acceleration by joint: a limit built for a smaller
+        # model would be read past its end. previous_qdot is validated once by the solver.
+        self._ensure_bound(configuration)
         prev = self._zeros if previous_qdot is None else previous_qdot
         acceleration_bounds(prev, self.max_acceleration, dt, lower, upper)

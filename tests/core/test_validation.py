@@ -7,6 +7,8 @@ every compiled kernel the solver calls with a spy.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -387,3 +389,43 @@ def test_check_helpers_for_the_solver(dual):
         check_limit_rows(Rows(), np.zeros((2, 12)), np.zeros(3), 12)
     with pytest.raises(UnknownFrameError):
         check_tasks([FrameTwistTask("elbow")], dual)
+
+
+@pytest.mark.parametrize(
+    ("tasks", "limits", "error", "text"),
+    [
+        ([], [], "InvalidInputError", "at least one Task"),
+        (["x"], [], "InvalidInputError", "tasks[0] must be a Task"),
+        ("damping13", [], "DimensionError", "nv = 12, got 13"),
+        ("twist", ["notalimit"], "InvalidInputError", "limits[0] must be a Limit"),
+    ],
+)
+def test_task_controller_refuses_bad_tasks_and_limits_when_built(tasks, limits, error, text):
+    """Catches a controller that accepts a wrong task list and then safe-stops on every tick
+    (or, for DampingTask(13), hands a 13-wide task to the 12x12 kernels)."""
+    import harvest_qp
+    from harvest_qp import Configuration, TaskController
+    from harvest_qp.tasks import DampingTask, FrameTwistTask
+
+    config = Configuration.dual_ur5e()
+    if tasks == "damping13":
+        tasks = [DampingTask(13)]
+    elif tasks == "twist":
+        tasks = [FrameTwistTask("camera")]
+    with pytest.raises(getattr(harvest_qp, error), match=re.escape(text)):
+        TaskController(config, tasks, limits)
+
+
+def test_acceleration_limit_built_for_a_smaller_model_is_refused():
+    """Catches JointAccelerationLimit reading max_acceleration past its end on a bigger model."""
+    import pinocchio as pin
+
+    from harvest_qp import Configuration, DimensionError
+    from harvest_qp.limits import JointAccelerationLimit
+
+    big = Configuration.dual_ur5e()
+    small_model = pin.buildReducedModel(big.model, list(range(8, 14)), big.q.copy())
+    small = Configuration(small_model)
+    limit = JointAccelerationLimit(small)
+    with pytest.raises(DimensionError, match=f"max_acceleration has {small.nv} entries"):
+        limit.fill_box(big, 0.002, np.zeros(12), np.empty(12), np.empty(12))
