@@ -9,6 +9,7 @@ from harvest_qp.configuration import Configuration
 from harvest_qp.controller import ControlStep, TaskController
 from harvest_qp.exceptions import (
     ConfigError,
+    DimensionError,
     HarvestQPError,
     InfeasibleProblemError,
     InvalidInputError,
@@ -25,6 +26,7 @@ __all__ = [
     "ConfigError",
     "Configuration",
     "ControlStep",
+    "DimensionError",
     "HarvestQPError",
     "InfeasibleProblemError",
     "InvalidInputError",

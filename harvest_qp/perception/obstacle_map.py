@@ -232,6 +232,21 @@ def _as_regions(exclude) -> NDArray[np.float64]:
     return np.ascontiguousarray(arr)
 
 
+
+def _as_int8_labels(labels: NDArray) -> NDArray[np.int8]:
+    """The cloud's labels as int8 for the kernel; integer labels outside int8 become -1 (an
+    unknown label, ignored like the others) instead of wrapping round to a valid one."""
+    labels = np.asarray(labels)
+    if labels.dtype.kind not in "iub":
+        raise InvalidInputError(
+            f"cloud.labels must be integers (STEM, OBSTACLE, ROBOT), got dtype {labels.dtype}"
+        )
+    if labels.dtype == np.int8:
+        return np.ascontiguousarray(labels)
+    wide = labels.astype(np.int64)
+    return np.where((wide < -128) | (wide > 127), -1, wide).astype(np.int8)
+
+
 class ObstacleMap:
     """Occupancy grid of what the camera has seen, in the world frame.
 
@@ -429,6 +444,7 @@ class ObstacleMap:
         """
         if not isinstance(cloud, PointCloud):
             raise InvalidInputError(f"cloud must be a PointCloud, got {type(cloud).__name__}")
+        labels = _as_int8_labels(cloud.labels)
         regions = _as_regions(exclude)
         counters = np.zeros(K.N_COUNTERS, dtype=np.int64)
         origin = np.ascontiguousarray(cloud.camera_pose[:3, 3], dtype=float)
@@ -478,7 +494,7 @@ class ObstacleMap:
                 if self._returned.shape != (h, w):
                     self._returned = np.zeros((h, w), dtype=np.bool_)
         K.integrate_frame(
-            points, np.ascontiguousarray(cloud.labels, dtype=np.int8), pixels, origin, rotation, regions,
+            points, labels, pixels, origin, rotation, regions,
             stride, phase // stride, phase % stride, near_skip, self.min_range, self.max_range, no_return,
             nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
             self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
@@ -705,7 +721,18 @@ class MapCollisionFeed:
 
     def capsule_world(self, q: ArrayLike | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """World end points ``(p0, p1)`` [m] of the queried capsules at ``q`` [rad] (default: the configuration's)."""
-        q = self.configuration.q if q is None else np.asarray(q, dtype=float)
+        if q is None:
+            q = self.configuration.q
+        else:
+            # The compiled kinematics index q by joint: a short q would be read past its end.
+            try:
+                q = np.asarray(q, dtype=float)
+            except (TypeError, ValueError) as err:
+                raise InvalidInputError(f"q must be {self.configuration.nv} joint positions [rad], got {q!r}") from err
+            if q.shape != (self.configuration.nv,):
+                raise InvalidInputError(
+                    f"q must have shape ({self.configuration.nv},) (the model's joints), got shape {q.shape}"
+                )
         tree = self._tree
         tree.update(q)
         self._capsule_world(self._joints, self._a_local, self._b_local, tree.joint_R, tree.joint_p, self._w0, self._w1)

@@ -270,7 +270,7 @@ def _same_map(a: ObstacleMap, b: ObstacleMap) -> bool:
     return np.array_equal(a.log_odds, b.log_odds) and np.array_equal(a.occupied_keys(), b.occupied_keys())
 
 
-@pytest.mark.parametrize("defect", ["nan", "inf", "far", "bad_label"])
+@pytest.mark.parametrize("defect", ["nan", "inf", "far", "bad_label", "wide_label"])
 def test_invalid_points_leave_the_map_as_without_them(defect):
     """NaN / inf coordinates, a point 100 m away and an unknown label change nothing: the map
     equals the one built from the cloud without those points (no NaN, no clearing along them)."""
@@ -286,8 +286,11 @@ def test_invalid_points_leave_the_map_as_without_them(defect):
         pts[~keep] = CAM[:3, 3] + 100.0 * (pts[~keep] - CAM[:3, 3]) / np.linalg.norm(
             pts[~keep] - CAM[:3, 3], axis=1, keepdims=True
         )
-    else:
+    elif defect == "bad_label":
         labels[~keep] = 7
+    else:  # 257 as int64 would wrap round to 1 (OBSTACLE) in an int8 cast
+        labels = labels.astype(np.int64)
+        labels[~keep] = 257
     bad = PointCloud(pts, labels, clean.colors, CAM, 0.0, clean.depth, clean.pixels, clean.image_size)
     sub = PointCloud(clean.points[keep], clean.labels[keep], clean.colors[keep], CAM, 0.0, clean.depth[keep],
                      clean.pixels[keep], clean.image_size)  # fmt: skip
@@ -657,7 +660,8 @@ def test_stem_never_enters_the_map_in_the_lab(lab):
 
 
 def _controller(with_map: bool):
-    """Gripper driven at 0.1 m/s towards a wall 10.5 cm ahead of it (its capsule 6 cm from it) (the wall known only from a cloud)."""
+    """Gripper driven at 0.1 m/s towards a wall 10.5 cm ahead of it (its capsule 6 cm from it),
+    the wall known only from a cloud."""
     from harvest_qp import Configuration, TaskController
     from harvest_qp.limits import CollisionAvoidance
     from harvest_qp.robot import description as desc
@@ -684,7 +688,8 @@ def test_feed_gives_the_limit_the_closest_cells_named_by_key_with_the_maps_dista
     and the limit's own distance for each (capsule, cell) pair equals the map's query distance."""
     config, controller, limit, m, feed = _controller(True)
     config.update(config.q)
-    assert feed.update() > 0  # the gripper point is 10.5 cm from the wall, its capsule (tip 5 mm short, r 45 mm) 6 cm: within d_i
+    # The gripper point is 10.5 cm from the wall, its capsule (tip 5 mm short, r 45 mm) 6 cm: within d_i.
+    assert feed.update() > 0
     assert feed.cells.shape[0] > 0
     w0, w1 = feed.capsule_world()
     query = m.closest_cells(w0, w1, feed.radii, max_distance=limit.influence_distance + feed.margin,
@@ -851,3 +856,20 @@ def test_held_cluster_is_kept_out_of_the_map_in_the_lab(lab):
         touching[name] = int((np.min(gaps, axis=0) < 0.5 * math.sqrt(3) * RES).sum())
     assert touching["without"] > 50
     assert touching["with"] == 0
+
+
+def test_float_labels_and_a_short_q_are_refused_not_reinterpreted():
+    """Catches labels cast to int8 without a check (NaN floats became STEM and emptied the map,
+    1.9 became OBSTACLE) and a MapCollisionFeed whose compiled kinematics read past a short q
+    (found by an independent audit: capsule ends changed with whatever followed q in memory)."""
+    clean = cast(CAM, [WALL])
+    floats = PointCloud(clean.points, clean.labels.astype(float), clean.colors, CAM, 0.0, clean.depth,
+                        clean.pixels, clean.image_size)  # fmt: skip
+    m = ObstacleMap(bounds=SMALL)
+    with pytest.raises(InvalidInputError, match="labels must be integers"):
+        m.update(floats)
+    assert m.occupied_keys().shape[0] == 0
+    config, _, _, _, feed = _controller(True)
+    for bad in (np.zeros(6), np.zeros(13), "abc"):
+        with pytest.raises(InvalidInputError, match="q must"):
+            feed.update(bad)
