@@ -275,8 +275,10 @@ class HarvestController:
     def map_exclusions(self, T_g: np.ndarray) -> list:
         """Regions never mapped at gripper pose ``T_g``: the held cluster and the stem.
 
-        The cluster hangs along y_g from the gripper point and moves with it (a capsule from
-        ``cluster_above`` above the gripper point to ``cluster_length`` below it). The stem
+        The cluster hangs along y_g from the gripper point and moves with it (a capsule of
+        radius ``cluster_radius`` whose axis runs from ``cluster_start`` to ``cluster_length``
+        below the gripper point; its rounded top reaches ``cluster_radius - cluster_start``
+        above it, so the branch at the stem base stays in the map). The stem
         runs from the top of the crop to p_sb (the latest fit; before one, ``stem_length``
         along -y_g): beyond the camera's stem range it is labelled an obstacle, and it must
         never constrain the camera's approach to it nor the gripper that holds it.
@@ -285,7 +287,7 @@ class HarvestController:
 
         m, st = self.settings["obstacle_map"], self.state
         p_g, y_g = T_g[:3, 3], T_g[:3, 1]
-        cluster = ExclusionRegion(tuple(p_g - m["cluster_above"] * y_g), tuple(p_g + m["cluster_length"] * y_g),
+        cluster = ExclusionRegion(tuple(p_g + m["cluster_start"] * y_g), tuple(p_g + m["cluster_length"] * y_g),
                                   m["cluster_radius"])
         top_of_crop = p_g - self.settings["perception"]["grasp_offset"] * y_g
         stem_end = st.p_sb if st.p_sb is not None else top_of_crop - m["stem_length"] * y_g
