@@ -140,6 +140,17 @@ class _State:
     camera_history: list = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class _MapCapsule:
+    """An arm capsule queried against the obstacle map (MapCollisionFeed's ``capsules``)."""
+
+    name: str
+    frame: str
+    p0: Any
+    p1: Any
+    radius: float
+
+
 def _pose_matrix(pose: pin.SE3) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = pose.rotation
@@ -204,12 +215,6 @@ class HarvestController:
         self.collision = next((lim for lim in limits if isinstance(lim, CollisionAvoidance)), None)
         self.qp = TaskController(self.configuration, tasks, limits, dt=0.002, solver=qp["solver"],
                                  max_acceleration=self.max_acceleration)
-        self.obstacle_map = self.map_feed = None
-        if s["obstacle_map"]["enabled"] and self.collision is not None:
-            from harvest_qp.perception.obstacle_map import MapCollisionFeed, ObstacleMap
-
-            self.obstacle_map = ObstacleMap()
-            self.map_feed = MapCollisionFeed(self.collision, self.obstacle_map, self.configuration)
         backup = qp.get("backup_solver")
         self.qp_backup = (
             TaskController(self.configuration, tasks, self.qp.limits, dt=0.002, solver=backup,
@@ -220,6 +225,7 @@ class HarvestController:
         self._camera_id = self.configuration.frame_id("camera")
         self._gripper_id = self.configuration.frame_id("gripper")
         self._build_references()
+        self._build_obstacle_map()
         self.state = _State()
         self.dt = 0.002
         self.snapshots: dict[str, FrameSnapshot] = {}
@@ -229,6 +235,64 @@ class HarvestController:
         self.timing: dict[str, list[float]] | None = None
 
     # ------------------------------------------------------------------ set-up
+
+    def _build_obstacle_map(self) -> None:
+        """The persistent obstacle map of issue 11 and its feed to the collision limit.
+
+        Beyond the paper (its collision constraints know only the robot): every camera frame
+        updates an :class:`~harvest_qp.perception.obstacle_map.ObstacleMap`, and before each
+        QP step a :class:`~harvest_qp.perception.obstacle_map.MapCollisionFeed` gives the
+        closest occupied cells of each arm capsule to the ``CollisionAvoidance`` limit as
+        damper rows (pair names ``cell[kx,ky,kz]``). Only with the QP mapper and a collision
+        limit; the cloud-sphere option (``obstacles``) feeds the same limit, so not both.
+        """
+        from harvest_qp.perception.obstacle_map import MapCollisionFeed, ObstacleMap
+
+        m = self.settings["obstacle_map"]
+        self.obstacle_map = None
+        self.map_feed = None
+        if not m["enabled"] or self.collision is None or self.mapper_kind != "qp":
+            return
+        if self.settings["obstacles"]["enabled"]:
+            raise ConfigError("obstacle_map.enabled and obstacles.enabled both feed the collision limit; "
+                              "expected at most one of them true")
+        from harvest_qp.robot import description
+
+        prefixes = ("cam_",) if m["arms"] == "camera" else ("cam_", "grasp_")
+        capsules = [
+            _MapCapsule(b.name, b.link, b.capsule.p0, b.capsule.p1, b.capsule.radius)
+            for b in description.collision_bodies() if b.arm and b.name.startswith(prefixes)
+        ]
+        try:
+            self.obstacle_map = ObstacleMap(resolution=m["resolution"], clear_rays=m["clear_rays"])
+            self.map_feed = MapCollisionFeed(
+                self.collision, self.obstacle_map, self.configuration, per_capsule=m["per_capsule"],
+                min_separation=m["min_separation"], margin=m["margin"], max_cells=m["max_cells"], capsules=capsules,
+            )
+        except HarvestQPError as err:
+            raise ConfigError(f"obstacle_map: {err}") from None
+
+    def map_exclusions(self, T_g: np.ndarray) -> list:
+        """Regions never mapped at gripper pose ``T_g``: the held cluster and the stem.
+
+        The cluster hangs along y_g from the gripper point and moves with it (a capsule of
+        radius ``cluster_radius`` whose axis runs from ``cluster_start`` to ``cluster_length``
+        below the gripper point; its rounded top reaches ``cluster_radius - cluster_start``
+        above it, so the branch at the stem base stays in the map). The stem
+        runs from the top of the crop to p_sb (the latest fit; before one, ``stem_length``
+        along -y_g): beyond the camera's stem range it is labelled an obstacle, and it must
+        never constrain the camera's approach to it nor the gripper that holds it.
+        """
+        from harvest_qp.perception.obstacle_map import ExclusionRegion
+
+        m, st = self.settings["obstacle_map"], self.state
+        p_g, y_g = T_g[:3, 3], T_g[:3, 1]
+        cluster = ExclusionRegion(tuple(p_g + m["cluster_start"] * y_g), tuple(p_g + m["cluster_length"] * y_g),
+                                  m["cluster_radius"])
+        top_of_crop = p_g - self.settings["perception"]["grasp_offset"] * y_g
+        stem_end = st.p_sb if st.p_sb is not None else top_of_crop - m["stem_length"] * y_g
+        stem = ExclusionRegion(tuple(top_of_crop), tuple(stem_end), m["stem_radius"])
+        return [cluster, stem]
 
     def _build_references(self) -> None:
         s = self.settings
@@ -273,6 +337,9 @@ class HarvestController:
         self.stretching.reset()
         self.snapshots = {}
         self.switch_snapshot = None
+        if self.obstacle_map is not None:
+            self.obstacle_map.clear()
+            self.map_feed.update(q0)
 
     # ------------------------------------------------------------------ perception
 
@@ -294,13 +361,6 @@ class HarvestController:
                 predicted = self._predicted_stem(T_g)
             self.unveiling.observe(p_c, stem, non_stem, predicted_stem_points=predicted,
                                    roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
-        if self.obstacle_map is not None:
-            from harvest_qp.perception.obstacle_map import ExclusionRegion
-
-            o, y = s["obstacles"], T_g[:3, 1]
-            held = ExclusionRegion(tuple(T_g[:3, 3] - 0.03 * y), tuple(T_g[:3, 3] + (o["cluster_length"] + 0.03) * y),
-                                   o["cluster_radius"] + 0.02)
-            self.obstacle_map.update(cloud, exclude=[held])
         if self.collision is not None and s["obstacles"]["enabled"]:
             self._update_obstacle_spheres(cloud.points[labels == OBSTACLE], T_g)
         if st.phase != Phase.APPROACH:
@@ -512,6 +572,8 @@ class HarvestController:
         if obs.new_cloud and obs.cloud is not None:
             t0 = time.perf_counter()
             self._perceive(obs.cloud, T_g)
+            if self.obstacle_map is not None:
+                self.obstacle_map.update(obs.cloud, exclude=self.map_exclusions(T_g))
             if timing is not None:
                 timing.setdefault("perception", []).append(time.perf_counter() - t0)
         t_ref = time.perf_counter()
@@ -582,9 +644,9 @@ class HarvestController:
             self.camera_task.set_reference(V_c)
             self.gripper_task.set_reference(V_g)
             self.roll_task.set_reference(roll)
-            previous = self.qp.previous_qdot.copy()
             if self.map_feed is not None:
-                self.map_feed.update(obs.q)
+                values["map_cells"] = float(self.map_feed.update(obs.q))
+            previous = self.qp.previous_qdot.copy()
             result = self.qp.step(obs.q)
             if not result.ok and self.qp_backup is not None:
                 # Stopgap until the QP core retries itself (issue 10 section 1): daqp answers

@@ -74,7 +74,17 @@ SPEC: dict[str, dict[str, Any]] = {
         "enabled": "bool", "max_distance": "pos", "voxel": "pos", "radius": "nonneg",
         "cluster_radius": "nonneg", "cluster_length": "nonneg",
     },
-    "obstacle_map": {"enabled": "bool"},  # issue 11's map of the vine fed to the QP's collision rows
+    "obstacle_map": {  # issue 11: the camera's frames as a persistent map fed to the collision rows
+        "enabled": "bool", "resolution": "pos",  # [m] cell edge
+        "arms": ("choice", {"camera", "both"}),  # whose capsules get the map's rows
+        "clear_rays": "int+",  # clearing rays per frame (about)
+        "per_capsule": "int+", "max_cells": "int+",  # cells kept per arm capsule / in all
+        "min_separation": "nonneg", "margin": "nonneg",  # [m] see MapCollisionFeed
+        "cluster_length": "nonneg", "cluster_radius": "nonneg",  # [m] held cluster (along y_g) never mapped
+        "cluster_start": "real",  # [m] that capsule's axis starts this far below the gripper point (along y_g)
+        "stem_radius": "nonneg",  # [m] capsule around the stem (top of the crop to p_sb) never mapped
+        "stem_length": "pos",  # [m] the stem's length along -y_g before a stem base is found
+    },
     "safety": {
         "force_limit": "pos|null",  # [N] abort above it; null = 2 f_d
         "stem_lost_timeout": "pos",  # [s] no stem point in the bimanual phase
@@ -123,7 +133,9 @@ DEFAULTS: dict[str, Any] = {
     "roll": {"enabled": True, "k_roll": 1.0},
     "obstacles": {"enabled": False, "max_distance": 0.25, "voxel": 0.02, "radius": 0.01, "cluster_radius": 0.075,
                   "cluster_length": 0.22},
-    "obstacle_map": {"enabled": False},
+    "obstacle_map": {"enabled": True, "arms": "camera", "resolution": 0.01, "clear_rays": 12000, "per_capsule": 4, "max_cells": 24,
+                     "min_separation": 0.03, "margin": 0.01, "cluster_length": 0.22, "cluster_radius": 0.08,
+                     "cluster_start": 0.04, "stem_radius": 0.02, "stem_length": 0.08},
     "safety": {"force_limit": None, "stem_lost_timeout": 5.0, "no_stem_timeout": 30.0, "max_qp_failures": 25},
     "precut": {"force_tolerance": 0.1, "position_tolerance": 0.005, "alignment_tolerance_deg": 5.0,
                "hold_time": 1.0, "force_time_constant": 0.2},
