@@ -439,7 +439,10 @@ def _mink_model(problem: BenchProblem):
     """MuJoCo model: the robot MJCF + the obstacle spheres on a mocap body; robot conaffinity = 1."""
     import mujoco
 
+    from harvest_qp.robot.meshes import strip_visual_meshes
+
     spec = mujoco.MjSpec.from_file(str(problem.mjcf_path))
+    strip_visual_meshes(spec)  # drawing-only UR5e meshes: mink sees the capsule robot, as before
     body = spec.worldbody.add_body(name="obstacles", mocap=True)
     for name, (centre, radius) in zip(problem.obstacle_names(), problem.obstacles, strict=True):
         body.add_geom(

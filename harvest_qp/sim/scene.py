@@ -54,6 +54,7 @@ from harvest_qp.exceptions import InvalidInputError, ModelError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.robot import description as desc
 from harvest_qp.robot import paths
+from harvest_qp.robot.meshes import strip_visual_meshes
 from harvest_qp.sim.actuation import ActuationConfig, add_joint_actuators
 from harvest_qp.sim.contacts import _segment_distances
 
@@ -861,6 +862,9 @@ def build_vine_scene(
         spec = mujoco.MjSpec.from_file(str(paths.scene_path()))
     except Exception as error:  # mujoco raises plain ValueError on parse errors
         raise ModelError(f"cannot load the robot scene {paths.scene_path()}: {error}") from error
+    # The robot file's UR5e meshes are for drawing only: the lab (physics, depth camera,
+    # contact checks, geom ids) is the capsule robot alone (harvest_qp.robot.meshes).
+    strip_visual_meshes(spec)
     spec.modelname = f"vine_scene_seed{p.seed}"
     home = _robot_home(spec, q0)
     G = home["gripper"]

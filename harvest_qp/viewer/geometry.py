@@ -20,7 +20,8 @@ from numpy.typing import NDArray
 
 from harvest_qp.exceptions import InvalidInputError, ModelError
 from harvest_qp.robot import description as desc
-from harvest_qp.robot import paths, ur5e
+from harvest_qp.robot import ur5e
+from harvest_qp.robot.meshes import MESH_ORIGINS, UR_LINK_OFFSETS, mesh_pose, meshes_dir, rpy_matrix
 
 __all__ = [
     "UR_LINK_OFFSETS",
@@ -36,52 +37,8 @@ __all__ = [
 ]
 
 
-def rpy_matrix(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
-    """URDF roll-pitch-yaw [rad] to a rotation matrix, ``Rz(yaw) Ry(pitch) Rx(roll)``."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
-def _pose(xyz: tuple[float, float, float], rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> NDArray[np.float64]:
-    T = np.eye(4)
-    T[:3, :3] = rpy_matrix(*rpy)
-    T[:3, 3] = xyz
-    return T
-
-
-#: Universal Robots' link frame in this project's link frame: a translation along z [m]
-#: (the URDF here puts each joint's offset d_i in the child's joint origin instead).
-UR_LINK_OFFSETS: dict[str, float] = {
-    "base_link": 0.0,
-    "shoulder_link": 0.1625,
-    "upper_arm_link": 0.0,
-    "forearm_link": 0.0,
-    "wrist_1_link": 0.1333,
-    "wrist_2_link": 0.0997,
-    "wrist_3_link": 0.0996,
-}
-
-_PI = np.pi
-#: Mesh file and mesh origin (xyz [m], rpy [rad]) in Universal Robots' link frame
-#: (ur_description 2.4.5; the base mesh sits in ``base_link_inertia``, which is this
-#: project's arm base frame).
-MESH_ORIGINS: dict[str, tuple[str, tuple[float, float, float], tuple[float, float, float]]] = {
-    "base_link": ("base", (0.0, 0.0, 0.0), (0.0, 0.0, _PI)),
-    "shoulder_link": ("shoulder", (0.0, 0.0, 0.0), (0.0, 0.0, _PI)),
-    "upper_arm_link": ("upperarm", (0.0, 0.0, 0.138), (_PI / 2, 0.0, -_PI / 2)),
-    "forearm_link": ("forearm", (0.0, 0.0, 0.007), (_PI / 2, 0.0, -_PI / 2)),
-    "wrist_1_link": ("wrist1", (0.0, 0.0, -0.127), (_PI / 2, 0.0, 0.0)),
-    "wrist_2_link": ("wrist2", (0.0, 0.0, -0.0997), (0.0, 0.0, 0.0)),
-    "wrist_3_link": ("wrist3", (0.0, 0.0, -0.0989), (_PI / 2, 0.0, 0.0)),
-}
-
-
+# Where each UR5e mesh sits is defined once, in harvest_qp.robot.meshes (also used for
+# MuJoCo's visual-only geoms); re-exported here for the viewer's users.
 @dataclass(frozen=True)
 class LinkMesh:
     """One UR5e mesh: the model frame that carries it, its STL file and its pose in that frame."""
@@ -91,26 +48,13 @@ class LinkMesh:
     origin: NDArray[np.float64]  # (4, 4) mesh pose in ``frame``
 
 
-def meshes_dir() -> Path:
-    """Folder of the shipped UR5e meshes (``robots/ur5e_meshes``)."""
-    try:
-        root = paths.robots_root()
-    except ModelError:
-        root = Path(__file__).resolve().parents[2] / "robots"
-    folder = root / "ur5e_meshes"
-    if not (folder / "collision").is_dir():
-        raise ModelError(f"cannot find the UR5e meshes in {folder}/collision (shipped under robots/ur5e_meshes)")
-    return folder
-
-
 def robot_link_meshes() -> list[LinkMesh]:
     """The 14 UR5e meshes of the two arms (7 per arm) with their frames and mesh origins."""
     folder = meshes_dir() / "collision"
     out = []
     for prefix in desc.ARM_PREFIXES:
-        for link, (mesh, xyz, rpy) in MESH_ORIGINS.items():
-            origin = _pose((0.0, 0.0, UR_LINK_OFFSETS[link])) @ _pose(xyz, rpy)
-            out.append(LinkMesh(prefix + link, folder / f"{mesh}.stl", origin))
+        for link, (mesh, _, _) in MESH_ORIGINS.items():
+            out.append(LinkMesh(prefix + link, folder / f"{mesh}.stl", mesh_pose(link)))
     return out
 
 
