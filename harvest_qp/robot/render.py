@@ -81,17 +81,22 @@ class SceneRenderer:
         self.set_visible(show_meshes=show_meshes, show_capsules=show_capsules, show_sites=show_sites)
 
     @classmethod
-    def for_spec(cls, spec: mujoco.MjSpec, **kwargs) -> SceneRenderer:
+    def for_spec(cls, spec: mujoco.MjSpec, *, sky: bool = True, **kwargs) -> SceneRenderer:
         """A renderer of a copy of ``spec`` (e.g. a lab scene's ``VineScene.spec``) with the UR5e meshes added.
 
-        The copy has the same bodies and joints as ``spec``'s model (meshes are geoms only),
-        so a state of that model can be drawn by :meth:`render`.
+        The copy has the same bodies and joints as ``spec``'s model (meshes, textures and
+        geoms only), so a state of that model can be drawn by :meth:`render`. ``sky``: a
+        gradient sky instead of MuJoCo's black background.
         """
         if not isinstance(spec, mujoco.MjSpec):
             raise InvalidInputError(f"spec must be a mujoco.MjSpec, got {type(spec).__name__}")
         copy = spec.copy()
         if not any(g.classname.name == VISUAL_CLASS for g in copy.geoms):
             add_visual_meshes(copy)
+        if sky and not any(t.type == mujoco.mjtTexture.mjTEXTURE_SKYBOX for t in copy.textures):
+            copy.add_texture(name="render_sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+                             builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[0.55, 0.7, 0.85],
+                             rgb2=[0.08, 0.1, 0.15], width=256, height=256)  # fmt: skip
         try:
             model = copy.compile()
         except Exception as error:

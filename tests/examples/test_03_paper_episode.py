@@ -1,4 +1,4 @@
-"""examples/03_paper_episode.py: a short paper episode through the library API."""
+"""examples/03_paper_episode.py: a short paper episode through the library API, with and without the viewer."""
 
 from __future__ import annotations
 
@@ -6,11 +6,22 @@ import json
 import re
 
 import numpy as np
+import pytest
 
+from harvest_qp.viewer.replay import free_port
 from tests.examples._run import pinocchio_frame_positions, run_example, true_stem_base
 
+DURATION = "1.5"
 
-def test_03_short_episode_approaches_the_stem_and_reports_it(tmp_path):
+
+@pytest.fixture(scope="module")
+def headless(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ex03") / "run"
+    stdout = run_example("03_paper_episode", "--duration", DURATION, "--out", str(out))
+    return out, stdout
+
+
+def test_03_short_episode_approaches_the_stem_and_reports_it(headless):
     """Catches an example (or episode API) whose camera arm does not approach the vine in the
     reaching phase, that logs joint positions inconsistent with its metrics, or prints a
     distance other than the one in metrics.json.
@@ -18,11 +29,10 @@ def test_03_short_episode_approaches_the_stem_and_reports_it(tmp_path):
     Oracle: pinocchio forward kinematics of the logged joint positions (the URDF, not the
     library's Configuration) and the lab's ground-truth stem base.
     """
-    out = tmp_path / "run"
-    stdout = run_example("03_paper_episode", "--duration", "1.5", "--out", str(out))
+    out, stdout = headless
     metrics = json.loads((out / "metrics.json").read_text())
     log = np.load(out / "episode.npz")
-    assert metrics["duration"] == 1.5 and metrics["phase_reached"] == "approach"
+    assert metrics["duration"] == float(DURATION) and metrics["phase_reached"] == "approach"
     assert metrics["qp_failures"] == 0 and metrics["contacts"] == 0
     camera = pinocchio_frame_positions(log["q"][[0, -1]], "camera")
     start, end = np.linalg.norm(camera - true_stem_base(0), axis=1)
@@ -32,3 +42,20 @@ def test_03_short_episode_approaches_the_stem_and_reports_it(tmp_path):
     printed = float(re.search(r"camera to the true stem base at the end: ([0-9.]+) m", stdout).group(1))
     assert abs(printed - end) < 1e-3, (printed, end)
     assert abs(metrics["final_distance_to_roi_center"] - end) < 1e-3
+
+
+def test_03_with_the_meshcat_viewer_the_episode_is_the_same(headless, tmp_path):
+    """``--viewer meshcat`` serves the live view (URL printed) and only observes: the logged
+    joint trajectory is the one of the headless run, tick for tick.
+
+    Catches: a viewer that feeds back into the loop (e.g. the extras function mutating the
+    controller's values), a crash of the viewer path (an unknown ViewerFrame field), a server
+    on another port than asked. Oracle: the headless run of the same episode.
+    """
+    out, _ = headless
+    port = free_port()
+    stdout = run_example("03_paper_episode", "--duration", DURATION, "--out", str(tmp_path / "run"),
+                         "--viewer", "meshcat", "--fast", "--port", str(port))  # fmt: skip
+    assert f"http://127.0.0.1:{port}/" in stdout, stdout
+    viewed = np.load(tmp_path / "run" / "episode.npz")
+    np.testing.assert_array_equal(viewed["q"], np.load(out / "episode.npz")["q"])
