@@ -24,32 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from harvest_qp.loop.controller import Phase
 from harvest_qp.loop.episode import run_paper_episode
 from harvest_qp.loop.settings import load_settings
 from harvest_qp.robot.paths import tasks_dir
-
-
-def viewer_extras(settings: dict):
-    """What the viewer draws besides the robot and the cloud, from the controller's per-tick values.
-
-    ``HarvestController.step`` returns a ``Command`` whose ``values`` (logged as ``value/*``)
-    hold the phase, p_r, p_sb, p_gd, V_c and V_g; the viewer takes them as ViewerFrame fields.
-    """
-    radius = float(settings["reaching"]["radius"])  # the ROI sphere around p_r [m]
-
-    def extras(obs, command) -> dict:
-        values = command.values
-        out = {"phase": Phase(int(values["phase"])).name.lower(), "theta": float(values["theta"])}
-        for field, key in (("p_r", "p_r"), ("p_sb", "p_sb"), ("p_gd", "p_gd"), ("v_c", "V_c"), ("v_g", "V_g")):
-            value = np.array(values[key], dtype=float)  # a copy: the viewer draws it later
-            if np.all(np.isfinite(value)):  # NaN: not known yet (e.g. p_gd before the switch)
-                out[field] = value
-        if "p_r" in out:
-            out["roi_center"], out["roi_radius"] = out["p_r"], radius
-        return out
-
-    return extras
 
 
 def run(
@@ -74,10 +51,10 @@ def run(
 
     def with_viewer(robot, controller):
         nonlocal live
-        from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController
+        from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController, paper_episode_extras
 
         live = LiveViewer(vine=robot.model, port=port)  # prints the URL to open
-        return ViewedController(controller, live, extras=viewer_extras(settings),
+        return ViewedController(controller, live, extras=paper_episode_extras(settings["reaching"]["radius"]),
                                 pacer=RealTimePacer() if realtime else None)  # fmt: skip
 
     # 3. The episode. seed 0 is the paper's default scene, seed N > 0 a randomised vine.

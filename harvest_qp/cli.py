@@ -160,10 +160,11 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
     def with_viewer(robot, controller):
         # The viewer only observes: it wraps the controller, nothing in the loop imports it.
         nonlocal live
-        from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController
+        from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController, paper_episode_extras
 
         live = LiveViewer(vine=robot.model, host=host, port=port)  # prints the URL
-        return ViewedController(controller, live, pacer=RealTimePacer() if realtime else None)
+        return ViewedController(controller, live, extras=paper_episode_extras(settings["reaching"]["radius"]),
+                                pacer=RealTimePacer() if realtime else None)
 
     try:
         report = run_paper_episode(settings, seed=seed, mapper=mapper, duration=duration, out_dir=out,
@@ -172,6 +173,9 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
     finally:
         if live is not None:
             live.close()  # draws the last tick, stops the worker and the server
+    if live is not None and live.error is not None:
+        # The viewer never raises into the control loop; it keeps its error for the user instead.
+        print(f"harvest-qp: the live viewer stopped drawing: {live.error!r}", file=sys.stderr)
     report.metrics["out_dir"] = str(report.out_dir)
     return report.metrics
 

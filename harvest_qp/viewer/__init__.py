@@ -12,6 +12,7 @@ Observing only: nothing in the control path imports this package. Entry points:
   port raises :class:`ViewerPortInUseError`, never left running after its parent exits.
 """
 
+from harvest_qp.viewer.extras import paper_episode_extras
 from harvest_qp.viewer.frame import LOG_KEYS, ViewerFrame, frame_from_observation, frames_from_log
 from harvest_qp.viewer.live import LiveViewer, RealTimePacer, ViewedController, wait_for_interrupt
 from harvest_qp.viewer.replay import export_episode_html, load_log, replay, vine_params_from_log
@@ -34,6 +35,7 @@ __all__ = [
     "frame_from_observation",
     "frames_from_log",
     "load_log",
+    "paper_episode_extras",
     "replay",
     "vine_params_from_log",
     "wait_for_interrupt",

@@ -1,0 +1,42 @@
+"""What the viewer draws of the paper episode besides the robot and the cloud.
+
+:class:`~harvest_qp.loop.controller.HarvestController` returns a ``Command`` whose ``values``
+(logged as ``value/*``) hold the phase, theta, p_r, p_sb, p_gd, V_c and V_g; this turns them
+into :class:`~harvest_qp.viewer.ViewerFrame` fields for :class:`~harvest_qp.viewer.ViewedController`.
+Used by ``harvest-qp run --viewer meshcat`` and ``examples/03_paper_episode.py``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+__all__ = ["paper_episode_extras"]
+
+_VECTORS = (("p_r", "p_r"), ("p_sb", "p_sb"), ("p_gd", "p_gd"), ("v_c", "V_c"), ("v_g", "V_g"))
+
+
+def paper_episode_extras(roi_radius: float) -> Callable[[Any, Any], Mapping[str, Any]]:
+    """``(obs, command) -> ViewerFrame fields`` for the paper episode's controller.
+
+    Args:
+        roi_radius: r, the ROI sphere's radius drawn around p_r [m] (``reaching.radius``).
+    """
+    from harvest_qp.loop.controller import Phase  # the viewer observes the loop, never the reverse
+
+    radius = float(roi_radius)
+
+    def extras(obs: Any, command: Any) -> Mapping[str, Any]:
+        values = command.values
+        out: dict[str, Any] = {"phase": Phase(int(values["phase"])).name.lower(), "theta": float(values["theta"])}
+        for field, key in _VECTORS:
+            value = np.array(values[key], dtype=float)  # a copy: the viewer draws it later, on its thread
+            if np.all(np.isfinite(value)):  # NaN: not known yet (p_gd before the switch)
+                out[field] = value
+        if "p_r" in out:
+            out["roi_center"], out["roi_radius"] = out["p_r"], radius
+        return out
+
+    return extras
