@@ -12,8 +12,11 @@ from harvest_qp.tasks import FramePoseTask
 
 
 def test_shipped_configs_load(configuration):
-    # paper.yaml is the paper episode's settings tree (harvest_qp.loop.settings, tested in tests/loop).
-    paths = sorted(p for p in tasks_dir().glob("*.yaml") if p.name != "paper.yaml")
+    # paper*.yaml are episode settings trees (harvest_qp.loop.settings, tested in tests/loop, tests/config).
+    from harvest_qp.schema import config_kind, resolve_file
+
+    paths = sorted(p for p in tasks_dir().glob("*.yaml") if config_kind(resolve_file(p).data) == "tasks")
+    assert {p.name for p in paths} == {"reach_targets.yaml", "sim_reach_stem.yaml"}
     assert paths
     for path in paths:
         config = load_controller_config(path, configuration)
