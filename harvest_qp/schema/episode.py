@@ -224,13 +224,13 @@ class TaskSlot(Section):
     """Priority level and weight of one of the episode's built-in QP tasks."""
 
     level: Level = Field(1, description="priority level (1 is the highest soft priority)")
-    weight: Weight = Field(1.0, description="weight (>= 0) [1/(task unit)^2]")
+    weight: Weight = Field(1.0, description="[1/(task unit)^2] weight (>= 0)")
 
 
 class TwistTaskSlot(TaskSlot):
     """A 6-D twist task: one weight or one per axis (vx, vy, vz, wx, wy, wz)."""
 
-    weight: Weights6 = Field(1.0, description="a weight or 6 per-axis weights [1/(m/s)^2, 1/(rad/s)^2]")
+    weight: Weights6 = Field(1.0, description="[1/(m/s)^2, 1/(rad/s)^2] a weight or 6 per-axis weights")
 
 
 _DEFAULT_LIMITS = TypeAdapter(list[LimitEntry]).validate_python([

@@ -79,26 +79,34 @@ def _type_text(node: dict[str, Any], defs: dict[str, Any]) -> str:
 _UNIT = re.compile(r"^\[([^\]]+)\]\s*")
 
 
-def _row(path: str, node: dict[str, Any], defs: dict[str, Any], required: bool) -> str:
+def _row(path: str, node: dict[str, Any], defs: dict[str, Any], required: bool, default: Any = ...) -> str:
     description = node.get("description", "")
     match = _UNIT.match(description)
     unit = match.group(1) if match else ""
     description = description[match.end():] if match else description
-    default = "(required)" if required else f"`{json.dumps(node.get('default'))}`" if "default" in node else ""
+    if default is ... and "default" in node:
+        default = node["default"]
+    default = "(required)" if required else "" if default is ... else f"`{json.dumps(default)}`"
     cells = [f"`{path}`", _type_text(node, defs), default, unit, description.replace("|", "\\|").replace("\n", " ")]
     return "| " + " | ".join(cells) + " |"
 
 
-def _rows(model: dict[str, Any], defs: dict[str, Any], prefix: str = "") -> list[str]:
+def _rows(model: dict[str, Any], defs: dict[str, Any], prefix: str = "", defaults: Any = None) -> list[str]:
+    """Rows of ``model``'s keys, sections flattened to ``section.key``.
+
+    ``defaults``: the enclosing field's default mapping, which wins over the section model's
+    own field defaults (``qp.camera_task.weight`` defaults to the 6 weights, not to 1.0).
+    """
     rows = []
     required = set(model.get("required", []))
     for name, node in model.get("properties", {}).items():
         path = f"{prefix}{name}"
-        if "$ref" in node and _deref(node, defs).get("properties") and name != "viewpoint" or (
-                "$ref" in node and name == "viewpoint"):
-            rows.extend(_rows(_deref(node, defs), defs, f"{path}."))
+        default = defaults[name] if isinstance(defaults, dict) and name in defaults else ...
+        if "$ref" in node and _deref(node, defs).get("properties"):
+            inner = node.get("default") if default is ... else default
+            rows.extend(_rows(_deref(node, defs), defs, f"{path}.", inner))
         else:
-            rows.append(_row(path, node, defs, name in required))
+            rows.append(_row(path, node, defs, name in required, default))
     return rows
 
 

@@ -86,7 +86,7 @@ class FrameTwistEntry(_Entry):
     type: Literal["frame_twist"]
     frame: Name = Field(description="frame name in the robot model (e.g. camera, gripper)")
     weight: Weights6 = Field(_default(FrameTwistTask, "weight"),
-                             description="a weight or 6 per-axis weights [1/(m/s)^2, 1/(rad/s)^2]")
+                             description="[1/(m/s)^2, 1/(rad/s)^2] a weight or 6 per-axis weights")
     weight_frame: expect(Literal["world", "local"], "one of: local, world") = Field(
         _default(FrameTwistTask, "weight_frame"), description="axes of the weights: world or local")
     level: HardLevel = Field(_default(FrameTwistTask, "level"), description="priority level (0: hard)")
@@ -121,7 +121,7 @@ class FramePoseEntry(_Entry):
     rotation: Union[RPY, Matrix3, None] = Field(
         None, description="target rotation {rpy: [r, p, y]} [rad] or a 3x3 matrix; null: the start rotation")
     weight: Weights6 = Field(_default(FramePoseTask, "weight"),
-                             description="a weight or 6 per-axis weights (world axes) [1/m^2, 1/rad^2]")
+                             description="[1/m^2, 1/rad^2] a weight or 6 per-axis weights (world axes)")
     level: HardLevel = Field(_default(FramePoseTask, "level"), description="priority level (0: hard)")
     gain: NonNegative = Field(_default(FramePoseTask, "gain"), description="[1/s] error feedback gain")
 
@@ -133,7 +133,7 @@ class RelativeFrameEntry(_Entry):
     frame: Name = Field(description="frame name in the robot model")
     root: Name = Field(description="frame the pose is expressed in")
     weight: Weights6 = Field(_default(RelativeFrameTask, "weight"),
-                             description="a weight or 6 per-axis weights [1/m^2, 1/rad^2]")
+                             description="[1/m^2, 1/rad^2] a weight or 6 per-axis weights")
     level: HardLevel = Field(_default(RelativeFrameTask, "level"), description="priority level (0: hard)")
     gain: NonNegative = Field(_default(RelativeFrameTask, "gain"), description="[1/s] error feedback gain")
 
@@ -165,7 +165,7 @@ class UserTaskEntry(_Entry):
 
     type: UserTaskType = Field(description="'module.path:ClassName' (importable, or a module next to the config "
                                            "file) or 'file.py:ClassName' (relative to the config file)")
-    params: dict[str, Any] = Field(default_factory=dict, description="constructor arguments, validated against the "
+    params: dict[str, Any] = Field({}, description="constructor arguments, validated against the "
                                    "class's `Params` pydantic model or its __init__ signature")
     level: HardLevel | None = Field(None, description="priority level set on the built task (null: the class's)")
     weight: Weights | None = Field(None, description="weight(s) set on the built task (null: the class's)")
@@ -274,7 +274,7 @@ class CollisionEntry(_Entry):
     gain: Positive = Field(_default(CollisionAvoidance, "gain"), description="[m/s] damper gain")
     max_pairs: PositiveInt = Field(_default(CollisionAvoidance, "max_pairs"),
                                    description="closest pairs kept as rows per step")
-    obstacle_spheres: list[ObstacleSphere] = Field(default_factory=list, description="world-fixed spheres")
+    obstacle_spheres: list[ObstacleSphere] = Field([], description="world-fixed spheres")
 
 
 _LIMIT_ENTRIES = {
@@ -327,12 +327,12 @@ class TaskConfig(Section):
     dt: Positive = Field(0.002, description="[s] control period (UR5e: 2 ms)")
     duration: Positive = Field(4.0, description="[s] length of the demo")
     solver: Text = Field("daqp", description="QP backend: daqp | proxsuite | qpsolvers:<name>")
-    viewpoint: Viewpoint = Field(default_factory=Viewpoint, description=Viewpoint.__doc__)
-    environment: list[str] = Field(default_factory=list, description="static capsule geoms of the scene used as "
+    viewpoint: Viewpoint = Field(Viewpoint(), description=Viewpoint.__doc__)
+    environment: list[str] = Field([], description="static capsule geoms of the scene used as "
                                    "obstacles (e.g. [branch, cane]; MuJoCo demo only)")
     tasks: Annotated[list[TaskEntry], Field(min_length=1)] = Field(
         description="the QP's tasks (at least one), each a built-in `type` or a user's 'module:Class'")
-    limits: list[LimitEntry] = Field(default_factory=list, description="the QP's limits")
+    limits: list[LimitEntry] = Field([], description="the QP's limits")
 
 
 # ------------------------------------------------------------------ user task classes

@@ -28,7 +28,10 @@ SHIPPED = sorted(tasks_dir().glob("*.yaml")) + sorted((ROOT / "examples").glob("
 
 @pytest.fixture(scope="module")
 def validator():
-    return jsonschema.Draft202012Validator(json.loads((tasks_dir() / "schema.json").read_text()))
+    """The generated JSON Schema (the shipped file is checked equal to it below) in `jsonschema`."""
+    schema = json_schema()
+    jsonschema.Draft202012Validator.check_schema(schema)
+    return jsonschema.Draft202012Validator(schema)
 
 
 def test_shipped_schema_and_reference_are_generated_from_the_schema():
@@ -228,3 +231,27 @@ def test_the_schema_kinds_share_definitions():
     assert set(EpisodeConfig.model_fields) >= {"scene", "camera", "perception", "reaching", "grasping", "qp",
                                                 "safety", "episode", "mapper", "obstacle_map"}
     assert {"dt", "tasks", "limits", "solver"} <= set(TaskConfig.model_fields)
+
+
+def test_the_config_reference_documents_every_key_with_the_default_the_loop_uses():
+    """Each key of tasks/paper.yaml has one row in docs/config.md whose default (parsed back from
+    the table) equals the value in paper.yaml (whose values equal the defaults), and a unit or a
+    description.
+
+    Catches: a flattened section showing its model's own default instead of the enclosing
+    default (qp.camera_task.weight is [1, 1, 1, 1, 1, 0], not 1.0), or a key missing from the docs."""
+    rows = {}
+    for line in config_reference_markdown().split("## QP task configuration")[0].splitlines():
+        if line.startswith("| `"):
+            cells = [c.strip() for c in line.strip("|").split(" | ")]
+            rows[cells[0].strip("`")] = cells
+    raw = yaml.safe_load((tasks_dir() / "paper.yaml").read_text())
+    for keys, value in _leaves({k: v for k, v in raw.items() if k != "description"}):
+        path = ".".join(keys)
+        assert path in rows, path
+        key, kind, default, unit, description = rows[path]
+        assert description, path
+        documented = json.loads(default.strip("`"))
+        if path == "qp.limits":  # entries documented with their class defaults spelled out
+            documented = [{k: d[k] for k in v} for d, v in zip(documented, value, strict=True)]
+        assert documented == value, (path, default, value)
