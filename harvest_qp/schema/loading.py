@@ -108,11 +108,11 @@ class ResolvedConfig:
     overrides: list[str] = field(default_factory=list)
 
     def origin(self, keys: Sequence[Any]) -> str:
-        """The file (or ``--set``) that gave the value at ``keys``; the user's file if none did."""
+        """The file (or the ``--set`` override) that gave the value at ``keys``; the user's file if none did."""
         for item in reversed(self.overrides):
             head = item.split("=", 1)[0].strip().split(".")
             if [str(k) for k in keys[: len(head)]] == head:
-                return "--set"
+                return f"{self.path} (--set {item})"
         for path, raw in reversed(self.chain):
             node: Any = raw
             found = True

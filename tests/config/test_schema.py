@@ -218,7 +218,8 @@ def test_an_error_names_the_file_of_the_extends_chain_that_holds_the_bad_key(tmp
     with pytest.raises(ConfigError) as err:
         load_settings(tmp_path / "child.yaml")
     assert str(err.value).startswith(f"{tmp_path / 'parent.yaml'}: 'reaching.radius' must be a number > 0")
-    with pytest.raises(ConfigError, match=r"^--set: 'grasping.f_d' must be a number > 0; got -2"):
+    expected = r"child\.yaml \(--set grasping\.f_d=-2\): 'grasping.f_d' must be a number > 0; got -2"
+    with pytest.raises(ConfigError, match=expected):
         load_settings(tmp_path / "child.yaml", ["reaching.radius=0.3", "grasping.f_d=-2"])
 
 
