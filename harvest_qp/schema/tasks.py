@@ -118,7 +118,7 @@ class FramePoseEntry(_Entry):
         None, description="[m] target position in the world; null: the frame's start position")
     offset: expect(Union[Annotated[list[float], Field(min_length=3, max_length=3)], None],
                    "a list of 3 numbers [m] or null") = Field(None, description="[m] added to the target position")
-    rotation: Union[RPY, Matrix3, None] = Field(
+    rotation: expect(Union[RPY, Matrix3, None], "{rpy: [r, p, y]} or a 3x3 matrix or null") = Field(
         None, description="target rotation {rpy: [r, p, y]} [rad] or a 3x3 matrix; null: the start rotation")
     weight: Weights6 = Field(_default(FramePoseTask, "weight"),
                              description="[1/m^2, 1/rad^2] a weight or 6 per-axis weights (world axes)")
