@@ -32,6 +32,11 @@ _COMMON = {"extends", "description"}
 _TASK_KEYS = set(TaskConfig.model_fields) - _COMMON
 _EPISODE_KEYS = set(EpisodeConfig.model_fields) - _COMMON
 _TAGS = {*BUILT_IN_TASKS, *BUILT_IN_LIMITS, "user"}
+_WHAT = {
+    "episode": "an episode configuration (settings tree such as tasks/paper.yaml, for `harvest-qp run`)",
+    "tasks": "a QP task configuration (dt, tasks, limits such as tasks/reach_targets.yaml, for "
+             "`harvest-qp demo --config`)",
+}
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -279,7 +284,12 @@ def validate_data(
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: the configuration must be a mapping of keys (a mapping of sections); "
                           f"got {type(data).__name__}")
-    kind = kind or config_kind(data)
+    detected = config_kind(data)
+    own_keys = _TASK_KEYS if kind == "tasks" else _EPISODE_KEYS
+    other_keys = _EPISODE_KEYS if kind == "tasks" else _TASK_KEYS
+    if kind is not None and detected != kind and other_keys & set(data) and not own_keys & set(data):
+        raise ConfigError(f"{source}: this is {_WHAT[detected]}; expected {_WHAT[kind]}")
+    kind = kind or detected
     model = _MODELS[kind]
     try:
         return model.model_validate(dict(data), context={"base_dir": str(base_dir) if base_dir else None})

@@ -167,6 +167,20 @@ def test_a_binary_file_and_a_missing_file_are_config_errors(tmp_path, capsys):
     assert issubclass(ConfigError, HarvestQPError)
 
 
+def test_a_file_of_the_other_kind_is_named_as_such(tmp_path, capsys):
+    """`run` on a QP task config and `demo` on an episode config say which kind the file is.
+
+    Catches: a wall of "unknown key" errors (or a traceback) for using the wrong sub-command."""
+    assert main(["run", str(tasks_dir() / "reach_targets.yaml"), "--out", str(tmp_path)]) == 2
+    assert "this is a QP task configuration" in capsys.readouterr().err
+    assert main(["demo", "--kinematic", "--config", str(tasks_dir() / "paper.yaml")]) == 2
+    assert "this is an episode configuration" in capsys.readouterr().err
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing\n")
+    assert main(["demo", "--kinematic", "--config", str(empty)]) == 2
+    assert "'tasks' is required" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------ extends
 
 
