@@ -53,14 +53,15 @@ class Scene(Section):
     """The MuJoCo vine scene."""
 
     randomize: bool = _f(True, "--seed N > 0: VineSceneParams.sample(N); seed 0 is the default (paper) scene")
-    params: dict[str, Any] = _f({}, "VineSceneParams fields set explicitly (names checked against "
-                                    "harvest_qp.sim.VineSceneParams; values by its constructor)")
+    params: dict[str, Any] = _f({}, "VineSceneParams fields set explicitly (checked by "
+                                    "harvest_qp.sim.VineSceneParams)")
 
     @field_validator("params", mode="after")
     @classmethod
     def _scene_field_names(cls, value: dict[str, Any]) -> dict[str, Any]:
         import dataclasses
 
+        from harvest_qp.exceptions import InvalidInputError
         from harvest_qp.sim.scene import VineSceneParams
 
         names = [f.name for f in dataclasses.fields(VineSceneParams)]
@@ -70,6 +71,10 @@ class Scene(Section):
                     "unknown_key", "unknown key '{key}'{hint}; expected one of: {valid}",
                     {"key": str(key), "hint": suggest(str(key), names), "valid": ", ".join(names)},
                 )
+        try:  # the values, checked by the dataclass itself (cheap: no model is built)
+            VineSceneParams(**value)
+        except (InvalidInputError, TypeError) as err:
+            raise PydanticCustomError("scene_params", "{err}", {"err": " ".join(str(err).split())}) from None
         return value
 
 

@@ -255,6 +255,8 @@ def format_error(err: ValidationError, resolved: ResolvedConfig | None, source: 
         text = f"'{path}' must be {ctx.get('expected')}; got {_describe(value)}"
     elif kind in ("bool_type", "bool_parsing"):
         text = f"'{path}' must be true or false; got {_describe(value)}"
+    elif kind == "scene_params":  # VineSceneParams' own one-line message names the field and the value
+        text = f"'{path}': {first['msg']}"
     elif kind in ("string_type",):
         text = f"'{path}' must be a string; got {_describe(value)}"
     elif kind in ("list_type", "too_short", "too_long"):

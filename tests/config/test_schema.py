@@ -132,6 +132,8 @@ def test_the_settings_the_loop_reads_are_the_values_of_paper_yaml():
         ("qp: {limits: [{type: collision, gain: -1}]}\n", ["'qp.limits[0].gain' must be a number > 0", "got -1"]),
         ("obstacle_map: {arms: all}\n", ["'obstacle_map.arms' must be one of: camera, both", "got 'all'"]),
         ("scene: {params: {stem_lenght: 0.1}}\n", ["'scene.params.stem_lenght'", "did you mean 'stem_length'"]),
+        ("scene: {params: {stem_length: -1.0}}\n", ["'scene.params'", "stem_length must be a finite number > 0",
+                                                     "got -1.0"]),
         ("tasks: [{type: posture, wieght: 1.0}]\n", ["unknown key 'tasks[0].wieght'", "did you mean 'weight'"]),
         ("dt: 0.002\ntasks: [{type: frame_twist, frame: camera, weight: [1, 2]}]\n",
          ["'tasks[0].weight' must be a number >= 0 or a list of 6 numbers >= 0", "got [1, 2]"]),
