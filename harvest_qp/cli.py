@@ -203,7 +203,7 @@ def check_config(path: Path, overrides: list[str] | None = None) -> str:
     Raises:
         ConfigError: one line naming the file, the key path, the bad value and what was expected.
     """
-    from harvest_qp.config import _build_limit, _built, _controller_config, build_tasks
+    from harvest_qp.config import build_limits, build_tasks, controller_config_from_checked
     from harvest_qp.schema import EpisodeConfig, load_config
 
     model = load_config(path, overrides or [])
@@ -212,11 +212,10 @@ def check_config(path: Path, overrides: list[str] | None = None) -> str:
     try:
         if isinstance(model, EpisodeConfig):
             extra = build_tasks(data["qp"]["extra_tasks"], configuration, where="qp.extra_tasks")
-            for i, entry in enumerate(data["qp"]["limits"]):
-                _built(lambda e, c, w: _build_limit(e, c, w), dict(entry), configuration, f"qp.limits[{i}]")
+            build_limits(data["qp"]["limits"], configuration, where="qp.limits")
             return (f"{path}: episode configuration ({len(extra)} extra task(s), {len(data['qp']['limits'])} "
                     f"limits, mapper {data['mapper']['kind']}): OK")
-        config = _controller_config(data, configuration)
+        config = controller_config_from_checked(data, configuration)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from None
     return (f"{path}: QP task configuration, {len(config.tasks)} tasks, {len(config.limits)} limits, "

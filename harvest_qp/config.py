@@ -200,15 +200,26 @@ def build_controller_config(
     from harvest_qp.schema import validate_data
 
     checked = validate_data(data, kind="tasks", source=source, base_dir=base_dir).model_dump()
-    return _controller_config(checked, configuration, environment)
+    return controller_config_from_checked(checked, configuration, environment)
 
 
-def _controller_config(checked: dict, configuration: Configuration, environment=()) -> ControllerConfig:
+def build_limits(
+    entries: Sequence[dict], configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = (),
+    where: str = "limits",
+) -> list[Limit]:
+    """Limits from validated limit entries (``limits`` of a task config, ``qp.limits`` of an episode)."""
+    def build(entry, config, at):
+        return _build_limit(entry, config, at, environment)
+
+    return [_built(build, dict(e), configuration, f"{where}[{i}]") for i, e in enumerate(entries)]
+
+
+def controller_config_from_checked(
+    checked: dict, configuration: Configuration, environment: Sequence[CapsuleGeometry] = ()
+) -> ControllerConfig:
+    """A :class:`ControllerConfig` from an already validated task configuration (``TaskConfig.model_dump()``)."""
     tasks = build_tasks(checked["tasks"], configuration)
-    limits = [
-        _built(lambda e, c, w: _build_limit(e, c, w, environment), dict(e), configuration, f"limits[{i}]")
-        for i, e in enumerate(checked["limits"])
-    ]
+    limits = build_limits(checked["limits"], configuration, environment=environment)
     extra = {k: checked[k] for k in ("viewpoint", "environment", "description")}
     return ControllerConfig(tasks, limits, dt=checked["dt"], solver=checked["solver"], duration=checked["duration"],
                             extra=extra)
@@ -231,6 +242,6 @@ def load_controller_config(
     """
     checked = read_config_file(path)
     try:
-        return _controller_config(checked, configuration, environment)
+        return controller_config_from_checked(checked, configuration, environment)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from None
