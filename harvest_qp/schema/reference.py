@@ -83,7 +83,8 @@ def _row(path: str, node: dict[str, Any], defs: dict[str, Any], required: bool, 
     if default is ... and "default" in node:
         default = node["default"]
     default = "(required)" if required else "" if default is ... else f"`{json.dumps(default)}`"
-    cells = [f"`{path}`", _type_text(node, defs), default, unit, description.replace("|", "\\|").replace("\n", " ")]
+    cells = [f"`{path}`", _type_text(node, defs), default, unit,
+             _markdown(description).replace("|", "\\|").replace("\n", " ")]
     return "| " + " | ".join(cells) + " |"
 
 
@@ -104,6 +105,11 @@ def _rows(model: dict[str, Any], defs: dict[str, Any], prefix: str = "", default
         else:
             rows.append(_row(path, node, defs, name in required, default))
     return rows
+
+
+def _markdown(text: str) -> str:
+    """A docstring line as markdown (reST roles and double backticks become code spans)."""
+    return re.sub(r":\w+:`([^`]+)`", r"`\1`", text).replace("``", "`")
 
 
 _HEADER = ["| key | type | default | unit | description |", "|---|---|---|---|---|"]
@@ -145,11 +151,11 @@ def config_reference_markdown() -> str:
     for name in ("FrameTwistEntry", "FramePoseEntry", "RelativeFrameEntry", "PostureEntry", "DampingEntry",
                  "UserTaskEntry"):
         kind = defs[name]["properties"]["type"].get("const", "module.path:ClassName")
-        out += [f"### `type: {kind}`", "", defs[name].get("description", ""), "", *_HEADER,
+        out += [f"### `type: {kind}`", "", _markdown(defs[name].get("description", "")), "", *_HEADER,
                 *[r for r in _rows(defs[name], defs) if not r.startswith("| `type`")], ""]
     out += ["## Limit entries (`limits`, `qp.limits`)", ""]
     for name in ("JointPositionEntry", "JointVelocityEntry", "JointAccelerationEntry", "CollisionEntry"):
         kind = defs[name]["properties"]["type"]["const"]
-        out += [f"### `type: {kind}`", "", defs[name].get("description", ""), "", *_HEADER,
+        out += [f"### `type: {kind}`", "", _markdown(defs[name].get("description", "")), "", *_HEADER,
                 *[r for r in _rows(defs[name], defs) if not r.startswith("| `type`")], ""]
     return "\n".join(out).rstrip() + "\n"

@@ -109,7 +109,7 @@ Matrix3 = expect(
 
 
 class FramePoseEntry(_Entry):
-    """Drive a frame to a pose: ``J qdot = gain * e`` (eq. of the frame pose task)."""
+    """Drive a frame to a target pose: ``J qdot = gain * e`` with ``e = [p* - p; log3(R* R^T)]`` (world)."""
 
     type: Literal["frame_pose"]
     frame: Name = Field(description="frame name in the robot model (e.g. camera, gripper)")
@@ -235,10 +235,10 @@ class JointPositionEntry(_Entry):
 
     type: Literal["joint_position"]
     gain: expect(float, "a number in (0, 1]", gt=0, le=1) = Field(
-        _default(JointPositionLimit, "gain"), description="fraction of the distance to a limit closed per step")
+        _default(JointPositionLimit, "gain"), description="fraction of the remaining range allowed per step")
     max_acceleration: NonNegScalars | None = Field(
         _default(JointPositionLimit, "max_acceleration"),
-        description="[rad/s^2] braking the damper may assume, one or 12 values (null: none)")
+        description="[rad/s^2] braking deceleration capping the bound near a limit, one or 12 values (null: none)")
 
 
 class JointVelocityEntry(_Entry):
