@@ -272,3 +272,16 @@ def test_the_config_reference_documents_every_key_with_the_default_the_loop_uses
         if path == "qp.limits":  # entries documented with their class defaults spelled out
             documented = [{k: d[k] for k in v} for d, v in zip(documented, value, strict=True)]
         assert documented == value, (path, default, value)
+
+
+def test_defaults_repeated_from_code_match_the_code():
+    """The demo's viewpoint defaults equal `stem_viewpoint`'s own (the demo passes all three).
+
+    Catches: the schema and the function drifting apart (the same file would then mean two things)."""
+    import inspect
+
+    from harvest_qp.episodes import stem_viewpoint
+    from harvest_qp.schema.tasks import Viewpoint
+
+    signature = inspect.signature(stem_viewpoint).parameters
+    assert Viewpoint().model_dump() == {k: signature[k].default for k in ("distance", "azimuth", "elevation")}
