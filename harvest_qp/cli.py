@@ -1,4 +1,4 @@
-"""Command-line interface: ``harvest-qp run``, ``harvest-qp demo``, ``harvest-qp check-config``.
+"""Command-line interface: ``harvest-qp run``, ``demo``, ``replay``, ``sweep``, ``check-config``, ``schema``.
 
 ``harvest-qp run tasks/paper.yaml`` runs the paper's experiment (Section ``sec:exper``) in
 the MuJoCo lab and writes ``metrics.json``, the ``.npz`` log and the figures.
@@ -19,7 +19,7 @@ import numpy as np
 from harvest_qp.config import load_controller_config
 from harvest_qp.configuration import Configuration
 from harvest_qp.controller import TaskController
-from harvest_qp.exceptions import HarvestQPError
+from harvest_qp.exceptions import ConfigError, HarvestQPError
 from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.robot.paths import tasks_dir
 from harvest_qp.sweep.cli import add_sweep_parser, sweep_main
@@ -88,15 +88,15 @@ def run_sim_demo(
     from harvest_qp.runner import run_episode
     from harvest_qp.sim import CameraConfig, SimRobot, VineSceneParams
 
-    data = read_config_file(config_path)
+    data = read_config_file(config_path)  # checked, defaults filled, extends followed
     robot = SimRobot(VineSceneParams(), seed=seed, camera=CameraConfig() if camera else None)
-    environment = environment_capsules(robot.model, robot.data, data.get("environment", []))
+    environment = environment_capsules(robot.model, robot.data, data["environment"])
     configuration = Configuration.dual_ur5e(robot.joint_positions())
-    config = build_controller_config(data, configuration, environment=environment)
+    config = build_controller_config(data, configuration, environment=environment, source=str(config_path))
     controller = TaskController(configuration, config.tasks, config.limits, dt=config.dt,
                                 solver=solver or config.solver)
     stem = 0.5 * (robot.scene.stem_base + robot.scene.stem_end)
-    view = data.get("viewpoint", {}) or {}
+    view = data["viewpoint"]
     camera_task = next((t for t in config.tasks if isinstance(t, FramePoseTask) and t.frame == "camera"), None)
     if camera_task is not None:
         camera_task.set_target(*stem_viewpoint(stem, **view))
@@ -197,6 +197,53 @@ def replay_run(run_dir: Path, *, html: Path | None = None, fps: float = 30.0, ho
     return 0
 
 
+def check_config(path: Path, overrides: list[str] | None = None) -> str:
+    """``harvest-qp check-config``: validate a file of either kind and build what it names; a one-line verdict.
+
+    An episode file is checked against the schema and its ``qp.extra_tasks`` and ``qp.limits`` are
+    built on the dual UR5e model; a QP task config's tasks and limits are built too (frame names,
+    sizes and user task classes are checked by building them).
+
+    Raises:
+        ConfigError: one line naming the file, the key path, the bad value and what was expected.
+    """
+    from harvest_qp.config import build_limits, build_tasks, controller_config_from_checked
+    from harvest_qp.schema import EpisodeConfig, load_config
+
+    model = load_config(path, overrides or [])
+    configuration = Configuration.dual_ur5e()
+    data = model.model_dump()
+    try:
+        if isinstance(model, EpisodeConfig):
+            extra = build_tasks(data["qp"]["extra_tasks"], configuration, where="qp.extra_tasks")
+            build_limits(data["qp"]["limits"], configuration, where="qp.limits")
+            return (f"{path}: episode configuration ({len(extra)} extra task(s), {len(data['qp']['limits'])} "
+                    f"limits, mapper {data['mapper']['kind']}): OK")
+        config = controller_config_from_checked(data, configuration)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+    return (f"{path}: QP task configuration, {len(config.tasks)} tasks, {len(config.limits)} limits, "
+            f"dt={config.dt} s: OK")
+
+
+def write_schema(out: Path | None, markdown: Path | None = None) -> int:
+    """``harvest-qp schema``: the JSON Schema to ``out`` (or stdout), the config reference to ``markdown``."""
+    import json
+
+    from harvest_qp.schema import config_reference_markdown, json_schema
+
+    text = json.dumps(json_schema(), indent=2) + "\n"
+    if out is None:
+        sys.stdout.write(text)
+    else:
+        out.write_text(text, encoding="utf-8")
+        print(f"wrote {out}", file=sys.stderr)
+    if markdown is not None:
+        markdown.write_text(config_reference_markdown(), encoding="utf-8")
+        print(f"wrote {markdown}", file=sys.stderr)
+    return 0
+
+
 _RUN_SUMMARY = (
     "success", "phase_reached", "abort_reason", "t_bimanual_start", "final_distance_to_roi_center",
     "final_theta_deg", "visible_stem_points_start", "visible_stem_points_switch", "visible_stem_points_end",
@@ -255,8 +302,15 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--log", type=Path, default=None, help="write the episode log (.npz) here")
     demo.add_argument("--kinematic", action="store_true",
                       help="ideal velocity tracking instead of MuJoCo (arms swap sides; no vine)")
-    check = sub.add_parser("check-config", help="validate a YAML task config")
+    check = sub.add_parser("check-config", help="validate a YAML config (an episode's settings tree or a QP task "
+                           "config): schema, extends, user task classes, frame names")
     check.add_argument("config", type=Path)
+    check.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                       help="override a setting first, as `run` would (repeatable)")
+    schema = sub.add_parser("schema", help="write the JSON Schema of the config files (editors complete and check "
+                            "tasks/*.yaml with it)")
+    schema.add_argument("--out", type=Path, default=None, help="file to write (default: print it)")
+    schema.add_argument("--markdown", type=Path, default=None, help="also write the config reference (markdown)")
     args = parser.parse_args(argv)
     try:
         if args.command == "run":
@@ -288,9 +342,10 @@ def main(argv: list[str] | None = None) -> int:
                   and summary["statuses"].get("fallback", 0) == 0)
             return 0 if ok else 1
         if args.command == "check-config":
-            config = load_controller_config(args.config, Configuration.dual_ur5e())
-            print(f"{args.config}: {len(config.tasks)} tasks, {len(config.limits)} limits, dt={config.dt} s: OK")
+            print(check_config(args.config, args.overrides))
             return 0
+        if args.command == "schema":
+            return write_schema(args.out, args.markdown)
     except HarvestQPError as err:
         print(f"harvest-qp: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2

@@ -12,12 +12,16 @@ A configuration file looks like ``tasks/reach_targets.yaml``::
       - {type: joint_velocity, max_velocity: 1.5}
       - {type: collision, safety_distance: 0.01, influence_distance: 0.10}
 
-Every key is checked: an unknown task type, option or a bad value raises
-:class:`~harvest_qp.exceptions.ConfigError` naming the entry and what was expected.
+Every key is checked against the schema :class:`harvest_qp.schema.TaskConfig` (pydantic):
+an unknown task type, option or a bad value raises :class:`~harvest_qp.exceptions.ConfigError`
+with one line naming the file, the key path, the bad value and what was expected. A task may
+also be a user's own :class:`~harvest_qp.tasks.Task` subclass, ``type: my_package.tasks:GazeTask``
+with ``params:`` checked against its signature (see :mod:`harvest_qp.schema.tasks`).
 """
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +29,7 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-import yaml
+from pydantic_core import PydanticCustomError
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import ConfigError, HarvestQPError
@@ -56,7 +60,7 @@ def _options(entry: dict, allowed: set[str], where: str) -> dict:
     unknown = set(entry) - allowed - {"type"}
     if unknown:
         raise ConfigError(f"{where}: unknown option(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
-    return {k: v for k, v in entry.items() if k != "type"}
+    return {k: v for k, v in entry.items() if k != "type" and v is not None}
 
 
 def _rotation(spec: Any, where: str) -> np.ndarray:
@@ -69,9 +73,40 @@ def _rotation(spec: Any, where: str) -> np.ndarray:
     return arr
 
 
+def build_user_task(entry: dict, configuration: Configuration, where: str) -> Task:
+    """A user's Task subclass from a validated entry ``{type: 'module:Class', params, level, weight, gain}``.
+
+    The constructor gets the checked ``params`` (and ``configuration=`` when it takes one);
+    ``level``, ``weight`` and ``gain``, when given, go through the Task's checked setters.
+    """
+    from harvest_qp.schema.tasks import resolve_task_class, validate_user_params
+
+    task_class = resolve_task_class(entry["type"])
+    try:
+        params = validate_user_params(task_class, dict(entry.get("params") or {}))
+    except PydanticCustomError as err:  # already one line
+        raise ConfigError(f"{where}: {err.message()}") from None
+    if "configuration" in inspect.signature(task_class.__init__).parameters:
+        params["configuration"] = configuration
+    try:
+        task = task_class(**params)
+        for attr in ("level", "weight", "gain"):
+            if entry.get(attr) is not None:
+                setattr(task, attr, entry[attr])
+    except HarvestQPError as err:
+        raise ConfigError(f"{where} ({entry['type']}): {err}") from None
+    except Exception as err:  # user code: name it, keep one line
+        raise ConfigError(f"{where} ({entry['type']}): the constructor raised {type(err).__name__}: {err}") from None
+    if not isinstance(task, Task):
+        raise ConfigError(f"{where}: {entry['type']} built a {type(task).__name__}, not a harvest_qp Task")
+    return task
+
+
 def _build_task(entry: dict, configuration: Configuration, where: str) -> Task:
     kind = entry.get("type")
     common = {"weight", "level", "gain"}
+    if isinstance(kind, str) and ":" in kind:
+        return build_user_task(entry, configuration, where)
     if kind == "frame_twist":
         opts = _options(entry, common | {"frame", "weight_frame", "reference"}, where)
         reference = opts.pop("reference", None)
@@ -103,8 +138,27 @@ def _build_task(entry: dict, configuration: Configuration, where: str) -> Task:
         return DampingTask(configuration.nv, **opts)
     raise ConfigError(
         f"{where}: unknown task type {kind!r}; expected one of "
-        "frame_twist, frame_pose, relative_frame, posture, damping"
+        "frame_twist, frame_pose, relative_frame, posture, damping, or 'module.path:ClassName'"
     )
+
+
+def _built(build, entry: dict, configuration: Configuration, where: str):
+    """``build(entry, configuration, where)`` with frame names checked now and errors as ConfigError."""
+    try:
+        item = build(entry, configuration, where)
+        for attr in ("frame", "root"):  # fail now, with the valid names, not at the first step
+            if isinstance(getattr(item, attr, None), str):
+                configuration.frame_id(getattr(item, attr))
+        return item
+    except ConfigError:
+        raise
+    except (HarvestQPError, TypeError, ValueError, KeyError) as err:
+        raise ConfigError(f"{where} ({entry.get('type')}): {' '.join(str(err).split())}") from None
+
+
+def build_tasks(entries: Sequence[dict], configuration: Configuration, *, where: str = "tasks") -> list[Task]:
+    """Tasks from validated task entries (built-in or ``module:Class``), e.g. the episode's ``qp.extra_tasks``."""
+    return [_built(_build_task, dict(e), configuration, f"{where}[{i}]") for i, e in enumerate(entries)]
 
 
 def _build_limit(entry: dict, configuration: Configuration, where: str, environment=()) -> Limit:
@@ -136,72 +190,58 @@ def _build_limit(entry: dict, configuration: Configuration, where: str, environm
 
 
 def build_controller_config(
-    data: dict, configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = ()
+    data: dict, configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = (),
+    source: str = "task configuration", base_dir: str | Path | None = None,
 ) -> ControllerConfig:
-    """Tasks and limits from an already-parsed configuration mapping.
+    """Tasks and limits from a configuration mapping (checked against :class:`harvest_qp.schema.TaskConfig`).
 
     ``environment``: world-fixed capsules (e.g. the scene's branch) for the collision limit.
     """
-    if not isinstance(data, dict):
-        raise ConfigError(f"a task configuration must be a mapping, got {type(data).__name__}")
-    known = {"dt", "solver", "duration", "tasks", "limits", "description"}  # the rest goes to ``extra``
-    tasks_spec = data.get("tasks")
-    if not isinstance(tasks_spec, list) or not tasks_spec:
-        raise ConfigError("'tasks' must be a non-empty list of task entries")
-    tasks, limits = [], []
-    def build_limit(entry, config, where):
-        return _build_limit(entry, config, where, environment)
+    from harvest_qp.schema import validate_data
 
-    for key, spec, build, out in (("tasks", tasks_spec, _build_task, tasks),
-                                  ("limits", data.get("limits", []) or [], build_limit, limits)):
-        if not isinstance(spec, list):
-            raise ConfigError(f"'{key}' must be a list, got {type(spec).__name__}")
-        for i, entry in enumerate(spec):
-            where = f"{key}[{i}]"
-            if not isinstance(entry, dict) or "type" not in entry:
-                raise ConfigError(f"{where}: each entry must be a mapping with a 'type' key, got {entry!r}")
-            try:
-                item = build(entry, configuration, where)
-                for attr in ("frame", "root"):  # fail now, with the valid names, not at the first step
-                    if isinstance(getattr(item, attr, None), str):
-                        configuration.frame_id(getattr(item, attr))
-                out.append(item)
-            except ConfigError:
-                raise
-            except (HarvestQPError, TypeError, ValueError, KeyError) as err:
-                raise ConfigError(f"{where} ({entry.get('type')}): {err}") from err
-    try:
-        dt = float(data.get("dt", 0.002))
-        duration = float(data.get("duration", 4.0))
-    except (TypeError, ValueError):
-        raise ConfigError("'dt' and 'duration' must be numbers [s]") from None
-    if not (dt > 0 and np.isfinite(dt)) or not (duration > 0 and np.isfinite(duration)):
-        raise ConfigError(f"'dt' and 'duration' must be > 0 [s], got dt={dt}, duration={duration}")
-    extra = {k: v for k, v in data.items() if k not in known}
-    return ControllerConfig(tasks, limits, dt=dt, solver=str(data.get("solver", "daqp")), duration=duration,
+    checked = validate_data(data, kind="tasks", source=source, base_dir=base_dir).model_dump()
+    return controller_config_from_checked(checked, configuration, environment)
+
+
+def build_limits(
+    entries: Sequence[dict], configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = (),
+    where: str = "limits",
+) -> list[Limit]:
+    """Limits from validated limit entries (``limits`` of a task config, ``qp.limits`` of an episode)."""
+    def build(entry, config, at):
+        return _build_limit(entry, config, at, environment)
+
+    return [_built(build, dict(e), configuration, f"{where}[{i}]") for i, e in enumerate(entries)]
+
+
+def controller_config_from_checked(
+    checked: dict, configuration: Configuration, environment: Sequence[CapsuleGeometry] = ()
+) -> ControllerConfig:
+    """A :class:`ControllerConfig` from an already validated task configuration (``TaskConfig.model_dump()``)."""
+    tasks = build_tasks(checked["tasks"], configuration)
+    limits = build_limits(checked["limits"], configuration, environment=environment)
+    extra = {k: checked[k] for k in ("viewpoint", "environment", "description")}
+    return ControllerConfig(tasks, limits, dt=checked["dt"], solver=checked["solver"], duration=checked["duration"],
                             extra=extra)
 
 
 def read_config_file(path: str | Path) -> dict:
-    """Parse a YAML task configuration file safely (``yaml.safe_load``: no arbitrary objects)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"task configuration not found: {path}")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: invalid YAML: {err}") from err
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: a task configuration must be a mapping, got {type(data).__name__}")
-    return data
+    """A QP task configuration file: read safely (``yaml.safe_load``), ``extends`` followed, checked, defaulted."""
+    from harvest_qp.schema import load_config
+
+    return load_config(path, kind="tasks").model_dump()
 
 
 def load_controller_config(
     path: str | Path, configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = ()
 ) -> ControllerConfig:
-    """Read a YAML task configuration (``yaml.safe_load``: no arbitrary objects)."""
-    data = read_config_file(path)
+    """Read a YAML task configuration and build its tasks and limits on ``configuration``.
+
+    Raises:
+        ConfigError: one line naming the file, the key path, the bad value and what was expected.
+    """
+    checked = read_config_file(path)
     try:
-        return build_controller_config(data, configuration, environment=environment)
+        return controller_config_from_checked(checked, configuration, environment)
     except ConfigError as err:
-        raise ConfigError(f"{path}: {err}") from err
+        raise ConfigError(f"{path}: {err}") from None

@@ -196,6 +196,8 @@ class HarvestController:
                                         level=qp["posture"]["level"])
         tasks = [self.camera_task, self.gripper_task, self.roll_task, self.posture_task,
                  DampingTask(self.configuration.nv, weight=qp["damping"]["weight"], level=qp["damping"]["level"])]
+        from harvest_qp.config import build_tasks  # qp.extra_tasks: user tasks at their own level (issue 8)
+        tasks += build_tasks(qp.get("extra_tasks", ()), self.configuration, where="qp.extra_tasks")
         limits = []
         for i, entry in enumerate(qp["limits"]):
             where = f"qp.limits[{i}]"

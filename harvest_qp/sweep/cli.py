@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -32,6 +33,24 @@ def run_command_episode(config: Path, runs_dir: Path) -> Callable[[int], Mapping
     One interpreter per episode (its crash or leak stays there); each seed keeps its run folder.
     """
     return CommandEpisode((sys.executable, "-m", "harvest_qp.cli", "run", str(config)), runs_dir=str(runs_dir))
+
+
+def config_fingerprint(config: Path) -> dict[str, str]:
+    """What identifies a sweep's experiment: the config's name and the hash of its RESOLVED settings.
+
+    The hash covers the settings the episodes run with (``extends`` followed, every default
+    filled in, canonical JSON), not the file's text: editing a comment or spelling out a default
+    keeps the fingerprint (the sweep resumes), while changing a value in a file this one
+    ``extends`` changes it (the sweep refuses to mix the two experiments).
+
+    Raises:
+        ConfigError: the config is not a valid episode configuration (before any episode runs).
+    """
+    from harvest_qp.loop.settings import load_settings
+
+    settings = load_settings(config)
+    canonical = json.dumps(settings, sort_keys=True, separators=(",", ":"), default=str)
+    return {"config": config.name, "settings_sha256": hashlib.sha256(canonical.encode()).hexdigest()}
 
 
 def add_sweep_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -71,13 +90,14 @@ def sweep_main(args: argparse.Namespace, *, episode_for: EpisodeFactory = run_co
 
     Raises:
         InvalidInputError: a missing config, bad seeds or arguments (the CLI turns it into exit code 2).
+        ConfigError: an invalid config (exit code 2 as well), found before any episode runs.
     """
     config = Path(args.config)
     if not config.is_file():
         raise InvalidInputError(f"CONFIG: {str(config)!r} is not a file")
     seeds = parse_seeds(args.seeds)
     out = Path(args.out) if args.out is not None else Path("runs") / f"sweep-{config.stem}"
-    fingerprint = {"config": config.name, "config_sha256": hashlib.sha256(config.read_bytes()).hexdigest()}
+    fingerprint = config_fingerprint(config)
     result = run_sweep(
         episode_for(config.resolve(), (out / "episodes").resolve()),
         seeds,

@@ -12,8 +12,11 @@ from harvest_qp.tasks import FramePoseTask
 
 
 def test_shipped_configs_load(configuration):
-    # paper.yaml is the paper episode's settings tree (harvest_qp.loop.settings, tested in tests/loop).
-    paths = sorted(p for p in tasks_dir().glob("*.yaml") if p.name != "paper.yaml")
+    # paper*.yaml are episode settings trees (harvest_qp.loop.settings, tested in tests/loop, tests/config).
+    from harvest_qp.schema import config_kind, resolve_file
+
+    paths = sorted(p for p in tasks_dir().glob("*.yaml") if config_kind(resolve_file(p).data) == "tasks")
+    assert {p.name for p in paths} == {"reach_targets.yaml", "sim_reach_stem.yaml"}
     assert paths
     for path in paths:
         config = load_controller_config(path, configuration)
@@ -31,15 +34,16 @@ def test_reach_config_targets_are_offsets_from_start(configuration):
 @pytest.mark.parametrize(
     "text, match",
     [
-        ("tasks: []", "non-empty list"),
-        ("tasks: [{type: spin}]", r"tasks\[0\]: unknown task type 'spin'"),
-        ("tasks: [{type: damping, colour: red}]", r"unknown option\(s\) \['colour'\]"),
+        ("tasks: []", r"'tasks': list should have at least 1 item"),
+        ("tasks: [{type: spin}]", r"'tasks\[0\]\.type': unknown task type 'spin'"),
+        ("tasks: [{type: damping, colour: red}]", r"unknown key 'tasks\[0\]\.colour'; expected one of: type, weight"),
         ("tasks: [{type: frame_twist, frame: elbow}]", "valid frames are"),
-        ("tasks: [{type: damping, weight: -1}]", ">= 0"),
+        ("tasks: [{type: damping, weight: -1}]", r"'tasks\[0\]\.weight' must be a number >= 0 .*; got -1"),
         ("tasks: [{type: damping}]\nlimits: [{type: joint_velocity, max_velocity: [1, 2]}]", r"shape \(12,\)"),
-        ("tasks: [{type: damping}]\ndt: -1", "'dt' and 'duration' must be > 0"),
-        ("!!python/object/apply:os.system ['echo unsafe']", "invalid YAML"),
-        ("tasks: [{type: damping}]\nlimits: [{type: collision, obstacle_spheres: [{centre: [0, 0, 1]}]}]", "center"),
+        ("tasks: [{type: damping}]\ndt: -1", "'dt' must be a number > 0; got -1"),
+        ("!!python/object/apply:os.system ['echo unsafe']", "not valid YAML"),
+        ("tasks: [{type: damping}]\nlimits: [{type: collision, obstacle_spheres: [{centre: [0, 0, 1]}]}]",
+         r"unknown key 'limits\[0\]\.obstacle_spheres\[0\]\.centre' \(did you mean 'center'\?\)"),
     ],
 )
 def test_bad_configs_name_the_problem(tmp_path, configuration, text, match):
@@ -61,7 +65,7 @@ def test_cli_check_config_reports_errors(tmp_path, capsys):
     path = tmp_path / "bad.yaml"
     path.write_text("tasks: [{type: spin}]")
     assert main(["check-config", str(path)]) == 2
-    assert "unknown task type" in capsys.readouterr().err
+    assert "unknown task type 'spin'" in capsys.readouterr().err
     assert main(["check-config", str(tasks_dir() / "reach_targets.yaml")]) == 0
 
 
