@@ -201,6 +201,49 @@ def test_numba_caster_agrees_with_mj_multiray(vine_robot):
         assert np.mean(ga[valid] == gb[valid]) > 0.98
 
 
+def test_numba_caster_culling_agrees_with_mj_multiray_on_random_views():
+    """Random views in and around the canopy, a third of them looking down at the floor.
+
+    The numba caster culls each geom to per-row pixel spans (bounding-sphere cones; for
+    the floor plane, the cone of rays reaching it within range) and skips pixels already
+    hit closer than a geom's nearest point. A span that is too tight (a missing padding,
+    a wrong root of the span's quadratic) or a wrong skip bound drops hits that
+    ``mj_multiRay``, which tests every ray against every geom, still finds: the valid
+    pixels or their depths differ. Camera positions inside a geom's bounding sphere are
+    left out (inside a geom the two casters disagree by design: exit vs no hit).
+    """
+    robot = SimRobot(camera=CameraConfig(downsample=6, stem_range=5.0))
+    m, d = robot.model, robot.data
+    common = {"geom_labels": robot.scene.geom_labels, "exclude_body": robot.scene.ids["cam_tool"]}
+    fast = RayCastCamera(m, dataclasses.replace(robot.camera_config, raycast_engine="numba"), **common)
+    ref = RayCastCamera(m, dataclasses.replace(robot.camera_config, raycast_engine="mujoco"), **common)
+    rng = np.random.default_rng(7)
+    centre = robot.scene.stem_base
+    bounded = m.geom_rbound > 0
+    views, floor_pixels, close_pixels = 0, 0, 0
+    while views < 40:
+        eye = centre + rng.normal(0.0, 0.35, 3)
+        eye[2] = max(eye[2], 0.05)
+        if np.any(np.linalg.norm(d.geom_xpos[bounded] - eye, axis=1) < m.geom_rbound[bounded] + 0.01):
+            continue
+        target = centre + rng.normal(0.0, 0.2, 3)
+        if views % 3 == 0:
+            target[2] = 0.0  # the floor
+        down = rng.normal(0.0, 0.3, 3) + (0.0, 0.0, -1.0)
+        pose = look_at(eye, target, down)
+        da, ga = (x.copy() for x in fast.cast(d, pose))
+        db, gb = (x.copy() for x in ref.cast(d, pose))
+        valid = (db >= 0) & (db * fast._ray_z <= robot.camera_config.max_depth)
+        np.testing.assert_array_equal(valid, (da >= 0) & (da * fast._ray_z <= robot.camera_config.max_depth))
+        assert np.max(np.abs(da - db)[valid], initial=0.0) < 1e-9
+        np.testing.assert_array_equal(robot.scene.geom_labels[ga[valid]], robot.scene.geom_labels[gb[valid]])
+        floor_pixels += int(np.sum(gb[valid] == m.geom("floor").id))
+        close_pixels += int(np.sum(valid & (db < 0.3)))
+        views += 1
+    # The views did exercise the floor's span and close-up occlusion.
+    assert floor_pixels > 1000 and close_pixels > 1000
+
+
 def test_labels_and_colours_in_the_vine_scene(vine_robot):
     views = _views(vine_robot)
     cloud = vine_robot._camera.capture(vine_robot.data, views[2], 0.0)
