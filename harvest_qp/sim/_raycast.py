@@ -397,6 +397,11 @@ def cast_rays(
         rs = rsub[g]
         half = geom_size[g, 1]
         c0, c1, c2 = cens[g, 0], cens[g, 1], cens[g, 2]
+        # Loop invariants in scalars (the compiler cannot tell that dist and geomid do not alias them).
+        r00, r01, r02 = rg[0, 0], rg[0, 1], rg[0, 2]
+        r10, r11, r12 = rg[1, 0], rg[1, 1], rg[1, 2]
+        r20, r21, r22 = rg[2, 0], rg[2, 1], rg[2, 2]
+        s0, s1, s2 = size[0], size[1], size[2]
         for v in range(v0, v1 + 1):
             ua, ub = u0, u1
             y = (v + 0.5 - height / 2.0) / focal
@@ -424,10 +429,22 @@ def cast_rays(
                 ex = rays_c[i, 0]
                 ey = rays_c[i, 1]
                 ez = rays_c[i, 2]
-                dx = rg[0, 0] * ex + rg[1, 0] * ey + rg[2, 0] * ez
-                dy = rg[0, 1] * ex + rg[1, 1] * ey + rg[2, 1] * ez
-                dz = rg[0, 2] * ex + rg[1, 2] * ey + rg[2, 2] * ez
-                t = _geom_local(gt, size, ox, oy, oz, dx, dy, dz)
+                dx = r00 * ex + r10 * ey + r20 * ez
+                dy = r01 * ex + r11 * ey + r21 * ez
+                dz = r02 * ex + r12 * ey + r22 * ez
+                # The commonest types inline (same arithmetic as _geom_local).
+                if gt == 2:
+                    t = _sphere(ox, oy, oz, dx, dy, dz, s0)
+                elif gt == 4:
+                    t = _sphere(ox / s0, oy / s1, oz / s2, dx / s0, dy / s1, dz / s2, 1.0)
+                elif gt == 3:
+                    t = _quadratic(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - s0 * s0)
+                    if not (t >= 0.0 and abs(oz + t * dz) <= s1):
+                        t = -1.0
+                    t = _keep(t, _sphere(ox, oy, oz - s1, dx, dy, dz, s0))
+                    t = _keep(t, _sphere(ox, oy, oz + s1, dx, dy, dz, s0))
+                else:
+                    t = _geom_local(gt, size, ox, oy, oz, dx, dy, dz)
                 if t >= 0.0 and t <= cutoff and (best < 0.0 or t < best or (t == best and g < geomid[i])):
                     dist[i] = t
                     geomid[i] = g
