@@ -136,6 +136,7 @@ def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> 
         timers.wrap(controller.obstacle_map, "update", "map_update")
     if controller.map_feed is not None:
         timers.wrap(controller.map_feed, "update", "map_feed")
+    controller.qp._step_unwrapped = controller.qp.step
     timers.wrap(controller.qp, "step", "qp")
     controller.timing = {}
     truth = episode_ground_truth(robot)
@@ -161,7 +162,9 @@ def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> 
     def med(name, scale):
         return scale * float(np.median(s[name])) if s[name].size else float("nan")
 
+    qp_isolated = _qp_isolated(controller, result.log, clock)
     return {
+        "qp_isolated_us_median": qp_isolated,
         "rtf": result.sim_time / wall,
         "rtf_cpu": result.sim_time / cpu,
         "sim_time": result.sim_time,
@@ -185,6 +188,50 @@ def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> 
         "elapsed": elapsed,
         "stem_points_last": int(result.log["stem_points"][-1]),
     }
+
+
+def _qp_isolated(controller, log: dict, clock, n: int = 1000) -> float:
+    """Median [us] of the episode's own QP step replayed in a tight loop, after the episode.
+
+    The controller's :class:`~harvest_qp.TaskController` as the episode left it (same tasks,
+    levels, limits and map cells) steps at ``n`` logged joint positions, each from the
+    command logged the tick before: the same problems as in the episode, without the
+    rest of the loop in between (caches stay warm).
+    """
+    qp = getattr(controller, "qp", None)
+    if qp is None or getattr(qp, "_step_unwrapped", None) is None:
+        return float("nan")
+    step = qp._step_unwrapped
+    q, qdot = log["q"], log["qdot_cmd"]
+    ticks = np.unique(np.linspace(1, len(q) - 1, min(n, len(q) - 1)).astype(int))
+    for k in ticks[:20]:  # warm-up
+        qp.previous_qdot = qdot[k - 1].copy()
+        step(q[k])
+    times = np.empty(ticks.size)
+    for j, k in enumerate(ticks):
+        qp.previous_qdot = qdot[k - 1].copy()
+        t0 = clock()
+        step(q[k])
+        times[j] = clock() - t0
+    return 1e6 * float(np.median(times))
+
+
+def _bench_qp_figure(clock, n: int = 1000) -> float:
+    """Median [us] of ``bench_qp.py``'s harvest_qp step with collision rows (its problem: one level)."""
+    from benchmarks import peers
+    from benchmarks.bench_qp import HarvestQPStep
+
+    problem = peers.BenchProblem()
+    stepper = HarvestQPStep(problem, True)
+    q, t = problem.q0.copy(), 0.0
+    times = np.empty(n)
+    for k in range(n + 50):
+        t0 = clock()
+        qdot = stepper.step(q, t)
+        if k >= 50:
+            times[k - 50] = clock() - t0
+        q, t = q + qdot * problem.dt, t + problem.dt
+    return 1e6 * float(np.median(times))
 
 
 def _report(name: str, r: dict) -> str:
@@ -231,6 +278,13 @@ def main(argv: list[str] | None = None) -> None:
         r["clock"] = "thread CPU time" if args.clock == "cpu" else "wall-clock time"
         print(_report(name, r), flush=True)
         out[name] = r
+    bench_qp_us = _bench_qp_figure(clock)
+    first = out[names[0]]
+    print(
+        f"QP step at {names[0]}: {first['qp_us_median']:.0f} us in the episode, {first['qp_isolated_us_median']:.0f} us "
+        f"replayed alone on the episode's own problems, {bench_qp_us:.0f} us for bench_qp.py's problem "
+        f"(harvest_qp_collision: one level, no map cells)"
+    )
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     summary: dict[str, float | str] = {}
     for name, r in out.items():
@@ -239,8 +293,9 @@ def main(argv: list[str] | None = None) -> None:
         summary[f"perception_ms_{name}"] = r["frame_ms_median"]
         summary[f"camera_ms_{name}"] = r["camera_ms_median"]
         summary[f"map_update_ms_{name}"] = r["map_update_ms_median"]
-    first = out[names[0]]
     summary["qp_tick_us_in_episode"] = first["qp_us_median"]
+    summary["qp_tick_us_replayed"] = first["qp_isolated_us_median"]
+    summary["qp_tick_us_bench_qp"] = bench_qp_us
     summary["references_us"] = first["references_us_median"]
     summary["physics_us"] = first["physics_us_median"]
     summary["ground_truth_us"] = first["ground_truth_us_median"]
