@@ -18,7 +18,10 @@ import mujoco
 import numpy as np
 from numba import njit
 
-__all__ = ["SUPPORTED_GEOM_TYPES", "supports_model", "cast_rays"]
+__all__ = ["SUPPORTED_GEOM_TYPES", "VISUAL_GROUP", "visual_only_geoms", "supports_model", "cast_rays"]
+
+#: MuJoCo's convention (menagerie; ``harvest_qp.robot.meshes``): visual-only geoms are in group 2.
+VISUAL_GROUP = 2
 
 _PLANE = int(mujoco.mjtGeom.mjGEOM_PLANE)
 _SPHERE = int(mujoco.mjtGeom.mjGEOM_SPHERE)
@@ -29,9 +32,24 @@ _BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
 SUPPORTED_GEOM_TYPES = frozenset((_PLANE, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _BOX))
 
 
+def visual_only_geoms(model: mujoco.MjModel) -> np.ndarray:
+    """(ngeom,) bool: geoms for drawing only (group 2, no contact: ``contype = conaffinity = 0``).
+
+    The depth camera never sees them: the lab's robot is its collision capsules (the UR5e
+    meshes drawn over them are decoration), so a depth pixel and its label always belong
+    to a geom the physics knows.
+    """
+    return (
+        (np.asarray(model.geom_group) == VISUAL_GROUP)
+        & (np.asarray(model.geom_contype) == 0)
+        & (np.asarray(model.geom_conaffinity) == 0)
+    )
+
+
 def supports_model(model: mujoco.MjModel) -> bool:
-    """True when every geom of ``model`` is a primitive this kernel handles."""
-    return all(int(t) in SUPPORTED_GEOM_TYPES for t in model.geom_type)
+    """True when every geom of ``model`` the camera can see is a primitive this kernel handles."""
+    seen = ~visual_only_geoms(model)
+    return all(int(t) in SUPPORTED_GEOM_TYPES for t in np.asarray(model.geom_type)[seen])
 
 
 @njit(cache=True, inline="always")
