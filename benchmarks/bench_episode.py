@@ -20,8 +20,10 @@ run only; the library code is unchanged):
 * ``qp``: the QP step (``TaskController.step``: kinematics, tasks, limits, daqp), per tick;
 * ``ground_truth``: the lab's ground truth logged per tick (stem tension, contacts, true
   robot-vine distance);
-* ``runner_and_logging``: the rest (the runner's observation, command checks and log
-  arrays, the controller's own bookkeeping and logged values).
+* ``logged_values``: the controller's per-tick values for the log (phase, p_r, V_c, ...,
+  active collision pairs);
+* ``runner``: the rest: the runner's observation, command checks and log arrays, and the
+  controller's own glue (kinematics update, phase logic outside the reference laws).
 
 Shares are of the episode's wall-clock time. The real-time factor is given both on the
 wall clock (``rtf``) and on the process's CPU time (``rtf_cpu``: what the episode would
@@ -64,7 +66,9 @@ from harvest_qp.loop.settings import load_settings  # noqa: E402
 from harvest_qp.robot.paths import tasks_dir  # noqa: E402
 from harvest_qp.runner import run_episode  # noqa: E402
 
-SECTIONS = ("camera", "physics", "perception", "map_update", "references", "map_feed", "qp", "ground_truth")
+SECTIONS = (
+    "camera", "physics", "perception", "map_update", "references", "map_feed", "qp", "ground_truth", "logged_values",
+)
 _RESOLUTIONS = {"283x160": 3, "848x480": 1, "424x240": 2, "142x80": 6}
 
 
@@ -138,6 +142,9 @@ def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> 
         timers.wrap(controller.map_feed, "update", "map_feed")
     controller.qp._step_unwrapped = controller.qp.step
     timers.wrap(controller.qp, "step", "qp")
+    for name in ("_log_values", "_active_pairs"):
+        if hasattr(controller, name):
+            timers.wrap(controller, name, "logged_values")
     controller.timing = {}
     truth = episode_ground_truth(robot)
 
@@ -156,7 +163,7 @@ def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> 
     # The controller's own per-frame timer: perception + map update.
     frame_total = np.asarray(controller.timing.get("perception", []), float)
     total = {name: float(v.sum()) for name, v in s.items()}
-    total["runner_and_logging"] = elapsed - sum(total.values())
+    total["runner"] = elapsed - sum(total.values())
     per_tick_us = {name: 1e6 * t / ticks for name, t in total.items()}
 
     def med(name, scale):
@@ -246,7 +253,7 @@ def _report(name: str, r: dict) -> str:
         f"ground truth {r['ground_truth_us_median']:.0f} us",
         f"  {r['clock']} per tick (mean over the episode, frames spread over ticks) and share:",
     ]
-    for key in (*SECTIONS, "runner_and_logging"):
+    for key in (*SECTIONS, "runner"):
         lines.append(f"    {key:<20s} {r['per_tick_us'][key]:8.1f} us  {r['share'][key]:6.1%}")
     lines.append(f"    {'total':<20s} {1e6 * r['elapsed'] / r['ticks']:8.1f} us")
     return "\n".join(lines)
