@@ -1,26 +1,43 @@
 """Real-time factor of the paper episode (``harvest-qp run tasks/paper.yaml``) on one core.
 
 Runs the paper's closed loop (:class:`harvest_qp.loop.HarvestController` on the simulated
-dual UR5e in the default vine scene, through :func:`harvest_qp.loop.episode.run_paper_episode`
-without figures) at the paper's 283x160 (848x480 downsampled by 3) and at the full 848x480,
-after a short warm-up episode that compiles the numba kernels. The process is pinned to one
-CPU core and BLAS to one thread.
+dual UR5e in the default vine scene, built exactly as :func:`harvest_qp.loop.episode.run_paper_episode`
+builds it, without figures) at the paper's 283x160 (848x480 downsampled by 3) and at the
+full 848x480, after a short warm-up episode that loads the numba kernels. The process is
+pinned to one CPU core and BLAS/numba to one thread.
 
-Per-tick breakdown (medians, and totals as shares of the wall-clock time):
+Per-tick breakdown: timers are wrapped around the episode's parts (on the objects of this
+run only; the library code is unchanged):
 
-* perception per frame (stem split, stem fit, unveiling pairs and V_cu target);
-* reference laws per tick (V_cr, V_cu filter, V_g or the hold, feed-forward, switch and
-  safety logic);
-* QP step per tick inside the episode (``TaskController.step``);
-* simulation: the rest of the wall-clock time (physics, camera ray casting, logging).
+* ``camera``: the simulated RGB-D frame (ray casting + cloud), per frame;
+* ``physics``: MuJoCo substeps, servos, wrist sensor, tear check, per tick;
+* ``perception``: the controller's per-frame perception (stem split and fit, unveiling
+  pairs, V_cu target), per frame, without the obstacle map;
+* ``map_update``: the obstacle map's frame integration (ray clearing), per frame;
+* ``references``: the reference laws per tick (V_cr, V_cu filter, V_g, feed-forward,
+  switch and safety logic);
+* ``map_feed``: the obstacle map's cells fed to the collision limit, per tick;
+* ``qp``: the QP step (``TaskController.step``: kinematics, tasks, limits, daqp), per tick;
+* ``ground_truth``: the lab's ground truth logged per tick (stem tension, contacts, true
+  robot-vine distance);
+* ``logged_values``: the controller's per-tick values for the log (phase, p_r, V_c, ...,
+  active collision pairs);
+* ``runner``: the rest: the runner's observation, command checks and log arrays, and the
+  controller's own glue (kinematics update, phase logic outside the reference laws).
+
+Shares are of the episode's wall-clock time. The real-time factor is given both on the
+wall clock (``rtf``) and on the process's CPU time (``rtf_cpu``: what the episode would
+reach alone on the core; on a loaded machine the wall-clock figure is lower).
 
 Usage::
 
     python benchmarks/bench_episode.py [--duration 20] [--settings tasks/paper.yaml] [--set k=v ...]
+                                       [--resolutions 283x160,848x480]
 
 The last line printed is one JSON object with ``episode_rtf_283x160``, ``episode_rtf_848x480``,
 ``qp_tick_us_in_episode`` (median QP step at 283x160), ``perception_ms_283x160`` (median per
-frame) and the other medians. Timings on a shared machine are noisy: run it alone.
+frame, perception plus map update, as the controller's own timer counts it) and the other medians.
+Timings on a shared machine are noisy: run it alone (check ``uptime``).
 """
 
 from __future__ import annotations
@@ -31,9 +48,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import functools  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
-import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -44,10 +61,15 @@ if str(_REPO) not in sys.path:
     sys.path.insert(0, str(_REPO))
 
 from harvest_qp.loop.controller import HarvestController  # noqa: E402
-from harvest_qp.loop.episode import build_robot, environment_capsules_for  # noqa: E402
+from harvest_qp.loop.episode import build_robot, environment_capsules_for, episode_ground_truth  # noqa: E402
 from harvest_qp.loop.settings import load_settings  # noqa: E402
 from harvest_qp.robot.paths import tasks_dir  # noqa: E402
 from harvest_qp.runner import run_episode  # noqa: E402
+
+SECTIONS = (
+    "camera", "physics", "perception", "map_update", "references", "map_feed", "qp", "ground_truth", "logged_values",
+)
+_RESOLUTIONS = {"283x160": 3, "848x480": 1, "424x240": 2, "142x80": 6}
 
 
 def _pin() -> str:
@@ -58,34 +80,183 @@ def _pin() -> str:
     return "not pinned"
 
 
-def time_episode(settings: dict, duration: float) -> dict:
-    """One episode with the controller's timers on; returns the breakdown."""
+class _Timers:
+    """Named lists of durations [s] on ``clock``; ``wrap`` times every call of a bound method."""
+
+    def __init__(self, clock) -> None:
+        self.clock = clock
+        self.samples: dict[str, list[float]] = {name: [] for name in SECTIONS}
+        self._open: list[tuple[str, float]] = []
+
+    def wrap(self, obj, attribute: str, name: str, *, exclusive: bool = False) -> None:
+        """Replace ``obj.attribute`` by a timed call; ``exclusive``: nested timed calls are subtracted."""
+        inner = getattr(obj, attribute)
+        store = self.samples[name]
+        stack = self._open
+        clock = self.clock
+
+        @functools.wraps(inner)
+        def timed(*args, **kwargs):
+            stack.append((name, 0.0))
+            t0 = clock()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                elapsed = clock() - t0
+                _, nested = stack.pop()
+                store.append(elapsed - nested if exclusive else elapsed)
+                if stack:  # charge the enclosing timer's nested time
+                    outer, n = stack[-1]
+                    stack[-1] = (outer, n + elapsed)
+
+        setattr(obj, attribute, timed)
+
+
+def _controller_clock(controller, clock) -> None:
+    """Make the controller's own timers (perception per frame, references per tick) use ``clock``."""
+    import harvest_qp.loop.controller as module
+
+    class _Time:
+        perf_counter = staticmethod(clock)
+
+        def __getattr__(self, name):
+            return getattr(time, name)
+
+    module.time = _Time()
+
+
+def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> dict:
+    """One episode with timers (on ``clock``) around its parts; returns the breakdown."""
     robot = build_robot(settings, 0)
     controller = HarvestController(settings, environment=environment_capsules_for(robot, settings["qp"]["environment"]))
+    _controller_clock(controller, clock)
+    timers = _Timers(clock)
+    # Simulation: robot.step = physics + (every 1/30 s) the camera frame.
+    timers.wrap(robot, "step", "physics", exclusive=True)
+    if robot._camera is not None:
+        timers.wrap(robot._camera, "capture", "camera")
+    timers.wrap(controller, "_perceive", "perception")
+    if controller.obstacle_map is not None:
+        timers.wrap(controller.obstacle_map, "update", "map_update")
+    if controller.map_feed is not None:
+        timers.wrap(controller.map_feed, "update", "map_feed")
+    controller.qp._step_unwrapped = controller.qp.step
+    timers.wrap(controller.qp, "step", "qp")
+    for name in ("_log_values", "_active_pairs"):
+        if hasattr(controller, name):
+            timers.wrap(controller, name, "logged_values")
     controller.timing = {}
-    wall0 = time.perf_counter()
-    result = run_episode(robot, controller, duration=duration, log_timing=True)
-    wall = time.perf_counter() - wall0
-    timing = controller.timing
-    perception = np.array(timing.get("perception", [np.nan]))
-    references = np.array(timing.get("references", [np.nan]))
-    mapper = np.array(timing.get("mapper", [np.nan]))
-    controller_total = float(np.nansum(result.log["controller_time"]))
+    truth = episode_ground_truth(robot)
+
+    def timed_truth():
+        t0 = clock()
+        out = truth()
+        timers.samples["ground_truth"].append(clock() - t0)
+        return out
+
+    cpu0, wall0, clock0 = time.process_time(), time.perf_counter(), clock()
+    result = run_episode(robot, controller, duration=duration, log_timing=True, ground_truth=timed_truth)
+    wall, cpu, elapsed = time.perf_counter() - wall0, time.process_time() - cpu0, clock() - clock0
+    ticks = result.n_ticks
+    s = {name: np.asarray(v, float) for name, v in timers.samples.items()}
+    s["references"] = np.asarray(controller.timing.get("references", []), float)
+    # The controller's own per-frame timer: perception + map update.
+    frame_total = np.asarray(controller.timing.get("perception", []), float)
+    total = {name: float(v.sum()) for name, v in s.items()}
+    total["runner"] = elapsed - sum(total.values())
+    per_tick_us = {name: 1e6 * t / ticks for name, t in total.items()}
+
+    def med(name, scale):
+        return scale * float(np.median(s[name])) if s[name].size else float("nan")
+
+    qp_isolated = _qp_isolated(controller, result.log, clock)
     return {
+        "qp_isolated_us_median": qp_isolated,
         "rtf": result.sim_time / wall,
+        "rtf_cpu": result.sim_time / cpu,
         "sim_time": result.sim_time,
         "wall": wall,
+        "cpu": cpu,
+        "ticks": ticks,
+        "frames": int(s["camera"].size),
         "phase": controller.phase.name.lower(),
-        "perception_ms_median": 1e3 * float(np.median(perception)),
-        "perception_ms_p90": 1e3 * float(np.percentile(perception, 90)),
-        "references_us_median": 1e6 * float(np.median(references)),
-        "qp_us_median": 1e6 * float(np.median(mapper)),
-        "share_perception": float(np.sum(perception)) / wall,
-        "share_references": float(np.sum(references)) / wall,
-        "share_qp": float(np.sum(mapper)) / wall,
-        "share_simulation_and_logging": (wall - controller_total) / wall,
+        "camera_ms_median": med("camera", 1e3),
+        "perception_ms_median": med("perception", 1e3),
+        "map_update_ms_median": med("map_update", 1e3),
+        "frame_ms_median": 1e3 * float(np.median(frame_total)) if frame_total.size else float("nan"),
+        "frame_ms_p90": 1e3 * float(np.percentile(frame_total, 90)) if frame_total.size else float("nan"),
+        "references_us_median": med("references", 1e6),
+        "map_feed_us_median": med("map_feed", 1e6),
+        "qp_us_median": med("qp", 1e6),
+        "physics_us_median": med("physics", 1e6),
+        "ground_truth_us_median": med("ground_truth", 1e6),
+        "per_tick_us": per_tick_us,
+        "share": {name: t / elapsed for name, t in total.items()},
+        "elapsed": elapsed,
         "stem_points_last": int(result.log["stem_points"][-1]),
     }
+
+
+def _qp_isolated(controller, log: dict, clock, n: int = 1000) -> float:
+    """Median [us] of the episode's own QP step replayed in a tight loop, after the episode.
+
+    The controller's :class:`~harvest_qp.TaskController` as the episode left it (same tasks,
+    levels, limits and map cells) steps at ``n`` logged joint positions, each from the
+    command logged the tick before: the same problems as in the episode, without the
+    rest of the loop in between (caches stay warm).
+    """
+    qp = getattr(controller, "qp", None)
+    if qp is None or getattr(qp, "_step_unwrapped", None) is None:
+        return float("nan")
+    step = qp._step_unwrapped
+    q, qdot = log["q"], log["qdot_cmd"]
+    ticks = np.unique(np.linspace(1, len(q) - 1, min(n, len(q) - 1)).astype(int))
+    for k in ticks[:20]:  # warm-up
+        qp.previous_qdot = qdot[k - 1].copy()
+        step(q[k])
+    times = np.empty(ticks.size)
+    for j, k in enumerate(ticks):
+        qp.previous_qdot = qdot[k - 1].copy()
+        t0 = clock()
+        step(q[k])
+        times[j] = clock() - t0
+    return 1e6 * float(np.median(times))
+
+
+def _bench_qp_figure(clock, n: int = 1000) -> float:
+    """Median [us] of ``bench_qp.py``'s harvest_qp step with collision rows (its problem: one level)."""
+    from benchmarks import peers
+    from benchmarks.bench_qp import HarvestQPStep
+
+    problem = peers.BenchProblem()
+    stepper = HarvestQPStep(problem, True)
+    q, t = problem.q0.copy(), 0.0
+    times = np.empty(n)
+    for k in range(n + 50):
+        t0 = clock()
+        qdot = stepper.step(q, t)
+        if k >= 50:
+            times[k - 50] = clock() - t0
+        q, t = q + qdot * problem.dt, t + problem.dt
+    return 1e6 * float(np.median(times))
+
+
+def _report(name: str, r: dict) -> str:
+    lines = [
+        f"{name}: real-time factor {r['rtf']:.2f} wall-clock, {r['rtf_cpu']:.2f} on CPU time "
+        f"({r['sim_time']:.1f} s simulated in {r['wall']:.1f} s wall, {r['cpu']:.1f} s CPU; {r['ticks']} ticks, "
+        f"{r['frames']} frames; ended in {r['phase']})",
+        f"  medians: camera {r['camera_ms_median']:.2f} ms/frame, perception {r['perception_ms_median']:.2f} ms/frame, "
+        f"map update {r['map_update_ms_median']:.2f} ms/frame (perception+map {r['frame_ms_median']:.2f}, "
+        f"p90 {r['frame_ms_p90']:.2f}); per tick: physics {r['physics_us_median']:.0f} us, references "
+        f"{r['references_us_median']:.0f} us, map feed {r['map_feed_us_median']:.0f} us, QP {r['qp_us_median']:.0f} us, "
+        f"ground truth {r['ground_truth_us_median']:.0f} us",
+        f"  {r['clock']} per tick (mean over the episode, frames spread over ticks) and share:",
+    ]
+    for key in (*SECTIONS, "runner"):
+        lines.append(f"    {key:<20s} {r['per_tick_us'][key]:8.1f} us  {r['share'][key]:6.1%}")
+    lines.append(f"    {'total':<20s} {1e6 * r['elapsed'] / r['ticks']:8.1f} us")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -93,32 +264,49 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--duration", type=float, default=20.0, help="simulated seconds per resolution")
     parser.add_argument("--settings", type=Path, default=tasks_dir() / "paper.yaml")
     parser.add_argument("--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--clock", choices=("cpu", "wall"), default="cpu",
+                        help="clock of the breakdown: this thread's CPU time (robust on a loaded machine) or wall time")
+    parser.add_argument("--resolutions", default="283x160,848x480", help=f"comma-separated, of {sorted(_RESOLUTIONS)}")
     args = parser.parse_args(argv)
     print(_pin())
-    base = load_settings(args.settings, args.overrides)
-    with tempfile.TemporaryDirectory():
-        time_episode(load_settings(args.settings, [*args.overrides, "camera.downsample=6"]), 0.2)  # numba warm-up
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    names = [n.strip() for n in args.resolutions.split(",") if n.strip()]
+    for name in names:
+        if name not in _RESOLUTIONS:
+            parser.error(f"--resolutions: unknown {name!r}; expected some of {sorted(_RESOLUTIONS)}")
+    clock = time.thread_time if args.clock == "cpu" else time.perf_counter
+    # Warm-up: loads (or compiles) the numba kernels at every resolution used.
+    for name in names:
+        time_episode(load_settings(args.settings, [*args.overrides, f"camera.downsample={_RESOLUTIONS[name]}"]), 0.1)
     out = {}
-    for name, downsample in (("283x160", 3), ("848x480", 1)):
-        settings = load_settings(args.settings, [*args.overrides, f"camera.downsample={downsample}"])
-        r = time_episode(settings, args.duration)
-        print(f"{name}: real-time factor {r['rtf']:.2f} ({r['sim_time']:.1f} s in {r['wall']:.1f} s, ended in "
-              f"{r['phase']}); perception {r['perception_ms_median']:.2f} ms/frame median "
-              f"(p90 {r['perception_ms_p90']:.2f}), references {r['references_us_median']:.0f} us/tick, "
-              f"QP {r['qp_us_median']:.0f} us/tick; wall-clock shares: perception {r['share_perception']:.0%}, "
-              f"references {r['share_references']:.0%}, QP {r['share_qp']:.0%}, simulation+logging "
-              f"{r['share_simulation_and_logging']:.0%}")
+    for name in names:
+        settings = load_settings(args.settings, [*args.overrides, f"camera.downsample={_RESOLUTIONS[name]}"])
+        r = time_episode(settings, args.duration, clock=clock)
+        r["clock"] = "thread CPU time" if args.clock == "cpu" else "wall-clock time"
+        print(_report(name, r), flush=True)
         out[name] = r
-    del base
-    summary = {
-        "episode_rtf_283x160": out["283x160"]["rtf"],
-        "episode_rtf_848x480": out["848x480"]["rtf"],
-        "qp_tick_us_in_episode": out["283x160"]["qp_us_median"],
-        "perception_ms_283x160": out["283x160"]["perception_ms_median"],
-        "perception_ms_848x480": out["848x480"]["perception_ms_median"],
-        "references_us_283x160": out["283x160"]["references_us_median"],
-        "duration_s": args.duration,
-    }
+    bench_qp_us = _bench_qp_figure(clock)
+    first = out[names[0]]
+    print(
+        f"QP step at {names[0]}: {first['qp_us_median']:.0f} us in the episode, {first['qp_isolated_us_median']:.0f} us "
+        f"replayed alone on the episode's own problems, {bench_qp_us:.0f} us for bench_qp.py's problem "
+        f"(harvest_qp_collision: one level, no map cells)"
+    )
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    summary: dict[str, float | str] = {}
+    for name, r in out.items():
+        summary[f"episode_rtf_{name}"] = r["rtf"]
+        summary[f"episode_rtf_cpu_{name}"] = r["rtf_cpu"]
+        summary[f"perception_ms_{name}"] = r["frame_ms_median"]
+        summary[f"camera_ms_{name}"] = r["camera_ms_median"]
+        summary[f"map_update_ms_{name}"] = r["map_update_ms_median"]
+    summary["qp_tick_us_in_episode"] = first["qp_us_median"]
+    summary["qp_tick_us_replayed"] = first["qp_isolated_us_median"]
+    summary["qp_tick_us_bench_qp"] = bench_qp_us
+    summary["references_us"] = first["references_us_median"]
+    summary["physics_us"] = first["physics_us_median"]
+    summary["ground_truth_us"] = first["ground_truth_us_median"]
+    summary["duration_s"] = args.duration
     print(json.dumps(summary))
 
 

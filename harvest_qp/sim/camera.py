@@ -256,9 +256,22 @@ class RayCastCamera(DepthCamera):
                 "geoms; use raycast_engine='mujoco' for this model"
             )
         self.engine = engine
-        # Same geoms as mj_multiRay with geomgroup=None, flg_static=1: all but transparent
-        # geoms and those of the excluded body.
-        self._mask = (model.geom_rgba[:, 3] != 0) & (model.geom_bodyid != self.exclude_body)
+        # Same geoms as mj_multiRay with flg_static=1: all but transparent geoms, those of the
+        # excluded body and visual-only ones (group 2 without contacts, e.g. UR5e meshes
+        # drawn over the collision capsules).
+        visual = _raycast.visual_only_geoms(model)
+        self._mask = (model.geom_rgba[:, 3] != 0) & (model.geom_bodyid != self.exclude_body) & ~visual
+        # mj_multiRay filters by group: leave group 2 out when it only holds visual-only geoms.
+        self._geomgroup = None
+        in_group = np.asarray(model.geom_group) == _raycast.VISUAL_GROUP
+        if visual.any() and np.array_equal(in_group, visual):
+            self._geomgroup = np.ones(6, np.uint8)
+            self._geomgroup[_raycast.VISUAL_GROUP] = 0
+        elif visual.any() and engine == "mujoco":
+            raise ModelError(
+                "mj_multiRay cannot leave out the visual-only geoms: geom group 2 also holds geoms with "
+                "contacts; move those to another group or use raycast_engine='numba'"
+            )
         self._geom_type = model.geom_type.astype(np.int64)
         h, w = config.image_size
         self._hw = (h, w)
@@ -277,7 +290,7 @@ class RayCastCamera(DepthCamera):
         else:
             vec = np.ascontiguousarray(self._rays_c @ pose[:3, :3].T).ravel()
             mujoco.mj_multiRay(
-                self.model, data, origin, vec, None, 1, self.exclude_body, self._geomid, self._dist, None,
+                self.model, data, origin, vec, self._geomgroup, 1, self.exclude_body, self._geomid, self._dist, None,
                 self.n_pixels, self._cutoff,
             )  # fmt: skip
         return self._dist, self._geomid
@@ -322,6 +335,11 @@ class OpenGLCamera(DepthCamera):
             ) from error
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = 1  # the robot's geoms are in group 3
+        # Visual-only geoms (group 2 without contacts, e.g. UR5e meshes) are not seen, as by
+        # the ray caster; a group 2 that also holds geoms with contacts stays drawn.
+        visual = _raycast.visual_only_geoms(model)
+        if visual.any() and np.array_equal(np.asarray(model.geom_group) == _raycast.VISUAL_GROUP, visual):
+            self._option.geomgroup[_raycast.VISUAL_GROUP] = 0
         self._option.sitegroup[:] = 0
 
     def close(self) -> None:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
@@ -152,7 +153,7 @@ class SimRobot(RobotInterface):
         self._dof_ids = m.jnt_dofadr[joint_ids].copy()
         act_ids = np.array([m.actuator(n).id for n in scene.actuator_names])
         self._servo = SpeedjServo(m, act_ids, self._qpos_ids, actuation if actuation is not None else ActuationConfig())
-        self._kp = m.actuator_gainprm[act_ids, 0].copy()
+        self._kp = m.actuator_gainprm[act_ids, 0].astype(float)
         ids = scene.ids
         self._ids = ids
         self._force = WristForceSensor(
@@ -184,7 +185,9 @@ class SimRobot(RobotInterface):
         self._spring0 = m.qpos_spring.copy()
         self._stem_qpos = self._stem_spring_addresses()
         self._jacp = np.zeros((3, m.nv))
-        self._grasp_dofs = self._dof_ids[6:]
+        self._grasp_dofs = self._dof_ids[6:].astype(np.int64)
+        self._grasp_ctrl = np.ascontiguousarray(self._servo.ctrl_ids[6:], dtype=np.int64)
+        self._grasp_kp = np.ascontiguousarray(self._kp[6:])
         self._viewer = None
         self._viewer_every = 16
         self.reset()
@@ -354,10 +357,7 @@ class SimRobot(RobotInterface):
 
     def stem_tension(self) -> float:
         """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""
-        f = self.stem_force()
-        towards_base = self.scene.stem_base - self.data.site_xpos[self._ids["stem_end_site"]]
-        sign = 1.0 if np.dot(f, towards_base) >= 0 else -1.0
-        return sign * float(np.linalg.norm(f))
+        return self._fast_tension()
 
     def site_pose(self, name: str) -> NDArray[np.float64]:
         """World pose (4x4) of a site, e.g. ``"camera"``, ``"gripper"``, ``"cutter_tip"``."""
@@ -462,8 +462,7 @@ class SimRobot(RobotInterface):
             c = self._ids["cluster"]
             mujoco.mj_jac(m, d, self._jacp, None, d.xipos[c], self._ids["grasp_tool"])
             weight = m.body_mass[c] * np.asarray(m.opt.gravity)
-            tau = -self._jacp[:, self._grasp_dofs].T @ weight
-            d.ctrl[self._servo.ctrl_ids[6:]] += tau / self._kp[6:]
+            _add_payload_torque(self._jacp, self._grasp_dofs, weight, d.ctrl, self._grasp_ctrl, self._grasp_kp)
         # step2 integrates with the forces of the current state; step1 then computes the
         # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
@@ -503,7 +502,7 @@ class SimRobot(RobotInterface):
     def _check_physics(self) -> None:
         d = self.data
         counts = np.asarray(d.warning.number, dtype=np.int64)
-        if np.any(counts > self._warnings) or not np.all(np.isfinite(d.qvel)):
+        if _diverged(counts, self._warnings, d.qvel):
             new = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts > self._warnings)]
             self._warnings = counts
             self._failed = True
@@ -549,3 +548,25 @@ class SimRobot(RobotInterface):
     def mujoco_warnings(self) -> dict[str, int]:
         """MuJoCo warning counts since the last reset."""
         return {mujoco.mjtWarning(i).name: int(w.number) for i, w in enumerate(self.data.warning)}
+
+
+@njit(cache=True)
+def _add_payload_torque(jacp, dofs, weight, ctrl, ctrl_ids, kp):
+    """ctrl[ctrl_ids] += (-J[:, dofs]^T weight) / kp: a held payload's weight in the joint torques."""
+    for j in range(dofs.shape[0]):
+        tau = 0.0
+        for k in range(3):
+            tau += -jacp[k, dofs[j]] * weight[k]
+        ctrl[ctrl_ids[j]] += tau / kp[j]
+
+
+@njit(cache=True)
+def _diverged(counts, previous, qvel):
+    """True when MuJoCo raised a new warning or a joint velocity is not finite."""
+    for i in range(counts.shape[0]):
+        if counts[i] > previous[i]:
+            return True
+    for i in range(qvel.shape[0]):
+        if not np.isfinite(qvel[i]):
+            return True
+    return False

@@ -184,3 +184,28 @@ def test_near_surface_correction_on_a_half_cylinder_by_hand():
     assert plain.base[0] == pytest.approx(np.mean(x), abs=2e-4)  # in front of the axis
     assert abs(corrected.base[0]) < 0.0006
     assert abs(corrected.base[2]) < 0.0015
+
+
+def test_distinct_rows_are_numpys_unique_rows():
+    """``_distinct_rows`` (a column lexsort) keeps the same rows as ``np.unique(axis=0)`` (the oracle).
+
+    Clouds with duplicated points (a point cloud repeats a pixel's point) and rows that
+    differ in one coordinate only, by one ulp, or by the sign of a zero (numbers: equal).
+    Catches a lexsort over the wrong column order (adjacent duplicates missed) or a
+    byte-wise comparison (0.0 and -0.0 kept apart).
+    """
+    from harvest_qp.perception.stem import _distinct_rows
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 300):
+        base = rng.normal(size=(n, 3))
+        rows = base[rng.integers(0, n, 3 * n)].copy()
+        rows[::5, 1] = np.nextafter(rows[::5, 1], np.inf)
+        rows[::7, 2] = base[0, 2]
+        rows[::11, 0] = 0.0
+        rows[::13, 0] = -0.0
+        expected = np.unique(rows, axis=0)
+        got = _distinct_rows(rows)
+        assert got.shape == expected.shape
+        key = lambda a: np.lexsort((a[:, 2], a[:, 1], a[:, 0]))  # noqa: E731
+        np.testing.assert_array_equal(got[key(got)], expected[key(expected)])

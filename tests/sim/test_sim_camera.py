@@ -111,6 +111,52 @@ def test_depth_matches_analytic_plane_and_sphere(test_scene, engine):
     np.testing.assert_array_equal(cloud.colors[0], np.round(model.geom_rgba[names["wall"], :3] * 255))
 
 
+# The same scene with visual-only geoms (group 2, no contacts) in front of the ball and the
+# wall: a mesh, as the UR5e meshes drawn over the robot's capsules, and a primitive.
+VISUAL_XML = TEST_XML.replace(
+    "<worldbody>",
+    """<asset><mesh name="tetra" vertex="0 0 0  0.2 0 0  0 0.2 0  0 0 0.2"/></asset>
+  <worldbody>
+    <geom name="visual_mesh" type="mesh" mesh="tetra" pos="0.5 0.0 -0.1" group="2" contype="0" conaffinity="0"/>
+    <geom name="visual_box" type="box" pos="0.6 -0.2 0.05" size="0.05 0.05 0.05" group="2" contype="0"
+          conaffinity="0"/>""",
+)
+
+
+@pytest.mark.parametrize("engine", ["auto", "mujoco"])
+def test_visual_only_geoms_are_not_seen(test_scene, engine):
+    """Geoms for drawing only (group 2, contype = conaffinity = 0) never reach the depth image.
+
+    Oracle: the scene without them (same wall and balls, same pose): every pixel's depth
+    and label must be the same. Catches a caster that casts against the visual meshes
+    (they would hide the ball) and an ``auto`` engine that falls back to the 10x slower
+    ``mj_multiRay`` because a visual mesh is not a primitive.
+    """
+    model, data, labels = test_scene
+    vmodel = mujoco.MjModel.from_xml_string(VISUAL_XML)
+    vdata = mujoco.MjData(vmodel)
+    mujoco.mj_forward(vmodel, vdata)
+    vlabels = np.full(vmodel.ngeom, OBSTACLE, np.int8)
+    vlabels[vmodel.geom("ball").id] = STEM
+    vlabels[vmodel.geom("far_ball").id] = STEM
+    cfg = CameraConfig(width=320, height=240, downsample=2, stem_range=0.9, raycast_engine=engine)
+    plain = RayCastCamera(model, cfg, geom_labels=labels, exclude_body=model.body("tool").id)
+    cam = RayCastCamera(vmodel, cfg, geom_labels=vlabels, exclude_body=vmodel.body("tool").id)
+    assert cam.engine == ("numba" if engine == "auto" else "mujoco")
+    # The visual geoms are in view: casting against them would change the image.
+    hit_visual = RayCastCamera(
+        vmodel, dataclasses.replace(cfg, raycast_engine="mujoco"), geom_labels=vlabels,
+        exclude_body=vmodel.body("tool").id,
+    )  # fmt: skip
+    hit_visual._geomgroup = None
+    _, seen = hit_visual.cast(vdata, POSE)
+    assert np.isin(seen, [vmodel.geom("visual_mesh").id, vmodel.geom("visual_box").id]).sum() > 100
+    a, b = plain.capture(data, POSE, 0.0), cam.capture(vdata, POSE, 0.0)
+    np.testing.assert_array_equal(a.pixels, b.pixels)
+    np.testing.assert_allclose(a.depth, b.depth, atol=1e-12)
+    np.testing.assert_array_equal(a.labels, b.labels)
+
+
 def test_points_beyond_max_depth_are_dropped(test_scene):
     model, data, labels = test_scene
     cfg = CameraConfig(width=160, height=120, downsample=1, max_depth=1.0)
@@ -199,6 +245,49 @@ def test_numba_caster_agrees_with_mj_multiray(vine_robot):
         labels = vine_robot.scene.geom_labels
         np.testing.assert_array_equal(labels[ga[valid]], labels[gb[valid]])
         assert np.mean(ga[valid] == gb[valid]) > 0.98
+
+
+def test_numba_caster_culling_agrees_with_mj_multiray_on_random_views():
+    """Random views in and around the canopy, a third of them looking down at the floor.
+
+    The numba caster culls each geom to per-row pixel spans (bounding-sphere cones; for
+    the floor plane, the cone of rays reaching it within range) and skips pixels already
+    hit closer than a geom's nearest point. A span that is too tight (a missing padding,
+    a wrong root of the span's quadratic) or a wrong skip bound drops hits that
+    ``mj_multiRay``, which tests every ray against every geom, still finds: the valid
+    pixels or their depths differ. Camera positions inside a geom's bounding sphere are
+    left out (inside a geom the two casters disagree by design: exit vs no hit).
+    """
+    robot = SimRobot(camera=CameraConfig(downsample=6, stem_range=5.0))
+    m, d = robot.model, robot.data
+    common = {"geom_labels": robot.scene.geom_labels, "exclude_body": robot.scene.ids["cam_tool"]}
+    fast = RayCastCamera(m, dataclasses.replace(robot.camera_config, raycast_engine="numba"), **common)
+    ref = RayCastCamera(m, dataclasses.replace(robot.camera_config, raycast_engine="mujoco"), **common)
+    rng = np.random.default_rng(7)
+    centre = robot.scene.stem_base
+    bounded = m.geom_rbound > 0
+    views, floor_pixels, close_pixels = 0, 0, 0
+    while views < 40:
+        eye = centre + rng.normal(0.0, 0.35, 3)
+        eye[2] = max(eye[2], 0.05)
+        if np.any(np.linalg.norm(d.geom_xpos[bounded] - eye, axis=1) < m.geom_rbound[bounded] + 0.01):
+            continue
+        target = centre + rng.normal(0.0, 0.2, 3)
+        if views % 3 == 0:
+            target[2] = 0.0  # the floor
+        down = rng.normal(0.0, 0.3, 3) + (0.0, 0.0, -1.0)
+        pose = look_at(eye, target, down)
+        da, ga = (x.copy() for x in fast.cast(d, pose))
+        db, gb = (x.copy() for x in ref.cast(d, pose))
+        valid = (db >= 0) & (db * fast._ray_z <= robot.camera_config.max_depth)
+        np.testing.assert_array_equal(valid, (da >= 0) & (da * fast._ray_z <= robot.camera_config.max_depth))
+        assert np.max(np.abs(da - db)[valid], initial=0.0) < 1e-9
+        np.testing.assert_array_equal(robot.scene.geom_labels[ga[valid]], robot.scene.geom_labels[gb[valid]])
+        floor_pixels += int(np.sum(gb[valid] == m.geom("floor").id))
+        close_pixels += int(np.sum(valid & (db < 0.3)))
+        views += 1
+    # The views did exercise the floor's span and close-up occlusion.
+    assert floor_pixels > 1000 and close_pixels > 1000
 
 
 def test_labels_and_colours_in_the_vine_scene(vine_robot):
