@@ -105,8 +105,8 @@ def _penetrating_states(configuration, collision, rng, count):
     while len(states) < count:
         q_far = np.clip(HOME_Q + rng.normal(0, 0.25, 12), lo_q, hi_q)
         q_near = q_far + rng.normal(0, 0.5, 12)
-        q_near[0] += 1.2
-        q_near[6] -= 1.2
+        q_near[0] -= 1.2  # both shoulders pan towards the other arm (the other sign swings them apart)
+        q_near[6] += 1.2
         q_near = np.clip(q_near, lo_q, hi_q)
         target = rng.uniform(0.001, d_s - 0.001)
 
