@@ -333,3 +333,47 @@ def check_limit_rows(limit: Limit, G: np.ndarray | None, h: np.ndarray | None, n
             f"{type(limit).__name__}.compute returned G {getattr(G, 'shape', type(G).__name__)} and "
             f"h {getattr(h, 'shape', type(h).__name__)}; expected G of shape (m, {nv}) and h of shape (m,)"
         )
+
+
+def _is_real(value: Any) -> bool:
+    """A real number that is not a bool (``True`` is no gain or length)."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, np.ndarray):
+        return value.ndim == 0 and value.dtype.kind in "iuf"
+    return isinstance(value, numbers.Real)
+
+
+def check_field_types(obj: Any) -> None:
+    """Check that every field of the dataclass ``obj`` annotated ``float``, ``int`` or ``bool``
+    (optionally ``| None``) holds such a value; raises :class:`InvalidInputError` naming
+    ``Class.field``, the value and the expected type.
+
+    Call it first in ``__post_init__`` so the range checks that follow never see text,
+    ``None`` or a list (they used to raise numpy's ``TypeError`` or ``ValueError``). A
+    ``float`` field accepts any real number except a bool and NaN; an ``int`` field an
+    integral number; a ``bool`` field only ``True``/``False``.
+    """
+    import dataclasses
+
+    owner = type(obj).__name__
+    for field in dataclasses.fields(obj):
+        kind = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", "")
+        kind = kind.replace(" ", "")
+        optional = kind.endswith("|None")
+        kind = kind.removesuffix("|None")
+        if kind not in ("float", "int", "bool"):
+            continue
+        value = getattr(obj, field.name)
+        if value is None and optional:
+            continue
+        name = f"{owner}.{field.name}"
+        none = " or None" if optional else ""
+        if kind == "bool":
+            if not isinstance(value, (bool, np.bool_)):
+                raise InvalidInputError(f"{name} must be True or False{none}, got {describe(value)}")
+        elif not _is_real(value) or np.isnan(float(value)):
+            expected = "an integer" if kind == "int" else "a real number"
+            raise InvalidInputError(f"{name} must be {expected}{none}, got {describe(value)}")
+        elif kind == "int" and (not np.isfinite(float(value)) or float(value) != int(value)):
+            raise InvalidInputError(f"{name} must be an integer{none}, got {describe(value)}")

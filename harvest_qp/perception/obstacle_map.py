@@ -111,11 +111,29 @@ class ExclusionRegion:
     p1: tuple[float, float, float]
     radius: float
 
+    def __post_init__(self) -> None:
+        for name in ("p0", "p1"):
+            value = getattr(self, name)
+            try:
+                point = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                point = np.full(1, np.nan)
+            if isinstance(value, (str, bytes)) or point.shape != (3,) or not np.all(np.isfinite(point)):
+                raise InvalidInputError(f"ExclusionRegion.{name} must be 3 finite coordinates [m], got {value!r}")
+        r = self.radius
+        if isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, float, np.integer, np.floating)) or not (
+            np.isfinite(r) and r >= 0
+        ):
+            raise InvalidInputError(f"ExclusionRegion.radius must be a finite number >= 0 [m], got {r!r}")
+
     @classmethod
     def sphere(cls, center: ArrayLike, radius: float) -> ExclusionRegion:
         """A sphere of ``radius`` [m] around ``center`` [m]."""
-        c = tuple(float(x) for x in np.asarray(center, dtype=float).ravel())
-        return cls(c, c, float(radius))  # type: ignore[arg-type]
+        try:
+            c = tuple(float(x) for x in np.asarray(center, dtype=float).ravel())
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"center must be 3 finite coordinates [m], got {center!r}") from None
+        return cls(c, c, radius)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -210,16 +228,22 @@ def _as_regions(exclude) -> NDArray[np.float64]:
         return np.zeros((0, 7))
     if isinstance(exclude, ExclusionRegion):
         exclude = [exclude]
-    if isinstance(exclude, np.ndarray):
-        arr = np.asarray(exclude, dtype=float)
-    else:
-        rows = []
-        for region in exclude:
-            if isinstance(region, ExclusionRegion):
-                rows.append([*region.p0, *region.p1, region.radius])
-            else:
-                rows.append(np.asarray(region, dtype=float).ravel())
-        arr = np.array(rows, dtype=float) if rows else np.zeros((0, 7))
+    expected = "ExclusionRegion objects or an (n, 7) array of (x0, y0, z0, x1, y1, z1, radius) [m]"
+    if isinstance(exclude, (str, bytes, dict)) or not hasattr(exclude, "__iter__"):
+        raise InvalidInputError(f"exclude must be {expected}, got {exclude!r}")
+    try:
+        if isinstance(exclude, np.ndarray):
+            arr = np.asarray(exclude, dtype=float)
+        else:
+            rows = []
+            for region in exclude:
+                if isinstance(region, ExclusionRegion):
+                    rows.append([*region.p0, *region.p1, region.radius])
+                else:
+                    rows.append(np.asarray(region, dtype=float).ravel())
+            arr = np.array(rows, dtype=float) if rows else np.zeros((0, 7))
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"exclude must be {expected}, got {exclude!r}") from None
     if arr.ndim == 1 and arr.size == 7:
         arr = arr.reshape(1, 7)
     if arr.ndim != 2 or arr.shape[1] != 7:
@@ -320,6 +344,8 @@ class ObstacleMap:
         self.clamp_max = _logodds(clamp_max)
         self.clear_stride = None if clear_stride is None else _positive_int(clear_stride, "clear_stride")
         self.clear_rays = _positive_int(clear_rays, "clear_rays")
+        if not isinstance(erase_excluded, (bool, np.bool_)):
+            raise InvalidInputError(f"erase_excluded must be True or False, got {erase_excluded!r}")
         self.erase_excluded = bool(erase_excluded)
         if no_return_range is not None:
             try:
@@ -337,7 +363,7 @@ class ObstacleMap:
         try:
             lo = np.asarray(bounds[0], dtype=float).reshape(3)
             hi = np.asarray(bounds[1], dtype=float).reshape(3)
-        except (TypeError, ValueError, IndexError):
+        except (TypeError, ValueError, IndexError, KeyError):
             raise InvalidInputError(f"bounds must be ((x, y, z) lower, (x, y, z) upper) [m], got {bounds!r}") from None
         if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
             raise InvalidInputError(f"bounds must be finite with upper > lower [m], got {bounds!r}")

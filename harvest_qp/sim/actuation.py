@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.robot import description as desc
 from harvest_qp.robot import ur5e
+from harvest_qp.validation import check_field_types
 
 __all__ = ["ActuationConfig", "SpeedjServo", "add_joint_actuators", "ROBOT_PREFIXES"]
 
@@ -63,12 +64,17 @@ class ActuationConfig:
     position_margin: float = 0.01
 
     def __post_init__(self) -> None:
+        check_field_types(self)  # text, None or a list never reaches the range checks
         for name in ("bandwidth", "damping_ratio", "max_velocity", "max_following_error"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise InvalidInputError(f"ActuationConfig.{name} must be finite and > 0, got {value!r}")
-        acc = np.asarray(self.max_acceleration, dtype=float)
-        if acc.shape not in ((), (12,)) or not np.all(np.isfinite(acc)) or np.any(acc <= 0):
+        try:
+            acc = np.asarray(self.max_acceleration, dtype=float)
+        except (TypeError, ValueError):
+            acc = np.full(1, np.nan)  # reported below
+        bad_type = isinstance(self.max_acceleration, (bool, np.bool_))
+        if bad_type or acc.shape not in ((), (12,)) or not np.all(np.isfinite(acc)) or np.any(acc <= 0):
             raise InvalidInputError(
                 "ActuationConfig.max_acceleration must be a positive scalar or 12 positive values "
                 f"[rad/s^2], got {self.max_acceleration!r}"

@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from harvest_qp.exceptions import InvalidInputError, ModelError
 from harvest_qp.interface import OBSTACLE, STEM, PointCloud
 from harvest_qp.sim import _raycast
+from harvest_qp.validation import check_field_types
 
 __all__ = ["DEFAULT_CAMERA", "CameraConfig", "DepthCamera", "RayCastCamera", "OpenGLCamera", "make_camera"]
 
@@ -84,6 +85,7 @@ class CameraConfig:
     rendered_rgb: bool = False
 
     def __post_init__(self) -> None:
+        check_field_types(self)  # text, None or a list never reaches the range checks
         for name in ("width", "height", "downsample"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -160,6 +162,13 @@ class DepthCamera:
         exclude_body: int = -1,
         seed: int = 0,
     ) -> None:
+        if not isinstance(model, mujoco.MjModel):
+            raise InvalidInputError(f"model must be a mujoco.MjModel, got {model!r}")
+        if not isinstance(config, CameraConfig):
+            raise InvalidInputError(f"config must be a CameraConfig, got {config!r}")
+        for name, value, low in (("exclude_body", exclude_body, -1), ("seed", seed, 0)):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
+                raise InvalidInputError(f"{name} must be an integer >= {low}, got {value!r}")
         self.model = model
         self.config = config
         labels = np.full(model.ngeom, OBSTACLE, np.int8) if geom_labels is None else np.asarray(geom_labels)

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.validation import check_field_types
 
 __all__ = ["ForceSensorConfig", "WristForceSensor", "site_force_world"]
 
@@ -40,6 +41,7 @@ class ForceSensorConfig:
     tare_samples: int = 25
 
     def __post_init__(self) -> None:
+        check_field_types(self)  # text, None or a list never reaches the range checks
         for name in ("noise_std", "filter_time_constant"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:

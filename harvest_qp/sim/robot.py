@@ -33,6 +33,7 @@ from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, mak
 from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor, site_force_world
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
+from harvest_qp.validation import as_positive_scalar, check_field_types
 
 __all__ = ["SensorFaults", "SimRobot", "SimulationError"]
 
@@ -58,6 +59,7 @@ class SensorFaults:
     force_noise_std: float | None = None
 
     def __post_init__(self) -> None:
+        check_field_types(self)  # text, None or a list never reaches the range checks
         if not isinstance(self.frame_loss, (int, float, np.floating)) or not 0.0 <= self.frame_loss < 1.0:
             raise InvalidInputError(f"SensorFaults.frame_loss must be a probability in [0, 1), got {self.frame_loss!r}")
         for name in ("frame_latency", "force_noise_std"):
@@ -104,6 +106,13 @@ class SimRobot(RobotInterface):
         faults: SensorFaults | None = None,
         vine_distance_every: int = 1,
     ) -> None:
+        for name, value, kind in (("actuation", actuation, ActuationConfig), ("force", force, ForceSensorConfig)):
+            if value is not None and not isinstance(value, kind):
+                raise InvalidInputError(f"{name} must be a {kind.__name__} or None, got {value!r}")
+        control_period = as_positive_scalar(control_period, "control_period")
+        settle_time = as_positive_scalar(settle_time, "settle_time", allow_zero=True)
+        if not isinstance(payload_compensation, (bool, np.bool_)):
+            raise InvalidInputError(f"payload_compensation must be True or False, got {payload_compensation!r}")
         if scene is None or isinstance(scene, VineSceneParams):
             scene = build_vine_scene(scene, actuation=actuation)
         if not isinstance(scene, VineScene):

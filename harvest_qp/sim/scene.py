@@ -57,6 +57,7 @@ from harvest_qp.robot import paths
 from harvest_qp.robot.meshes import strip_visual_meshes
 from harvest_qp.sim.actuation import ActuationConfig, add_joint_actuators
 from harvest_qp.sim.contacts import _segment_distances
+from harvest_qp.validation import as_positive_scalar, check_field_types
 
 __all__ = [
     "APPROACH_RADIUS",
@@ -228,6 +229,7 @@ class VineSceneParams:
     stem_break_force: float = 15.0
 
     def __post_init__(self) -> None:
+        check_field_types(self)  # text, None or a list never reaches the range checks
         positive = (
             "stem_length", "stem_radius", "stem_axial_stiffness", "cluster_mass", "berry_radius",
             "cluster_length", "cluster_radius", "branch_radius", "branch_length", "leaf_size",
@@ -286,7 +288,10 @@ class VineSceneParams:
                 f"radius of {self.stem_radius} m; use fewer segments or a thinner stem"
             )
         if self.camera_start is not None:
-            start = np.asarray(self.camera_start, dtype=float)
+            try:
+                start = np.asarray(self.camera_start, dtype=float)
+            except (TypeError, ValueError):
+                start = np.full(1, np.nan)  # reported below
             if start.shape != (3,) or not np.all(np.isfinite(start)):
                 raise InvalidInputError(
                     f"camera_start must be 3 finite coordinates [m] or None, got {self.camera_start!r}"
@@ -386,9 +391,11 @@ class VineScene:
         turned by the smallest rotation that points its optical axis at ``target`` (what
         the paper's V_cr does, leaving the roll about the view direction alone).
         """
-        goal = self.stem_base if target is None else np.asarray(target, dtype=float)
-        if not np.isfinite(distance) or distance <= 0:
-            raise InvalidInputError(f"distance must be a finite number > 0 [m], got {distance!r}")
+        distance = as_positive_scalar(distance, "distance")
+        try:
+            goal = self.stem_base if target is None else np.asarray(target, dtype=float)
+        except (TypeError, ValueError):
+            goal = np.full(1, np.nan)  # reported below
         if goal.shape != (3,) or not np.all(np.isfinite(goal)):
             raise InvalidInputError(f"target must be 3 finite coordinates [m] or None, got {target!r}")
         position = goal + distance * _unit(self.camera_start - goal)
@@ -853,10 +860,15 @@ def build_vine_scene(
     p = params if params is not None else VineSceneParams()
     if not isinstance(p, VineSceneParams):
         raise InvalidInputError(f"params must be a VineSceneParams, got {type(p).__name__}")
-    q0 = np.array(desc.HOME_Q if home_q is None else home_q, dtype=float)
-    if q0.shape != (12,) or not np.all(np.isfinite(q0)):
+    try:
+        q0 = np.array(desc.HOME_Q if home_q is None else home_q, dtype=float)
+    except (TypeError, ValueError):
+        q0 = np.full(1, np.nan)  # reported below
+    if isinstance(home_q, (str, bytes)) or q0.shape != (12,) or not np.all(np.isfinite(q0)):
         raise InvalidInputError(f"home_q must be 12 finite joint positions [rad], got {home_q!r}")
     actuation = actuation if actuation is not None else ActuationConfig()
+    if not isinstance(actuation, ActuationConfig):
+        raise InvalidInputError(f"actuation must be an ActuationConfig or None, got {actuation!r}")
 
     try:
         spec = mujoco.MjSpec.from_file(str(paths.scene_path()))

@@ -18,8 +18,11 @@ def test_no_fallback_and_speed_change_within_the_acceleration_limit_on_fuzz_stat
     fallback is a solver bug; the speed change per tick is checked against a_max dt by hand unless
     a position limit box conflicted (then the command is the nearest point of the position box) or
     the step reports a relaxation; the distances after the step come from pinocchio + coal, not
-    from the kernel. Bugs caught: the absolute feasibility tolerance, no retry after DAQP cycling,
-    believing a false infeasibility (19 of 18,020 fell back), dropping the acceleration limit.
+    from the kernel. Bugs caught (each planted by hand): no backend retry and an infeasibility
+    report believed without the relaxation check (combination states fall back), dropping the
+    acceleration limit when relaxing. The absolute feasibility tolerance itself is caught by
+    ``test_qp_backends.py::test_feasibility_is_judged_relative_to_row_scale``: these states did
+    not produce a DAQP solution off by 1e-7..1e-6 after the change.
     """
     per_category = {cat: 0 for cat in FUZZ_CATEGORIES}
     relaxed = 0
@@ -61,8 +64,9 @@ def test_no_fallback_and_speed_change_within_the_acceleration_limit_on_fuzz_stat
 def test_crossing_runs_with_obstacles_keep_the_safety_distance(seed):
     """Two pose tasks swap tool positions among 20 obstacle spheres (d_s 2 cm, d_i 12 cm, gain 5).
 
-    Oracle: pinocchio frame placements + coal capsules every tick. Bugs caught: the absolute
-    feasibility tolerance (seed 104 braked for 535 of 2,000 ticks), pairs below d_s.
+    Oracle: pinocchio frame placements + coal capsules every tick (exact minimum over every
+    candidate pair). Bugs caught (planted by hand): no backend retry and no relaxation check
+    (fallback ticks; FINDINGS' seed 104 braked for 535 of 2,000 ticks), pairs below d_s.
     """
     result = run_crossing(seed, ticks=700)
     assert result.fallbacks == 0
