@@ -61,6 +61,8 @@ SPEC: dict[str, dict[str, Any]] = {
         "n_samples": "int+",  # Fibonacci samples of S(p_sb, l)
         "exclude_held_crop": "bool",  # O for p_gd without the robot's points and the held crop
         "max_swing_deg": "pos|null",  # p_gd within this angle of the hanging stem (null: the paper's hemisphere)
+        "swing_clearance": "pos|null",  # [m] map distance the gripper keeps along its swing to p_gd (null: not checked)
+        "swing_stretch": "nonneg",  # [m] the swing check also moves the gripper this far out along n_c
         "k_hold": "pos",  # [1/s] the grasping arm holds the crop still during the approach
         "feed_forward": "bool",  # eq:final_vc's term on the camera in the bimanual phase
     },
@@ -127,7 +129,8 @@ DEFAULTS: dict[str, Any] = {
     "switch": {"distance_factor": 1.05, "max_linear_speed": 0.01, "max_angular_speed": 0.025, "window": 0.5},
     "grasping": {"k_pg": 0.15, "k_og": 0.3, "k_fp": 0.001, "k_fi": 0.0002, "f_d": 3.0, "r_o": "l",
                  "max_speed": 0.05, "integration_threshold": 2.0,
-                 "n_samples": 500, "exclude_held_crop": False, "max_swing_deg": 30.0, "k_hold": 1.0,
+                 "n_samples": 500, "exclude_held_crop": False, "max_swing_deg": 30.0, "swing_clearance": 0.02,
+                 "swing_stretch": 0.03, "k_hold": 1.0,
                  "feed_forward": True},
     "perception": {"min_stem_points": 10, "max_base_distance": 0.2, "grasp_offset": 0.015},
     "roll": {"enabled": True, "k_roll": 1.0},
