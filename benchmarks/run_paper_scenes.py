@@ -27,11 +27,13 @@ from harvest_qp.robot.paths import tasks_dir  # noqa: E402
 
 COLUMNS = (
     ("seed", "seed"), ("mapper", "mapper"), ("success", "success"), ("phase_reached", "phase"),
-    ("t_bimanual_start", "switch [s]"), ("final_distance_to_roi_center", "d/r"), ("final_theta_deg", "theta [deg]"),
+    ("t_bimanual_start", "switch [s]"), ("t_precut", "pre-cut [s]"), ("final_distance_to_roi_center", "d/r"),
+    ("final_theta_deg", "theta [deg]"),
     ("visible_stem_points_start", "stem pts start"), ("visible_stem_points_switch", "switch"),
     ("visible_stem_points_end", "end"), ("final_position_error", "e_p [mm]"), ("final_alignment_deg", "e_o [deg]"),
     ("final_cutter_stem_angle_deg", "cutter [deg]"), ("force_mean_last_1s", "f last 1 s [N]"),
-    ("force_max", "f max [N]"), ("min_collision_distance", "min dist [mm]"), ("contacts", "contacts"),
+    ("force_max", "f max [N]"), ("min_collision_distance", "min dist [mm]"),
+    ("min_vine_distance", "min vine dist [mm]"), ("contacts", "contacts"),
     ("stem_torn", "torn"), ("max_joint_limit_violation", "joint lim viol [rad]"),
     ("peak_joint_speed", "peak qdot [rad/s]"), ("qp_failures", "QP fail"), ("abort_reason", "abort"),
 )
@@ -51,7 +53,7 @@ def _cell(key: str, value) -> str:
         return "-"
     if key == "final_distance_to_roi_center":
         return f"{value / 0.35:.3f}"
-    if key in ("final_position_error", "min_collision_distance"):
+    if key in ("final_position_error", "min_collision_distance", "min_vine_distance"):
         return f"{1e3 * value:.1f}"
     if isinstance(value, float):
         return f"{value:.3g}"

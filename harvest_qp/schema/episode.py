@@ -154,6 +154,9 @@ class Grasping(Section):
                                         "(beyond the paper)")
     max_swing_deg: PositiveOrNull = _f(30.0, "[deg] beyond the paper: p_gd within this angle of the hanging stem "
                                              "(null: the paper's whole hemisphere)")
+    swing_clearance: PositiveOrNull = _f(0.02, "[m] beyond the paper: map distance the gripper keeps along its "
+                                               "swing to p_gd (null: not checked)")
+    swing_stretch: NonNegative = _f(0.03, "[m] the swing check also moves the gripper this far out along n_c")
     k_hold: Positive = _f(1.0, "[1/s] the grasping arm holds the crop still during the approach")
     feed_forward: bool = _f(True, "eq:final_vc's feed-forward term on the camera in the bimanual phase")
 

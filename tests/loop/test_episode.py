@@ -1,8 +1,9 @@
 """The paper episode end to end from the CLI's own code path (``harvest-qp run``).
 
-One full episode on the default scene at reduced resolution (141x80: 848x480 downsampled
-by 6) keeps the suite fast; the default scene and seeds 1-5 at the paper's 283x160, with
-both mappers, are run by ``benchmarks/run_paper_scenes.py`` (minutes).
+One episode on the default scene at reduced resolution (141x80: 848x480 downsampled by 6),
+shared with ``test_paper_scenes.py`` (``conftest.cli_episode``), keeps the suite fast; the
+default scene and seeds 1-5 at the paper's 283x160, with both mappers, are run by
+``benchmarks/run_paper_scenes.py`` (minutes).
 """
 
 from __future__ import annotations
@@ -31,12 +32,9 @@ LOW_RES = ["--set", "camera.downsample=6", "--set", "perception.min_stem_points=
 
 
 @pytest.fixture(scope="module")
-def default_episode(tmp_path_factory):
-    out = tmp_path_factory.mktemp("paper-0")
-    code = main(["run", str(PAPER), "--seed", "0", "--out", str(out), *LOW_RES])
-    metrics = json.loads((out / "metrics.json").read_text())
-    log = dict(np.load(out / "episode.npz"))
-    return code, metrics, log, out
+def default_episode(cli_episode):
+    # The same episode as test_paper_scenes.py's default scene (run once, with the figures).
+    return cli_episode(0, *cli_episode.scene_args, figures=True)
 
 
 def test_run_writes_metrics_log_and_figures(default_episode):
@@ -68,9 +66,7 @@ def test_default_scene_reaches_the_bimanual_phase_safely(default_episode):
     p_sb = log["value/p_sb"][-1]
     assert np.linalg.norm(p_sb - scene.stem_base) < 0.015  # the frozen estimate vs the true base
     # Until a contact disturbs the wrist, the measured (tared) force along n_c is the true stem
-    # tension. (At this low resolution the gripper touches a leaf late in the episode: 18-30 s
-    # on the default scene; at the paper's 283x160 it does not. Success is checked at 283x160
-    # by benchmarks/run_paper_scenes.py.)
+    # tension (success, contacts included, is checked in test_paper_scenes.py).
     t = log["t"]
     contact = np.zeros(len(t), dtype=bool)
     for key in [k for k in log if k.startswith("truth/contacts_")]:
