@@ -32,6 +32,9 @@ class CommandEpisode:
         metrics_name: the metrics file in a run folder.
         timeout: seconds [s] after which the command is killed (``None``: no limit).
         env: extra environment variables for the command.
+        unsuccessful_codes: exit codes that mean "the episode ran and was not a success" (``harvest-qp
+            run`` exits 1 then, after writing ``metrics.json``): with a fresh metrics file the row
+            keeps the episode's metrics and its abort reason; any other non-zero code is an error.
     """
 
     argv: tuple[str, ...]
@@ -39,6 +42,7 @@ class CommandEpisode:
     metrics_name: str = "metrics.json"
     timeout: float | None = None
     env: tuple[tuple[str, str], ...] = ()
+    unsuccessful_codes: tuple[int, ...] = (1,)
 
     def __post_init__(self) -> None:
         if isinstance(self.argv, str) or not isinstance(self.argv, Sequence) or not self.argv:
@@ -73,7 +77,8 @@ class CommandEpisode:
             raise EpisodeCommandError(f"{' '.join(command)} ran longer than {self.timeout:g} s") from None
         except OSError as exc:
             raise EpisodeCommandError(f"cannot run {command[0]!r}: {exc}") from None
-        if completed.returncode != 0:
+        ran_unsuccessfully = completed.returncode in self.unsuccessful_codes and metrics_path.is_file()
+        if completed.returncode != 0 and not ran_unsuccessfully:
             tail = (completed.stderr or completed.stdout).strip().splitlines()[-3:]
             raise EpisodeCommandError(
                 f"{' '.join(command)} exited with code {completed.returncode}: {' / '.join(tail) or 'no output'}"

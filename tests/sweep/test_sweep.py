@@ -320,15 +320,21 @@ out.mkdir(parents=True, exist_ok=True)
 if args.seed != 3:
     (out / "metrics.json").write_text(json.dumps({"success": args.seed % 2 == 0, "config": args.config,
                                                   "final_position_error": args.seed / 100}))
+if args.seed == 4:
+    sys.exit(3)  # crashed after writing its metrics: an error, not a result
+sys.exit(0 if args.seed % 2 == 0 or args.seed == 3 else 1)  # as harvest-qp run: 1 = ran, not a success
 """
 
 
 def test_command_episode_runs_one_process_per_seed(tmp_path):
-    """harvest-qp run as a command: its metrics.json becomes the row; a failing command is that seed's error."""
+    """harvest-qp run as a command: its metrics.json becomes the row; a failing command is that seed's error.
+
+    Catches: an unsuccessful episode (exit code 1 with its metrics written, as ``harvest-qp run``
+    does) recorded as a crash without its metrics and abort reason."""
     script = tmp_path / "fake_run.py"
     script.write_text(FAKE_RUN)
     episode = CommandEpisode((sys.executable, str(script), "paper.yaml"), runs_dir=str(tmp_path / "runs"))
-    result = run_sweep(episode, [0, 1, 2, 3], out_dir=tmp_path / "out", workers=2, progress=False)
+    result = run_sweep(episode, [0, 1, 2, 3, 4], out_dir=tmp_path / "out", workers=2, progress=False)
     rows = without_wall_time(result.rows)
     assert rows[:2] == [
         {"seed": 0, "status": "ok", "success": True, "config": "paper.yaml", "final_position_error": 0.0},
@@ -337,6 +343,7 @@ def test_command_episode_runs_one_process_per_seed(tmp_path):
     assert rows[2]["status"] == "error" and rows[2]["error"].startswith("EpisodeCommandError: ")
     assert rows[2]["error"].endswith("exited with code 1: scene 2: the stem is out of reach")
     assert rows[3]["status"] == "error" and "wrote no readable" in rows[3]["error"]
+    assert rows[4]["status"] == "error" and "exited with code 3" in rows[4]["error"]
     assert (tmp_path / "runs" / "seed_1" / "metrics.json").exists()
 
 
