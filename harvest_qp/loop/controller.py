@@ -261,6 +261,8 @@ class HarvestController:
         self._build_obstacle_map()
         #: (per-sample swing clearance [m], the clearance asked [m]) of the last p_gd choice.
         self.last_swing_clearance = None
+        #: How the last p_gd was chosen (``_target_within_swing``'s tier), for metrics.json.
+        self.target_choice: str | None = None
         self.state = _State()
         self.dt = 0.002
         self.snapshots: dict[str, FrameSnapshot] = {}
@@ -380,6 +382,8 @@ class HarvestController:
         self.stretching.reset()
         self.snapshots = {}
         self.switch_snapshot = None
+        self.target_choice = None
+        self.last_swing_clearance = None
         if self.obstacle_map is not None:
             self.obstacle_map.clear()
             self.map_feed.update(q0)
@@ -487,7 +491,9 @@ class HarvestController:
         max_swing = g["max_swing_deg"]
         swing_clearance = g["swing_clearance"]
         map_check = swing_clearance is not None and self.obstacle_map is not None and bool(self._swing_capsules)
+        self.target_choice = "eq:attr_point over the free samples in the cone"
         if max_swing is None and not map_check:
+            self.target_choice = "eq:attr_point"
             return free.target.copy()
         if not np.any(free.free):
             return None
@@ -513,8 +519,10 @@ class HarvestController:
             clear = clearance >= needed - 1e-9
             if np.any(in_cone & clear):
                 in_cone = in_cone & clear
+                self.target_choice = "free, in the cone, swing clear (eq:attr_point among them)"
             elif np.any(free.free & clear):  # outside the cone: the least swing that is clear
                 pool = np.flatnonzero(free.free & clear)
+                self.target_choice = "free, swing clear, outside the cone (least swing)"
                 return samples[pool[np.argmax(cos_swing[pool])]].copy()
             else:
                 # No sample of F swings clear (measured on seeds 1 and 5: F lies on the camera's
@@ -526,13 +534,17 @@ class HarvestController:
                 cone = cos_swing >= (np.cos(np.radians(max_swing)) if max_swing is not None else -1.0)
                 pool = np.flatnonzero(cone & clear)
                 if hang_clearance >= needed - 1e-9:
+                    self.target_choice = "no free sample swings clear: the hanging direction (no swing)"
                     return hang_point
                 if pool.size:
+                    self.target_choice = "no free sample swings clear: the least clear swing of the cone"
                     return samples[pool[np.argmax(cos_swing[pool])]].copy()
                 pool = np.flatnonzero(cone) if np.any(cone) else np.arange(len(samples))
                 best = pool[np.argmax(clearance[pool])]
+                self.target_choice = "no sample swings clear: the most clearance"
                 return samples[best].copy() if clearance[best] > hang_clearance else hang_point
         if not np.any(in_cone):  # nothing free within the cone: the free sample nearest to it
+            self.target_choice = "nothing free in the cone: the free sample nearest to it"
             closest = np.flatnonzero(free.free)[np.argmax(cos_swing[free.free])]
             return samples[closest].copy()
         candidates = samples[in_cone]

@@ -163,6 +163,7 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
         "qp_failures": int(st.qp_failures),
         "qp_backup_solves": int(st.backup_solves),
         "abort_reason": st.abort_reason,
+        "p_gd_choice": getattr(controller, "target_choice", None),
         "stem_base_error_at_switch": (
             float(np.linalg.norm(st.p_sb - p_sb_true)) if st.p_sb is not None else None
         ),
