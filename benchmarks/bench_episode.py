@@ -25,18 +25,27 @@ run only; the library code is unchanged):
 * ``runner``: the rest: the runner's observation, command checks and log arrays, and the
   controller's own glue (kinematics update, phase logic outside the reference laws).
 
-Shares are of the episode's wall-clock time. The real-time factor is given both on the
-wall clock (``rtf``) and on the process's CPU time (``rtf_cpu``: what the episode would
-reach alone on the core; on a loaded machine the wall-clock figure is lower).
+The timers read the thread's CPU time (``--clock cpu``, the default: the breakdown stays
+meaningful on a loaded machine) or the wall clock (``--clock wall``); the shares are of the
+episode's total on that clock. The real-time factor is given both on the wall clock
+(``rtf``) and on the process's CPU time (``rtf_cpu``: what the episode would reach alone on
+the core; on a loaded machine the wall-clock figure is lower).
+
+The QP step is reported three ways: its median inside the episode, the same step replayed
+alone after the episode on the episode's own problems (the gap is the rest of the loop
+evicting its data from the caches), and ``bench_qp.py``'s harvest_qp collision problem (a
+one-level QP without map cells; the gap is the episode's two-level hierarchy and map rows).
 
 Usage::
 
     python benchmarks/bench_episode.py [--duration 20] [--settings tasks/paper.yaml] [--set k=v ...]
-                                       [--resolutions 283x160,848x480]
+                                       [--resolutions 283x160,848x480] [--clock cpu|wall]
 
-The last line printed is one JSON object with ``episode_rtf_283x160``, ``episode_rtf_848x480``,
-``qp_tick_us_in_episode`` (median QP step at 283x160), ``perception_ms_283x160`` (median per
-frame, perception plus map update, as the controller's own timer counts it) and the other medians.
+The last line printed is one JSON object with ``episode_rtf_283x160``, ``episode_rtf_848x480``
+(wall clock), ``episode_rtf_cpu_*`` (CPU time), ``qp_tick_us_in_episode`` (median QP step at
+283x160), ``qp_tick_us_replayed``, ``qp_tick_us_bench_qp``, ``perception_ms_283x160`` (median
+per frame, perception plus map update, as the controller's own timer counts it) and the other
+medians.
 Timings on a shared machine are noisy: run it alone (check ``uptime``).
 """
 
