@@ -1,16 +1,23 @@
 """Fuzz and crossing scenarios for the QP core, measured with an independent geometry.
 
-Run by hand (the full size takes minutes on a loaded 2-core machine)::
+Run by hand::
 
-    python -m benchmarks.bench_fuzz                 # 20,000 fuzz states, 50 crossing runs
-    python -m benchmarks.bench_fuzz --fuzz 2000 --crossing 10 --ticks 1000
+    python -m benchmarks.bench_fuzz                 # 20,000 fuzz states, 50 crossing runs, 2 processes
+    python -m benchmarks.bench_fuzz --fuzz 2000 --crossing 10 --ticks 1000 --jobs 1
 
-It prints, for the fuzz states (collision-free, inside the joint limits): how many
-ticks fell back to the safe stop, how many relaxed the acceleration limit and by how
-much, and the worst speed change beyond what the limits allow; for the crossing
-runs (two FramePoseTasks swapping tool positions among random obstacle spheres): the
-fallback ticks and the smallest pair distance measured with pinocchio frame
-placements and coal capsules (not with the controller's own kernel).
+The full size took 415 s wall with 2 processes on the shared 2-core machine (load ~6).
+Progress is printed per job (500 fuzz states of one category, or one crossing run); each
+job has its own seed, so the figures do not depend on ``--jobs``.
+
+It prints, for the fuzz states (collision-free, inside the joint limits): how many ticks
+fell back to the safe stop, the worst per-tick speed change (overall, and on ticks where
+neither a relaxation nor a position-limit box conflict allowed more than a_max dt), the
+ticks that relaxed the acceleration limit (with a collision row binding or not), by how
+much, and whether the command stayed within the widened box; the closest pair after each
+step. For the crossing runs (two FramePoseTasks swapping tool positions among random
+obstacle spheres): the fallback and relaxed ticks, the worst acceleration and the
+smallest pair distance, all distances measured with pinocchio frame placements and coal
+capsules (not with the controller's own kernel).
 
 The scenario generators are imported by ``tests/core/test_qp_fuzz.py`` at a small size.
 """
