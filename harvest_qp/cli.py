@@ -163,8 +163,9 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
         from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController, paper_episode_extras
 
         live = LiveViewer(vine=robot.model, host=host, port=port)  # prints the URL
-        return ViewedController(controller, live, extras=paper_episode_extras(settings["reaching"]["radius"]),
-                                pacer=RealTimePacer() if realtime else None)
+        extras = paper_episode_extras(settings["reaching"]["radius"],
+                                      cell_resolution=settings["obstacle_map"]["resolution"])
+        return ViewedController(controller, live, extras=extras, pacer=RealTimePacer() if realtime else None)
 
     try:
         report = run_paper_episode(settings, seed=seed, mapper=mapper, duration=duration, out_dir=out,

@@ -18,15 +18,24 @@ __all__ = ["paper_episode_extras"]
 _VECTORS = (("p_r", "p_r"), ("p_sb", "p_sb"), ("p_gd", "p_gd"), ("v_c", "V_c"), ("v_g", "V_g"))
 
 
-def paper_episode_extras(roi_radius: float) -> Callable[[Any, Any], Mapping[str, Any]]:
+def paper_episode_extras(
+    roi_radius: float, *, cell_resolution: float = 0.01
+) -> Callable[[Any, Any], Mapping[str, Any]]:
     """``(obs, command) -> ViewerFrame fields`` for the paper episode's controller.
+
+    Besides the controller's values, the closest of the QP's active collision rows
+    (``Command.collision_pairs``) is drawn as a line between its witness points, recomputed
+    from ``obs.q`` by :class:`~harvest_qp.viewer.closest.ClosestPairLocator`.
 
     Args:
         roi_radius: r, the ROI sphere's radius drawn around p_r [m] (``reaching.radius``).
+        cell_resolution: the obstacle map's cell edge [m] (``obstacle_map.resolution``).
     """
     from harvest_qp.loop.controller import Phase  # the viewer observes the loop, never the reverse
+    from harvest_qp.viewer.closest import ClosestPairLocator
 
     radius = float(roi_radius)
+    locator = ClosestPairLocator(cell_resolution=cell_resolution)
 
     def extras(obs: Any, command: Any) -> Mapping[str, Any]:
         values = command.values
@@ -37,6 +46,11 @@ def paper_episode_extras(roi_radius: float) -> Callable[[Any, Any], Mapping[str,
                 out[field] = value
         if "p_r" in out:
             out["roi_center"], out["roi_radius"] = out["p_r"], radius
+        pairs = getattr(command, "collision_pairs", ())
+        if pairs:
+            name_a, name_b, distance = min(pairs, key=lambda pair: pair[2])
+            out["closest_pair"] = locator.points(obs.q, name_a, name_b)
+            out["closest_distance"] = float(distance)
         return out
 
     return extras
