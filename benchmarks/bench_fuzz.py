@@ -458,8 +458,12 @@ def run_fuzz_batch(n: int, seed: int = 0, *, categories=FUZZ_CATEGORIES) -> Fuzz
             r.worst_excess_relaxed = max(r.worst_excess_relaxed, float(np.max(change - A_MAX * DT - slack)))
             problem = solution.problems[-1]
             live = problem.h < 1e29
-            residual = problem.G[live] @ step.qdot - problem.h[live]
-            r.relaxed_by_rows += bool(np.any(residual > -1e-9 * (1 + np.abs(problem.h[live]))))
+            # A row binds when its slack is within 1e-8 of its scale (the backends' feasibility
+            # is judged the same way, see harvest_qp.backends).
+            G_live, h_live = problem.G[live], problem.h[live]
+            residual = G_live @ step.qdot - h_live
+            scale = 1.0 + np.abs(h_live) + np.abs(G_live) @ np.abs(step.qdot)
+            r.relaxed_by_rows += bool(np.any(residual > -1e-8 * scale))
         else:
             if (~forced).any():
                 r.worst_excess_plain = max(r.worst_excess_plain, float(np.max(change[~forced] - A_MAX * DT)))
