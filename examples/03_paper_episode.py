@@ -55,7 +55,8 @@ def run(
 
         live = LiveViewer(vine=robot.model, port=port)  # prints the URL to open
         return ViewedController(controller, live, extras=paper_episode_extras(settings["reaching"]["radius"],
-                                                                  cell_resolution=settings["obstacle_map"]["resolution"]),
+                                                                  cell_resolution=settings["obstacle_map"]["resolution"],
+                                                                  controller=controller),
                                 pacer=RealTimePacer() if realtime else None)  # fmt: skip
 
     # 3. The episode. seed 0 is the paper's default scene, seed N > 0 a randomised vine.

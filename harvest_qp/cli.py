@@ -164,7 +164,7 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
 
         live = LiveViewer(vine=robot.model, host=host, port=port)  # prints the URL
         extras = paper_episode_extras(settings["reaching"]["radius"],
-                                      cell_resolution=settings["obstacle_map"]["resolution"])
+                                      cell_resolution=settings["obstacle_map"]["resolution"], controller=controller)
         return ViewedController(controller, live, extras=extras, pacer=RealTimePacer() if realtime else None)
 
     try:

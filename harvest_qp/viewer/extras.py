@@ -19,7 +19,7 @@ _VECTORS = (("p_r", "p_r"), ("p_sb", "p_sb"), ("p_gd", "p_gd"), ("v_c", "V_c"), 
 
 
 def paper_episode_extras(
-    roi_radius: float, *, cell_resolution: float = 0.01
+    roi_radius: float, *, cell_resolution: float = 0.01, controller: Any = None
 ) -> Callable[[Any, Any], Mapping[str, Any]]:
     """``(obs, command) -> ViewerFrame fields`` for the paper episode's controller.
 
@@ -30,12 +30,27 @@ def paper_episode_extras(
     Args:
         roi_radius: r, the ROI sphere's radius drawn around p_r [m] (``reaching.radius``).
         cell_resolution: the obstacle map's cell edge [m] (``obstacle_map.resolution``).
+        controller: the :class:`~harvest_qp.loop.controller.HarvestController`; once it has
+            switched, what perception found at the switch (``switch_snapshot``: both stem
+            segments, the Fibonacci samples kept, i.e. free space F, and removed) is drawn too.
     """
     from harvest_qp.loop.controller import Phase  # the viewer observes the loop, never the reverse
     from harvest_qp.viewer.closest import ClosestPairLocator
 
     radius = float(roi_radius)
     locator = ClosestPairLocator(cell_resolution=cell_resolution)
+    switch_fields: dict[str, Any] = {}
+
+    def at_switch() -> Mapping[str, Any]:
+        snapshot = getattr(controller, "switch_snapshot", None)
+        if snapshot is not None and not switch_fields:  # taken once, at the switch
+            stem = snapshot.stem
+            switch_fields["stem_segments"] = np.array(
+                [[stem.top.start, stem.top.end], [stem.bottom.start, stem.bottom.end]], dtype=float
+            )
+            switch_fields["samples_kept"] = np.array(snapshot.free_space.kept_samples, dtype=float)
+            switch_fields["samples_removed"] = np.array(snapshot.free_space.removed_samples, dtype=float)
+        return switch_fields
 
     def extras(obs: Any, command: Any) -> Mapping[str, Any]:
         values = command.values
@@ -51,6 +66,7 @@ def paper_episode_extras(
             name_a, name_b, distance = min(pairs, key=lambda pair: pair[2])
             out["closest_pair"] = locator.points(obs.q, name_a, name_b)
             out["closest_distance"] = float(distance)
+        out.update(at_switch())
         return out
 
     return extras

@@ -104,3 +104,19 @@ def test_closest_pair_extras_pick_the_nearest_row_and_a_cell_centre():
     assert extras["closest_distance"] == 0.05
     expected = ClosestPairLocator().points(np.zeros(12), "cam_cutter", "cell[45,18,118]")
     np.testing.assert_allclose(extras["closest_pair"], expected)
+
+
+def test_switch_snapshot_draws_the_stem_segments_and_the_samples_once_switched():
+    """Catches: the live CLI view without Fig. fig:PC_proc's stem segments and free space F."""
+    seg = lambda a, b: SimpleNamespace(start=np.array(a, float), end=np.array(b, float))  # noqa: E731
+    controller = SimpleNamespace(switch_snapshot=None)
+    extras = paper_episode_extras(0.35, controller=controller)
+    obs = SimpleNamespace(q=np.zeros(12))
+    assert "samples_kept" not in extras(obs, _command())
+    controller.switch_snapshot = SimpleNamespace(
+        stem=SimpleNamespace(top=seg([0, 0, 1], [0, 0, 0.9]), bottom=seg([0, 0, 0.9], [0, 0.01, 0.85])),
+        free_space=SimpleNamespace(kept_samples=np.ones((5, 3)), removed_samples=np.zeros((7, 3))),
+    )
+    out = extras(obs, _command())
+    assert out["stem_segments"].shape == (2, 2, 3) and out["stem_segments"][1, 1, 1] == 0.01
+    assert out["samples_kept"].shape == (5, 3) and out["samples_removed"].shape == (7, 3)
