@@ -39,7 +39,8 @@ Log keys (N control ticks, F camera frames):
 * ``truth/<name>``: the robot's ``ground_truth()`` per tick when it has one (simulation);
 * ``frame_time``, ``frame_n_points``, ``frame_stem_points`` (F,), ``frame_camera_pose`` (F, 4, 4);
   with ``log_clouds``: ``cloud_points`` (P, 3) float32, ``cloud_labels`` (P,) int8,
-  ``cloud_offsets`` (F + 1,) int64 (frame i is rows offsets[i]:offsets[i+1]);
+  ``cloud_offsets`` (C + 1,) int64 (logged cloud j is rows offsets[j]:offsets[j+1]),
+  ``cloud_frame`` (C,) int64 (the camera frame each logged cloud is);
 * ``episode_status`` (``"completed"``, ``"controller_error"``, ``"invalid_command"`` or
   ``"robot_error"``), ``error`` (message or ""), ``control_period``, ``duration``, ``n_ticks``,
   ``seed`` (when the robot has one), ``meta/<key>`` from ``metadata``;
@@ -231,7 +232,10 @@ def _as_command(out: Any) -> Command:
 class _Log:
     """Preallocated per-tick arrays plus per-frame lists."""
 
-    def __init__(self, n: int, truth: Mapping[str, Any] | None, log_timing: bool, log_clouds: bool) -> None:
+    def __init__(
+        self, n: int, truth: Mapping[str, Any] | None, log_timing: bool, log_clouds: bool | int,
+        cloud_max_points: int | None = None,
+    ) -> None:
         self.n = n
         self.t = np.full(n, np.nan)
         self.q = np.full((n, N_JOINTS), np.nan)
@@ -247,16 +251,24 @@ class _Log:
         self.pair_events: list[tuple[int, int, float]] = []  # (tick, pair index, distance)
         self.truth = {k: np.full((n, *np.shape(v)), np.nan) for k, v in (truth or {}).items()}
         self.controller_time = np.full(n, np.nan) if log_timing else None
-        self.log_clouds = log_clouds
+        # every how many camera frames a cloud is logged (0: none); True = every frame
+        self.cloud_every = int(log_clouds)
+        self.log_clouds = self.cloud_every > 0
+        self.cloud_max_points = cloud_max_points
+        self.cloud_frame: list[int] = []
         self.frames: list[tuple[float, int, int, NDArray[np.float64]]] = []
         self.cloud_points: list[NDArray[np.float32]] = []
         self.cloud_labels: list[NDArray[np.int8]] = []
 
     def frame(self, cloud: PointCloud) -> None:
+        index = len(self.frames)
         self.frames.append((cloud.timestamp, len(cloud), cloud.count(STEM), cloud.camera_pose))
-        if self.log_clouds:
-            self.cloud_points.append(cloud.points.astype(np.float32))
-            self.cloud_labels.append(cloud.labels.astype(np.int8))
+        if self.log_clouds and index % self.cloud_every == 0:
+            # thinned by a regular stride (keeps the labels' proportions; a viewer snapshot, not data)
+            stride = 1 if not self.cloud_max_points else max(1, -(-len(cloud) // self.cloud_max_points))
+            self.cloud_points.append(cloud.points[::stride].astype(np.float32))
+            self.cloud_labels.append(cloud.labels[::stride].astype(np.int8))
+            self.cloud_frame.append(index)
 
     def task(self, k: int, errors: Mapping[str, float]) -> None:
         for name, value in errors.items():
@@ -335,6 +347,7 @@ class _Log:
                 np.concatenate(self.cloud_points) if self.cloud_points else np.zeros((0, 3), np.float32)
             )
             out["cloud_labels"] = np.concatenate(self.cloud_labels) if self.cloud_labels else np.zeros(0, np.int8)
+            out["cloud_frame"] = np.array(self.cloud_frame, dtype=np.int64)
         return out
 
 
@@ -354,7 +367,8 @@ def run_episode(
     log_path: str | Path | None = None,
     metadata: Mapping[str, Any] | None = None,
     stop_at_end: bool = True,
-    log_clouds: bool = False,
+    log_clouds: bool | int = False,
+    cloud_max_points: int | None = None,
     log_timing: bool = False,
     ground_truth: Callable[[], Mapping[str, Any]] | None = None,
 ) -> EpisodeResult:
@@ -367,7 +381,9 @@ def run_episode(
         log_path: where to write the compressed ``.npz`` log (None: not written).
         metadata: scalars or strings stored as ``meta/<key>`` in the log.
         stop_at_end: bring the arms to rest after the last tick (not logged).
-        log_clouds: also log every camera frame's points and labels.
+        log_clouds: also log the camera frames' points and labels: ``True`` every frame, an
+            integer ``N > 0`` every N-th frame (``cloud_frame`` says which), 0 or False none.
+        cloud_max_points: thin each logged cloud by a regular stride to at most this many points.
         log_timing: log the controller's wall-clock time per step (makes logs differ
             between runs).
         ground_truth: what to log as ``truth/<name>`` per tick (default: the robot's
@@ -389,7 +405,12 @@ def run_episode(
     if truth_fn is not None and not callable(truth_fn):
         truth_fn = None
     truth0 = truth_fn() if truth_fn is not None else None
-    log = _Log(n_ticks, truth0, log_timing, log_clouds)
+    if isinstance(log_clouds, float) or not isinstance(log_clouds, (bool, int, np.integer)) or log_clouds < 0:
+        raise InvalidInputError(f"log_clouds must be a bool or an integer >= 0 (every N-th frame), got {log_clouds!r}")
+    bad_count = isinstance(cloud_max_points, bool) or not isinstance(cloud_max_points, (int, np.integer))
+    if cloud_max_points is not None and (bad_count or cloud_max_points < 1):
+        raise InvalidInputError(f"cloud_max_points must be an integer >= 1 or None, got {cloud_max_points!r}")
+    log = _Log(n_ticks, truth0, log_timing, log_clouds, cloud_max_points)
 
     status, error = "completed", None
     latest: PointCloud | None = None

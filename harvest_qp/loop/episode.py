@@ -142,6 +142,8 @@ def run_paper_episode(
     wall0 = time.perf_counter()
     result = run_episode(
         robot, episode_controller, duration=duration, log_path=None, log_timing=True,
+        # thinned clouds for the replay viewer and its HTML export (not used by any metric)
+        log_clouds=settings["episode"]["log_cloud_every"], cloud_max_points=settings["episode"]["log_cloud_points"],
         metadata={"config": config_name, "mapper": mapper, "phase_names": ",".join(p.name.lower() for p in Phase),
                   # the replay viewer rebuilds the vine from the scene's seed (0 = the default scene)
                   **({"scene_sample_seed": seed} if seed > 0 else {})},

@@ -20,8 +20,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, WrapValidato
 from pydantic_core import PydanticCustomError
 
 __all__ = [
-    "Section", "expect", "Positive", "NonNegative", "Real", "Fraction", "PositiveInt", "Level", "HardLevel",
-    "Weight", "Weights", "Weights6", "Vector3", "PositiveOrNull", "PositiveOrL", "Text", "suggest",
+    "Section", "expect", "Positive", "NonNegative", "Real", "Fraction", "PositiveInt", "NonNegativeInt", "Level",
+    "HardLevel", "Weight", "Weights", "Weights6", "Vector3", "PositiveOrNull", "PositiveOrL", "Text", "suggest",
 ]
 
 
@@ -53,6 +53,7 @@ NonNegative = expect(float, "a number >= 0", ge=0)
 Real = expect(float, "a finite number")
 Fraction = expect(float, "a number in [0, 1)", ge=0, lt=1)
 PositiveInt = expect(int, "an integer >= 1", ge=1)
+NonNegativeInt = expect(int, "an integer >= 0", ge=0)
 Level = expect(int, "an integer >= 1 (1 is the highest soft priority)", ge=1)
 HardLevel = expect(int, "an integer >= 0 (0: hard constraint, 1: the highest soft priority)", ge=0)
 Weight = expect(float, "a number >= 0", ge=0)

@@ -17,6 +17,7 @@ from harvest_qp.schema._types import (
     Fraction,
     Level,
     NonNegative,
+    NonNegativeInt,
     Positive,
     PositiveInt,
     PositiveOrL,
@@ -47,6 +48,9 @@ class Episode(Section):
     end_after_precut: PositiveOrNull = _f(None, "[s] end this long after 'pre-cut reached' (null: run the full "
                                                 "duration)")
     stop_after_abort: NonNegative = _f(0.5, "[s] the episode ends this long after an abort's safe stop")
+    log_cloud_every: NonNegativeInt = _f(15, "log every N-th camera frame's cloud for the replay viewer (0: none; "
+                                        "15 = 2 Hz at 30 FPS)")
+    log_cloud_points: PositiveInt = _f(2000, "points kept per logged cloud (thinned by a regular stride)")
 
 
 class Scene(Section):

@@ -189,6 +189,16 @@ def _find_key(log: Mapping[str, Any], names: tuple[str, ...]) -> str | None:
     return None
 
 
+def _phase_name(value: Any, names: list[str]) -> str:
+    try:
+        index = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    if np.isfinite(index) and index == int(index) and 0 <= int(index) < len(names):
+        return names[int(index)]
+    return str(value)
+
+
 def frames_from_log(
     log: Mapping[str, ArrayLike], *, fps: float = 30.0, max_frames: int | None = None
 ) -> list[ViewerFrame]:
@@ -226,6 +236,10 @@ def frames_from_log(
     if has_clouds:
         points, labels = np.asarray(log["cloud_points"]), np.asarray(log["cloud_labels"])
         offsets = np.asarray(log["cloud_offsets"])
+        # which camera frame each logged cloud is (logs thinned to every N-th frame say so)
+        cloud_frame = np.asarray(log["cloud_frame"]) if "cloud_frame" in log else np.arange(len(offsets) - 1)
+    # a numeric phase (the paper loop logs its Phase as a number) is named by meta/phase_names
+    phase_names = str(np.asarray(log["meta/phase_names"])).split(",") if "meta/phase_names" in log else []
     frames = []
     for k in ticks:
         kw: dict[str, Any] = {"time": float(t[k]), "q": q[k]}
@@ -238,7 +252,7 @@ def frames_from_log(
         for name, values in extra.items():
             value = values[k] if values.ndim >= 1 and len(values) == len(t) else values
             if name == "phase":
-                kw[name] = str(value)
+                kw[name] = _phase_name(value, phase_names)
             elif name in ("theta", "roi_radius", "closest_distance"):
                 if np.isfinite(float(value)):
                     kw[name] = float(value)
@@ -248,8 +262,9 @@ def frames_from_log(
         if i >= 0:
             if poses is not None and len(poses) > i:
                 kw["camera_pose"] = poses[i]
-            if has_clouds:
-                a, b = int(offsets[i]), int(offsets[i + 1])
-                kw.update(cloud_points=points[a:b], cloud_labels=labels[a:b], cloud_key=("log", i))
+            j = int(np.searchsorted(cloud_frame, i, side="right")) - 1 if has_clouds else -1  # latest logged cloud
+            if j >= 0:
+                a, b = int(offsets[j]), int(offsets[j + 1])
+                kw.update(cloud_points=points[a:b], cloud_labels=labels[a:b], cloud_key=("log", j))
         frames.append(ViewerFrame(**kw))
     return frames

@@ -240,3 +240,46 @@ def test_control_path_does_not_import_the_viewer():
     repo = Path(__file__).resolve().parents[2]
     result = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_thinned_cloud_log_gives_each_frame_the_latest_logged_cloud(tmp_path):
+    """``log_clouds=N``: every N-th camera frame's cloud, thinned to ``cloud_max_points``; the
+    replay shows the latest logged cloud captured by the tick, never a later one.
+
+    Oracle: the frame indices hand-computed from ``frame_time`` and N.
+    Catches: an index into the per-frame arrays used for the thinned clouds (the wrong cloud,
+    or one from the future), clouds not thinned."""
+    class Pan(Hold):  # the camera arm turns, so every frame's cloud differs
+        def step(self, obs):
+            return Command(np.r_[0.4, np.zeros(11)], status="ok")
+
+    robot = SimRobot(VineSceneParams(), seed=0, camera=CameraConfig(rate=30.0, downsample=6))
+    path = tmp_path / "episode.npz"
+    result = run_episode(robot, Pan(), duration=0.3, log_clouds=3, cloud_max_points=500, log_path=path)
+    assert result.ok, result.error
+    log = load_log(path.parent)
+    n_frames = len(log["frame_time"])
+    np.testing.assert_array_equal(log["cloud_frame"], np.arange(0, n_frames, 3))
+    sizes = np.diff(log["cloud_offsets"])
+    assert len(sizes) == len(log["cloud_frame"]) and sizes.max() <= 500 and sizes.min() > 100
+    for frame in frames_from_log(log, fps=100.0):
+        i = int(np.flatnonzero(log["frame_time"] <= frame.time + 1e-12)[-1])  # latest camera frame
+        j = i // 3  # latest logged cloud: frames 0, 3, 6, ...
+        a, b = log["cloud_offsets"][j], log["cloud_offsets"][j + 1]
+        np.testing.assert_array_equal(frame.cloud_points, log["cloud_points"][a:b])
+
+
+def test_log_clouds_rejects_bad_counts():
+    robot = SimRobot(VineSceneParams(), seed=0, camera=None)
+    with pytest.raises(InvalidInputError, match="log_clouds"):
+        run_episode(robot, Hold(), duration=0.01, log_clouds=-1)
+    with pytest.raises(InvalidInputError, match="cloud_max_points"):
+        run_episode(robot, Hold(), duration=0.01, log_clouds=2, cloud_max_points=0)
+
+
+def test_numeric_phase_is_named_by_the_logs_phase_names():
+    """The paper loop logs its phase as a number; the replay's text panel must name it."""
+    n = 3
+    log = {"t": 0.002 * np.arange(n), "q": np.tile(HOME_Q, (n, 1)), "value/phase": np.array([0.0, 1.0, 2.0]),
+           "meta/phase_names": np.array("approach,bimanual,precut,abort")}
+    assert [f.phase for f in frames_from_log(log, fps=500.0)] == ["approach", "bimanual", "precut"]
