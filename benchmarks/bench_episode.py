@@ -258,7 +258,8 @@ def _report(name: str, r: dict) -> str:
         f"  medians: camera {r['camera_ms_median']:.2f} ms/frame, perception {r['perception_ms_median']:.2f} ms/frame, "
         f"map update {r['map_update_ms_median']:.2f} ms/frame (perception+map {r['frame_ms_median']:.2f}, "
         f"p90 {r['frame_ms_p90']:.2f}); per tick: physics {r['physics_us_median']:.0f} us, references "
-        f"{r['references_us_median']:.0f} us, map feed {r['map_feed_us_median']:.0f} us, QP {r['qp_us_median']:.0f} us, "
+        f"{r['references_us_median']:.0f} us, map feed {r['map_feed_us_median']:.0f} us, "
+        f"QP {r['qp_us_median']:.0f} us, "
         f"ground truth {r['ground_truth_us_median']:.0f} us",
         f"  {r['clock']} per tick (mean over the episode, frames spread over ticks) and share:",
     ]
@@ -297,7 +298,8 @@ def main(argv: list[str] | None = None) -> None:
     bench_qp_us = _bench_qp_figure(clock)
     first = out[names[0]]
     print(
-        f"QP step at {names[0]}: {first['qp_us_median']:.0f} us in the episode, {first['qp_isolated_us_median']:.0f} us "
+        f"QP step at {names[0]}: {first['qp_us_median']:.0f} us in the episode, "
+        f"{first['qp_isolated_us_median']:.0f} us "
         f"replayed alone on the episode's own problems, {bench_qp_us:.0f} us for bench_qp.py's problem "
         f"(harvest_qp_collision: one level, no map cells)"
     )

@@ -78,7 +78,8 @@ class ContactMonitor:
         self._lower = np.zeros(self._bounded_pairs.size)
         self._candidates = np.zeros(self._bounded_pairs.size, dtype=np.int64)
         self._static = (
-            self.arm_geoms, self._arm_caps[0], self._arm_caps[1], self.vine_geoms, self._vine_caps[0], self._vine_caps[1]
+            self.arm_geoms, self._arm_caps[0], self._arm_caps[1],
+            self.vine_geoms, self._vine_caps[0], self._vine_caps[1],
         )
 
     def contact_counts(self, data: mujoco.MjData) -> dict[str, int]:
