@@ -33,10 +33,12 @@ Where this differs from the paper (measured in ``/work/shared/FINDINGS.md``):
 * p_gd is map-aware (``grasping.swing_clearance``): among the free samples of
   ``eq:attr_point``, only those whose swing keeps the gripper and its wrist 2 cm (on the
   obstacle map) from every mapped cell are used; when none of F does, the hanging direction
-  itself or the least swing that does. Measured before it (283x160, seeds 1-5): on seeds 1,
-  2, 3 and 5 the gripper swung the crop into the occluding leaf (``leaf_0``, which hangs on
-  the camera's side, where F is) or rubbed the branch: 1,237-19,706 contact ticks, a 6 N
-  force-limit abort on seed 1. After it: 0 contacts on the default scene and seeds 1-6.
+  itself or the least swing that does. Measured before it (283x160): on seeds 1 and 5 the
+  gripper swung the crop into the occluding leaf (``leaf_0``, which hangs on the camera's
+  side, where F is; seed 1 also rubbed the branch): a 6 N force-limit abort on seed 1,
+  19,068 contact ticks on seed 5 (seeds 2 and 3: 14,456 and 19,706 vine-contact ticks in
+  the README's earlier table). After it: success and 0 contacts on the default scene and
+  seeds 1-10 (seeds 6-10 unnamed checks).
 * The switch rule uses the camera's mean speeds over ``switch.window`` (0.5 s), the angular
   one from the turn of the optical axis (the free roll left out): with V_cu acting the
   camera dithers about a fixed view and its instantaneous speeds never met the thresholds.

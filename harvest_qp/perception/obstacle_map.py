@@ -730,6 +730,9 @@ class MapCollisionFeed:
         self._last = np.zeros(0, dtype=np.int64)
         #: Linear indices of the cells fed at the last update.
         self.cells = self._last
+        #: ``(n_capsules,)`` which capsules are queried (a capsule switched off gets no cells,
+        #: e.g. an arm that holds still and must not be pushed by its rows).
+        self.active = np.ones(n, dtype=bool)
 
     def _layout_ok(self) -> bool:
         """Whether the limit keeps its obstacle spheres at the end of cap_p0 / cap_p1 / cap_radius."""
@@ -770,6 +773,9 @@ class MapCollisionFeed:
         w0, w1 = self.capsule_world(q)
         if not (np.all(np.isfinite(w0)) and np.all(np.isfinite(w1))):
             return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
+        if not self.active.all():  # switched-off capsules wait far below the world: no cell near them
+            w0[~self.active] = self._PARK
+            w1[~self.active] = self._PARK
         self._index.fill(-1)
         self.map._query(
             w0, w1, self.radii, self.limit.influence_distance + self.margin, self.min_separation,

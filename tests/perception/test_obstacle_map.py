@@ -732,6 +732,30 @@ def test_map_rows_keep_the_gripper_off_a_wall_seen_only_by_the_camera():
     assert results[True] >= 0.01 - 1e-3  # d_s of the limit, within the damper's discretisation (0.1 mm)
 
 
+def test_feed_gives_no_cells_to_capsules_switched_off():
+    """``feed.active[c] = False`` takes capsule c's cells out (the controller switches the gripper's
+    rows off while it holds the crop still); switched on again they come back, identical.
+    Oracle: the map's own query of the capsules left on. Catches a mask that is ignored, or
+    that drops the other capsules' cells too."""
+    config, controller, limit, m, feed = _controller(True)
+    config.update(config.q)
+    feed.update()
+    all_cells = set(feed.cells.tolist())
+    gripper = [i for i, name in enumerate(feed.capsule_names) if name.startswith("grasp_")]
+    assert all_cells and gripper
+    feed.active[gripper] = False
+    feed.update()
+    w0, w1 = feed.capsule_world()
+    keep = feed.active
+    query = m.closest_cells(w0[keep], w1[keep], feed.radii[keep], max_distance=limit.influence_distance + feed.margin,
+                            per_capsule=feed.per_capsule, min_separation=feed.min_separation)  # fmt: skip
+    expected = {int(i) for c in range(int(keep.sum())) for i in query.indices[c, : query.counts[c]]}
+    assert set(feed.cells.tolist()) == expected and expected != all_cells  # the wall is ahead of the gripper
+    feed.active[:] = True
+    feed.update()
+    assert set(feed.cells.tolist()) == all_cells
+
+
 def test_feed_keeps_the_closest_cells_when_they_exceed_its_slots():
     """With fewer slots than cells, the fed cells are the closest ones (each at its closest capsule)."""
     from harvest_qp.limits import CollisionAvoidance
