@@ -293,6 +293,24 @@ class QpsolversBackend:
         return _checked(x, problem, self.name)
 
 
+def backend_name_problem(name: object) -> str | None:
+    """Why ``name`` cannot name a QP backend (None when it can): checked when a solver is configured,
+    so a typo is reported at once rather than as a fallback on every control step."""
+    if not isinstance(name, str):
+        return f"a QP backend name must be a string, got {name!r} ({type(name).__name__})"
+    if name in ("daqp", "proxsuite", "quadprog"):
+        return None
+    if name.startswith("qpsolvers:"):
+        import qpsolvers
+
+        solver = name.split(":", 1)[1]
+        if solver in qpsolvers.available_solvers:
+            return None
+        return (f"qpsolvers backend {solver!r} is not installed; available: "
+                f"{', '.join(sorted(qpsolvers.available_solvers))}")
+    return f"unknown QP backend {name!r}; use 'daqp', 'proxsuite', 'quadprog' or 'qpsolvers:<name>'"
+
+
 def make_backend(name: str) -> Backend:
     """Backend by name: ``daqp``, ``proxsuite``, ``quadprog`` or ``qpsolvers:<solver>``."""
     if name == "daqp":

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harvest_qp.backends import Backend, make_backend
+from harvest_qp.backends import Backend, backend_name_problem, make_backend
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
 from harvest_qp.limits.limit import Limit
@@ -199,6 +199,14 @@ class Solver:
         regularization: float = 1e-10,
         fallback_backends: Sequence[str] | None = None,
     ) -> None:
+        problem = backend_name_problem(backend)
+        if problem is not None:
+            raise SolverNotAvailableError(f"backend: {problem}", backend=str(backend))
+        for name in () if fallback_backends is None else fallback_backends:
+            if not isinstance(name, str) or (not name.startswith("qpsolvers:")
+                                             and backend_name_problem(name) is not None):
+                # an uninstalled qpsolvers fallback is skipped at run time; a typo is an error
+                raise SolverNotAvailableError(f"fallback_backends: {backend_name_problem(name)}", backend=str(name))
         self.backend_name = backend
         self._backends: dict[tuple[str, int], Backend] = {}
         self._box_key: tuple = ()

@@ -271,6 +271,16 @@ class QPSection(Section):
     extra_tasks: list[TaskEntry] = _f([], "more QP tasks (built-in or a user's `module:Class`) appended at their "
                                           "own level and weight; QP mapper only")
 
+    @field_validator("solver", "backup_solver", mode="after")
+    @classmethod
+    def _known_backend(cls, value: str | None) -> str | None:
+        from harvest_qp.backends import backend_name_problem
+
+        problem = None if value is None else backend_name_problem(value)
+        if problem is not None:
+            raise PydanticCustomError("qp_backend", "{problem}", {"problem": problem})
+        return value
+
 
 class Mapper(Section):
     """How the references become joint velocities."""

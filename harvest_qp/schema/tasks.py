@@ -334,6 +334,16 @@ class TaskConfig(Section):
         description="the QP's tasks (at least one), each a built-in `type` or a user's 'module:Class'")
     limits: list[LimitEntry] = Field([], description="the QP's limits")
 
+    @field_validator("solver", mode="after")
+    @classmethod
+    def _known_backend(cls, value: str) -> str:
+        from harvest_qp.backends import backend_name_problem
+
+        problem = backend_name_problem(value)
+        if problem is not None:
+            raise PydanticCustomError("qp_backend", "{problem}", {"problem": problem})
+        return value
+
 
 # ------------------------------------------------------------------ user task classes
 
