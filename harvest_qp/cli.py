@@ -350,6 +350,11 @@ def main(argv: list[str] | None = None) -> int:
     except HarvestQPError as err:
         print(f"harvest-qp: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # Ctrl-C: the viewer and the workers have already been closed by their own finally
+        # blocks; a traceback here would only hide that the stop was clean.
+        print(f"harvest-qp: {args.command} interrupted (Ctrl-C)", file=sys.stderr)
+        return 130
     return 0
 
 

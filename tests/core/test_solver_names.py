@@ -33,3 +33,17 @@ def test_check_config_names_the_bad_backend_with_exit_code_2(override, capsys):
     err = capsys.readouterr().err
     assert code == 2
     assert err.count("\n") == 1 and override.split("=")[0] in err and "nosuch" in err
+
+
+def test_ctrl_c_ends_the_cli_with_one_line_and_code_130(monkeypatch, capsys):
+    """Ctrl-C during `harvest-qp run` (e.g. with the live viewer) ends with one line, exit 130,
+    no traceback (the audit saw a full KeyboardInterrupt traceback)."""
+    import harvest_qp.cli as cli
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "run_paper", interrupted)
+    assert cli.main(["run", str(tasks_dir() / "paper.yaml")]) == 130
+    err = capsys.readouterr().err
+    assert err == "harvest-qp: run interrupted (Ctrl-C)\n"
