@@ -143,6 +143,7 @@ class SweepStore:
         self.csv_path = out_dir / CSV_NAME
         self.rows: dict[int, dict[str, Any]] = {}
         self.columns: list[str] = []
+        self._declared: set[str] = set()  # every column a row has named, None-valued ones included
         self._load()
 
     def _load(self) -> None:
@@ -165,7 +166,10 @@ class SweepStore:
         """Record one episode's row (replacing an earlier row of the same seed) and flush it to disk."""
         seed = int(row["seed"])
         replacing = seed in self.rows
-        self.rows[seed] = dict(row)
+        # A metric that is None (e.g. abort_reason of an episode that did not abort) gets its
+        # column, an empty cell, and is left out of the row, as when it is read back.
+        self._declared.update(row)
+        self.rows[seed] = {k: v for k, v in row.items() if v is not None}
         if replacing or not self.columns or not set(row) <= set(self.columns):
             self.rewrite()
             return
@@ -176,7 +180,7 @@ class SweepStore:
 
     def rewrite(self) -> None:
         """Write every row, sorted by seed, with the canonical column order; atomic (temp file + rename)."""
-        columns: set[str] = set(self.columns)
+        columns: set[str] = set(self.columns) | self._declared
         for row in self.rows.values():
             columns.update(row)
         self.columns = column_order(columns) if columns else list(BOOKKEEPING_COLUMNS)

@@ -110,8 +110,7 @@ def _row(outcome: Outcome) -> dict[str, Any]:
             continue  # the episode repeating its own seed
         if name in ("seed", "status", "error", "wall_time_s"):
             name = f"metric_{name}"
-        if value is not None:
-            row[name] = value
+        row[name] = value  # None too: the store gives it a column (an empty cell), e.g. abort_reason
     return row
 
 

@@ -579,3 +579,17 @@ def test_ray_cluster_auth_failure_names_the_fix(monkeypatch, tmp_path):
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     with pytest.raises(SweepEngineError, match="set RAY_AUTH_MODE=token and RAY_AUTH_TOKEN"):
         run_sweep(pure_episode, [0], out_dir=tmp_path, engine="ray", address="10.0.0.5:6379", progress=False)
+
+
+def none_metric_episode(seed: int) -> dict:
+    return {"success": True, "abort_reason": None, "final_position_error": seed / 1000}
+
+
+def test_a_metric_that_is_none_in_every_row_keeps_its_column(tmp_path):
+    """Every metric of metrics.json has a column, even one that is None in every episode (the
+    audit found no abort_reason column in a sweep where nothing aborted)."""
+    result = run_sweep(none_metric_episode, [1, 2], out_dir=tmp_path, workers=1, progress=False)
+    with open(result.csv_path, newline="") as handle:
+        raw = list(csv.DictReader(handle))
+    assert [r["abort_reason"] for r in raw] == ["", ""]
+    assert without_wall_time(read_rows(result.csv_path)) == without_wall_time(result.rows)
