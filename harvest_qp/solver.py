@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harvest_qp.backends import Backend, backend_name_problem, make_backend
+from harvest_qp.backends import ACCEPTABLE_VIOLATION, Backend, backend_name_problem, make_backend
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
 from harvest_qp.limits.limit import Limit
@@ -344,6 +344,7 @@ class Solver:
             first.problem = problem.copy()  # a snapshot: G and h are reused buffers
             failures = [f"{self.backend_name}: {type(first).__name__}"]
             reports = int(isinstance(first, InfeasibleProblemError))
+            inaccurate = [(first.violation, first.x, self.backend_name)] if hasattr(first, "violation") else []
             for name in self.fallback_backends:
                 if name in self._unavailable:
                     continue
@@ -357,9 +358,18 @@ class Solver:
                 except SolverError as err:
                     failures.append(f"{name}: {type(err).__name__}")
                     reports += isinstance(err, InfeasibleProblemError)
+                    if hasattr(err, "violation"):
+                        inaccurate.append((err.violation, err.x, name))
                     continue
                 retries.extend(failures)
                 return x
+            if inaccurate:
+                # Last resort before the relaxation and the safe stop: every backend returned a
+                # solution just outside the tolerance; the least violating one is good enough.
+                violation, x, name = min(inaccurate, key=lambda item: item[0])
+                if violation <= ACCEPTABLE_VIOLATION:
+                    retries.extend([*failures, f"accepted {name} at {violation:.1e} relative violation"])
+                    return x
             raise first
 
     def _solve_any(self, problem: QPProblem) -> np.ndarray | None:
