@@ -187,7 +187,9 @@ def wood_views() -> list[View]:
         pose = view_poses(views.stem_middle, np.random.default_rng(seed), 12, distance=(0.3, 0.45))[index]
         frame = views.render(pose)
         other = frame.points[~frame.stem_mask]
-        model = fit_stem(frame.points[frame.stem_mask], gripper, camera_position=frame.camera_position, non_stem_points=other)
+        model = fit_stem(
+            frame.points[frame.stem_mask], gripper, camera_position=frame.camera_position, non_stem_points=other
+        )
         records.append(View(views, frame, gripper, model))
     return records
 
