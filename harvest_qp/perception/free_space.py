@@ -11,8 +11,10 @@
 
 Deviation (with ``scene_points``, as :func:`~harvest_qp.perception.pipeline.process_cloud`
 does): p_gd is chosen as a selection among the free samples of steps 1-3 (the paper's
-hemisphere is kept), scored by their real clearance instead of ``eq:attr_point``'s distance
-to projected obstacles.  On lab frames (FINDINGS, "p_gd and n_c") ``eq:attr_point`` put p_gd
+hemisphere is kept, unless no straight stem into it stays in view: see below), scored by
+their real clearance instead of ``eq:attr_point``'s distance to projected obstacles
+(``eq:attr_point`` still breaks ties, and without ``scene_points`` it alone decides, as in
+the paper).  On lab frames (FINDINGS, "p_gd and n_c") ``eq:attr_point`` put p_gd
 12-47 mm from the nearest non-stem surface where 42-63 mm was possible, once 0.8 mm from the
 branch: projecting only the obstacles inside S(p_sb, r_o) onto the sphere forgets how far
 they are, and ignores the gripper, the cluster and the wood just outside r_o.  Here:
@@ -36,7 +38,8 @@ they are, and ignores the gripper, the cluster and the wood just outside r_o.  H
 * where no sample of F has a stem that is not hidden, the samples behind the obstacle plane
   (not occupied, not occluded) are candidates too (deviation from the paper's hemisphere,
   ``reason`` says so): in those views (a camera above the branch) the plane removes the
-  hanging directions, and 88-99 % of F's straight stems entered the branch (ground truth);
+  hanging directions, and 69-99 % of F's straight stems entered the branch (ground truth);
+  7 of the 207 views take p_gd from behind the plane, none with its stem in the wood;
 * these preferences are tiers, the first non-empty one is the pool: in F, visible, not
   rising, not blocked and not hidden; in F, visible, not blocked and not hidden; the same
   two behind the plane; then in F: visible, not rising and not blocked; visible and not
