@@ -114,7 +114,8 @@ class FreeSpace:
             ``scene_points``.
         stem_hidden: ``(n_samples,)`` True for samples whose straight stem passes behind an
             observed surface past ``stem_visibility_skip`` (all False without
-            ``scene_points``; occupied samples are not tested and stay False).
+            ``scene_points``; samples not scored stay False: occupied ones, and those behind
+            the plane unless F holds no clear stem in view).
     """
 
     valid: bool
@@ -310,14 +311,18 @@ def compute_free_space(
     free_mask = ~occupied & ~behind_plane
     clearance = stem_clearance = occluded = blocked = stem_hidden = None
     if context is not None:
-        # Every sample that is not occupied is scored: those behind the plane are the fallback
-        # when F holds no stem that stays in view.
-        clearance, stem_clearance, occluded, blocked, stem_hidden = _score_samples(
-            samples, ~occupied, centre, radius, camera, context,
+        settings = dict(
             context_radius=context_radius, segment_clearance=segment_clearance, segment_skip=segment_skip,
             visibility_margin=visibility_margin, visibility_cell=visibility_cell, clearance_cap=clearance_cap,
             stem_visibility_skip=stem_visibility_skip,
         )  # fmt: skip
+        scores = _score_samples(samples, free_mask, centre, radius, camera, context, **settings)
+        _, _, occluded, blocked, stem_hidden = scores
+        if not (free_mask & ~occluded & ~blocked & ~stem_hidden).any():
+            # No clear stem in view into F: the samples behind the plane are the fallback (scored
+            # only then, the segment queries are most of the cost).
+            scores = _score_samples(samples, ~occupied, centre, radius, camera, context, **settings)
+        clearance, stem_clearance, occluded, blocked, stem_hidden = scores
     free_index = np.flatnonzero(free_mask)
 
     def result(valid: bool, reason: str, target_index: int | None, projected_clearance: float) -> FreeSpace:
