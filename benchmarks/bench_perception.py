@@ -195,6 +195,7 @@ def accuracy(n_seeds: int) -> dict[str, float]:
                     if free.valid:
                         row[f"gd_surface_{mode}"] = float(views.surface_distance(free.target)[0])
                         row[f"gd_wood_{mode}"] = views.segment_clearance(model.base, free.target, skip=0.005)
+                        row[f"gd_behind_plane_{mode}"] = "behind the obstacle plane" in free.reason
                 camera_side = ~free.behind_plane
                 if camera_side.any():
                     row["best_wood"] = float(views.surface_distance(free.samples[camera_side], wood_only=True).max())
@@ -244,6 +245,8 @@ def accuracy(n_seeds: int) -> dict[str, float]:
         report[f"p_gd_{mode}_surface_median_mm"] = 1e3 * float(np.median(surface))
         report[f"p_gd_{mode}_under_10mm"] = int(np.count_nonzero(surface < 0.01))
         report[f"p_gd_{mode}_stem_in_wood"] = int(np.count_nonzero(wood <= 0.0))
+        report[f"p_gd_{mode}_stem_wood_min_mm"] = 1e3 * float(wood.min())
+        report[f"p_gd_{mode}_behind_plane"] = sum(bool(r.get(f"gd_behind_plane_{mode}")) for r in trusted)
     best_wood = figure(r.get("best_wood") for r in trusted)
     report["best_camera_side_wood_min_mm"] = 1e3 * float(best_wood.min())
     report["best_camera_side_wood_median_mm"] = 1e3 * float(np.median(best_wood))

@@ -172,6 +172,10 @@ def test_collinear_obstacles_remove_no_half_space():
         ({"scene_points": np.ones((4, 3)), "max_elevation": 2.0}, r"max_elevation must be in \[-pi/2, pi/2\]"),
         ({"scene_points": np.ones((4, 3)), "tie_break": "random"}, "tie_break must be 'paper' or 'camera'"),
         ({"scene_points": np.ones((4, 3)), "clearance_cap": -1.0}, "clearance_cap must be finite and > 0"),
+        (
+            {"scene_points": np.ones((4, 3)), "stem_visibility_skip": -1.0},
+            "stem_visibility_skip must be finite and >= 0",
+        ),
     ],
 )
 def test_invalid_arguments_raise(kwargs, message):
@@ -211,3 +215,62 @@ def test_selection_keeps_the_stem_clear_of_a_wall_by_hand():
     )  # fmt: skip
     assert uncapped.target_point_clearance == pytest.approx(LENGTH + 0.02, abs=2e-3)
     assert uncapped.target[0] / LENGTH > 0.99
+
+
+def _segment_to_point_2d(start, end, point):
+    """Distance from each 2-D segment start[i] -> end[i] to ``point``."""
+    d = end - start
+    t = np.clip(np.einsum("ij,ij->i", point - start, d) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
+    return np.linalg.norm(start + t[:, None] * d - point, axis=1)
+
+
+@pytest.mark.parametrize("camera", [(0.35, 0.0, -0.03), (0.2, 0.0, 0.3)], ids=["front-below", "above"])
+def test_stems_behind_the_observed_front_of_a_branch_are_hidden_by_hand(camera):
+    """A branch: a solid horizontal cylinder (radius 20 mm, along y, axis at z = 20 mm) of which
+    only the half facing the camera is observed; p_sb at its underside.  Oracle, the analytic
+    cylinder: every scored sample whose straight stem runs more than 5 mm inside the cylinder
+    past its first 12 mm is flagged ``stem_hidden``; every scored sample whose stem keeps 8 mm
+    (the depth buffer's widening) out of the cylinder's shadow seen from the camera is not;
+    the target's stem stays out of the cylinder.  Seen from above, every stem is in the
+    branch's shadow: all are hidden and ``reason`` says so.  Catches a visibility test that
+    looks at the end point only (planted once: the assertion on the through-wood stems
+    fails) or at no stem point."""
+    camera = np.array(camera)
+    radius_b = 0.02
+    axis = np.array([0.0, radius_b])  # (x, z) of the cylinder axis
+    angle = np.linspace(0.0, 2.0 * np.pi, 720, endpoint=False)
+    y = np.arange(-0.15, 0.15, 0.0015)
+    a, yy = np.meshgrid(angle, y)
+    surface = np.column_stack((radius_b * np.cos(a.ravel()), yy.ravel(), radius_b + radius_b * np.sin(a.ravel())))
+    normals = surface - np.column_stack((np.zeros(len(surface)), surface[:, 1], np.full(len(surface), radius_b)))
+    seen = np.einsum("ij,ij->i", normals, camera - surface) > 0.0
+    observed = surface[seen]
+    centre = np.zeros(3)
+    obstacles = observed[np.linalg.norm(observed - centre, axis=1) < LENGTH]
+    skip = 0.012  # past the depth buffer's widening (two 4 mm cells) around p_sb
+    result = compute_free_space(
+        obstacles, centre, LENGTH, camera, n_samples=1000, scene_points=observed, stem_visibility_skip=skip
+    )
+    assert result.valid
+    scored = np.isfinite(result.stem_clearance)  # the samples the selection looked at (inf: not scored)
+
+    along = np.arange(skip, LENGTH + 1e-9, 0.001)
+    stem_points = centre + (along / LENGTH)[None, :, None] * result.samples[:, None, :]  # (n, k, 3)
+    xz = stem_points[..., [0, 2]]
+    depth_inside = radius_b - np.linalg.norm(xz - axis, axis=2)  # > 0 inside the cylinder
+    through_wood = (depth_inside > 0.005).any(axis=1)
+    # Out of the shadow: the 2-D segment camera -> stem point keeps 8 mm (two cells) from the cylinder.
+    flat = xz.reshape(-1, 2)
+    ray_gap = _segment_to_point_2d(np.broadcast_to(camera[[0, 2]], flat.shape), flat, axis).reshape(xz.shape[:2])
+    in_plain_view = (ray_gap > radius_b + 0.008).all(axis=1)
+    assert result.stem_hidden[scored & through_wood].all()
+    assert not result.stem_hidden[scored & in_plain_view].any()
+    index = int(np.argmin(np.linalg.norm(result.samples - result.target, axis=1)))
+    assert not through_wood[index]
+    if camera[2] > 0.2:
+        # Every stem is in the branch's shadow: all scored, all hidden, and the result says so.
+        assert (scored & through_wood).sum() >= 50 and result.stem_hidden[scored].all()
+        assert "passes behind an observed surface" in result.reason
+    else:
+        assert (scored & in_plain_view).sum() >= 50
+        assert result.free[index] and not result.stem_hidden[index] and result.reason == ""

@@ -25,6 +25,10 @@ from harvest_qp.perception.synthetic import LabFrame, LabViews, fibonacci_unit, 
 # (the short-fragment test) after a check on seeds 21-44.
 SEEDS = (None, 3, 21, 24, 27, 30, 33, 36, 39, 42)
 VIEWS_PER_SEED = 10
+# (seed, view) of `benchmarks/bench_perception.py --accuracy` (rng `seed`, 12 views 0.3-0.45 m)
+# where the straight stem p_sb -> p_gd chosen by the clearance selection entered the branch
+# (0.8-5.1 mm deep) before the stem-visibility test: it ran just behind the observed wood.
+WOOD_VIEWS = ((13, 5), (14, 0), (15, 11), (27, 6))
 
 
 @dataclass
@@ -174,10 +178,29 @@ def test_length_within_15_percent_where_little_is_hidden(lab):
 
 
 @pytest.fixture(scope="module")
-def targets(lab):
-    """p_gd on the trusted views, chosen by the clearance selection and by eq:attr_point alone."""
+def wood_views() -> list[View]:
+    """The benchmark views of ``WOOD_VIEWS``."""
+    records = []
+    for seed, index in WOOD_VIEWS:
+        views = LabViews(seed)
+        gripper = views.robot.site_pose("gripper")[:3, 3]
+        pose = view_poses(views.stem_middle, np.random.default_rng(seed), 12, distance=(0.3, 0.45))[index]
+        frame = views.render(pose)
+        other = frame.points[~frame.stem_mask]
+        model = fit_stem(
+            frame.points[frame.stem_mask], gripper, camera_position=frame.camera_position, non_stem_points=other
+        )
+        records.append(View(views, frame, gripper, model))
+    return records
+
+
+@pytest.fixture(scope="module")
+def targets(lab, wood_views):
+    """p_gd on the trusted views (``lab`` and ``WOOD_VIEWS``), chosen by the clearance selection
+    and by eq:attr_point alone."""
+    assert all(v.model.trusted() for v in wood_views)
     out = []
-    for v in lab:
+    for v in [*lab, *wood_views]:
         if v.model is None or not v.model.trusted():
             continue
         obstacles = obstacles_near_stem_base(v.other, v.model.base, v.model.length)
@@ -200,38 +223,47 @@ def _target_clearances(view: View, target: np.ndarray) -> tuple[float, float]:
 
 def test_target_keeps_clear_of_every_surface_and_the_stem_of_the_wood(targets):
     """p_gd keeps >= 10 mm from every non-stem surface (gripper and cluster included) and the
-    straight stem p_sb -> p_gd never enters the branch or cane, on every trusted view (where
-    no candidate keeps a clear straight stem, the result says so, in <= 10 % of views).  The
-    selection never does worse than the paper's eq:attr_point alone (obstacles projected from
-    S(p_sb, l)) on the same views.  (Before the lab's stem left the gripper at its tip the
-    paper's straight stem ran 6.2 mm inside the branch on one view; on today's scenes both
-    clear the wood, the selection keeps >= 17 mm from every surface, the paper >= 13 mm.)"""
-    assert len(targets) >= 15
-    paper_worst, selected_worst, n_blocked = np.inf, np.inf, 0
+    straight stem p_sb -> p_gd never enters the branch or cane (past its first 5 mm), on every
+    trusted view, ``WOOD_VIEWS`` included, with no straight stem blocked.  The selection never
+    does worse than the paper's eq:attr_point alone (obstacles projected from S(p_sb, l)) on
+    the same views.  Catches a selection that trusts the observed points alone: without the
+    stem-visibility test (``stem_visibility_skip`` = l, planted once) the stem of each of the
+    4 ``WOOD_VIEWS`` runs 0.8-5.1 mm inside the branch behind its observed front."""
+    assert len(targets) >= 19
+    paper_worst, selected_worst = np.inf, np.inf
     for view, selected, paper in targets:
         assert selected.valid, selected.reason
         surface, wood = _target_clearances(view, selected.target)
-        assert wood > 0.0
+        assert wood > 0.0, (wood, view.frame.camera_position)
+        assert surface >= 0.010, (surface, view.frame.camera_position)
         index = int(np.argmin(np.linalg.norm(selected.samples - selected.target, axis=1)))
-        if selected.blocked[index]:
-            # No clear straight stem was left: the result must say so.
-            assert "segment_clearance" in selected.reason
-            n_blocked += 1
-        else:
-            assert surface >= 0.010, (surface, view.frame.camera_position)
+        assert not selected.blocked[index], selected.reason
         paper_worst = min(paper_worst, _target_clearances(view, paper.target)[0])
         selected_worst = min(selected_worst, surface)
-    assert n_blocked <= 0.1 * len(targets)
     assert selected_worst >= paper_worst
 
 
-def test_target_is_on_the_sphere_on_the_camera_side(targets):
-    """p_gd stays a free sample of S(p_sb, l) on the camera side of the obstacle plane (the
-    paper's hemisphere), and not behind an observed surface."""
+def test_target_is_on_the_sphere_in_view(targets):
+    """p_gd stays a sample of S(p_sb, l), not occupied and not behind an observed surface; on
+    the camera side of the obstacle plane (the paper's hemisphere F) unless every straight
+    stem into F passes behind an observed surface, which ``reason`` then says.  Catches a
+    target taken from behind the plane while F holds a stem in view."""
+    behind = 0
     for _, selected, _ in targets:
         index = int(np.argmin(np.linalg.norm(selected.samples - selected.target, axis=1)))
         assert np.array_equal(selected.samples[index], selected.target)
-        assert selected.free[index] and not selected.occluded[index]
+        assert not selected.occupied[index] and not selected.occluded[index]
+        if selected.stem_hidden[index]:
+            # Allowed only where no sample in view, behind the plane or not, has a stem in view.
+            assert "passes behind an observed surface" in selected.reason
+            assert not (~selected.occupied & ~selected.occluded & ~selected.stem_hidden & ~selected.blocked).any()
+        if selected.behind_plane[index]:
+            behind += 1
+            assert "behind the obstacle plane" in selected.reason
+            assert not (selected.free & ~selected.occluded & ~selected.stem_hidden & ~selected.blocked).any()
+        else:
+            assert selected.free[index]
+    assert behind <= 0.25 * len(targets)
 
 
 def test_process_cloud_on_a_lab_frame(lab):
