@@ -98,20 +98,40 @@ def test_approach_only_capsule_is_stopped_not_pushed(configuration):
     assert pushed[-1] > GAP + 5e-4, "without the option the separation rows push the capsule away"
 
 
-def test_approach_only_keeps_arm_to_arm_separation(configuration):
-    """Only obstacle-sphere pairs are clamped: an arm-arm pair inside d_s still asks for separation.
+def test_approach_only_keeps_separation_for_other_pairs(configuration):
+    """Only (approach-only capsule, obstacle sphere) rows are clamped.
 
-    Oracle: the pair bookkeeping by name (pair_names). Bug caught: every row of the capsule clamped.
+    The same sphere 4 mm from the gripper capsule, once as an obstacle sphere and once as a
+    fixed environment primitive: the obstacle row's bound is 0, the environment row's is the
+    hand-computed separation speed ``(d - d_s) / recovery_time`` = -0.3 m/s. Arm-arm pairs
+    (the approach-only capsules on both arms) are never flagged. Bug caught: every row of an
+    approach-only capsule clamped (environment or arm-arm pairs lose their separation).
     """
-    limit = CollisionAvoidance.dual_ur5e(configuration)
-    limit.set_obstacle_spheres(np.zeros((2, 3)), 0.01)
-    limit.set_approach_only(["grasp_gripper"])
+    from harvest_qp.limits import CapsuleGeometry
+
+    configuration.update(HOME_Q)
+    centres, _ = _wall_in_front_of_gripper(configuration)
+    c = tuple(centres[4])  # the closest sphere, GAP from the capsule
+    branch = CapsuleGeometry("branch", None, c, c, CELL_RADIUS)
+    limit = CollisionAvoidance.dual_ur5e(
+        configuration, environment=[branch], safety_distance=0.01, influence_distance=0.1, recovery_time=0.02
+    )
+    limit.set_obstacle_spheres(centres[4:5], CELL_RADIUS)
+    limit.set_approach_only(["grasp_gripper", "cam_cutter"])
+    rows = limit.compute(configuration, DT)
     names = limit.pair_names()
-    clamped = [names[k] for k in np.flatnonzero(limit._approach_pair)]
-    assert sorted(clamped) == [("grasp_gripper", "obstacle_0"), ("grasp_gripper", "obstacle_1")]
-    assert limit.approach_only_capsules == ["grasp_gripper"]
+    bounds = {}  # the closest-point row of each pair (end-point rows follow it)
+    for r, k in enumerate(limit.row_pairs):
+        bounds.setdefault(names[k], rows.h[r])
+    assert bounds[("grasp_gripper", "obstacle_0")] == 0.0
+    assert bounds[("grasp_gripper", "branch")] == pytest.approx((GAP - 0.01) / 0.02, rel=1e-6)
+    flagged = sorted(names[k] for k in np.flatnonzero(limit._approach_pair))
+    assert flagged == [("cam_cutter", "obstacle_0"), ("grasp_gripper", "obstacle_0")]
+    assert limit.approach_only_capsules == ["cam_cutter", "grasp_gripper"]
     limit.set_approach_only(())
-    assert not limit._approach_pair.any()
+    rows = limit.compute(configuration, DT)
+    first = list(limit.row_pairs).index(names.index(("grasp_gripper", "obstacle_0")))
+    assert rows.h[first] == pytest.approx((GAP - 0.01) / 0.02, rel=1e-6)
 
 
 def test_approach_only_names_are_checked(configuration):
