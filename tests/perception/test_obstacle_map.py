@@ -750,7 +750,8 @@ def test_approach_only_map_rows_stop_the_gripper_inside_d_s_but_never_push_it():
         for _ in range(60):
             feed.update(q)
             w0, w1 = feed.capsule_world(q)
-            distances.append(float(m.closest_cells(w0, w1, feed.radii, max_distance=0.2, per_capsule=1).distances.min()))
+            query = m.closest_cells(w0, w1, feed.radii, max_distance=0.2, per_capsule=1)
+            distances.append(float(query.distances.min()))
             step = controller.step(q)
             assert step.ok, step.status
             q = q + step.qdot * 0.002
