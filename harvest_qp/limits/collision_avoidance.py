@@ -23,6 +23,15 @@ Two deviations from a single damper row per pair, each from a measured failure:
   the acceleration limit cannot give (to "no further approach" at worst), so a
   penetrating state is escaped, not frozen. These rows are marked relaxable by
   :attr:`CollisionAvoidance.separation_rows`.
+
+One option beyond the paper (issue 11): robot capsules named by
+:meth:`CollisionAvoidance.set_approach_only` get "no further approach" rows against the
+obstacle spheres (``h >= 0``: the bound is clamped at 0 inside ``d_s``), never a separation
+demand. Measured reason: the map's cells lie 5-15 mm short of the true surface, so a gripper
+that starts 9.8 mm (true) from the branch is inside ``d_s`` on the map (seed 1 of
+``tasks/paper.yaml``); separation rows pushed it away during the approach and pre-stretched
+the stem to 2.5 N before the force tare (true tension 5.6 N at the end while the wrist read
+3.0 N). Arm-arm pairs and fixed environment primitives keep the separation rows.
 """
 
 from __future__ import annotations
@@ -210,6 +219,7 @@ class CollisionAvoidance(Limit):
         env_index = np.array([index[cap.name] for cap in environment], dtype=np.int64)
         env_pairs = np.stack(np.meshgrid(self._moving, env_index, indexing="ij"), -1).reshape(-1, 2)
         self._self_pairs = np.vstack([self._self_pairs, env_pairs])
+        self._approach_only = np.zeros(len(names), dtype=bool)
         self.set_obstacle_spheres(np.zeros((0, 3)), np.zeros(0))
 
     # ------------------------------------------------------------------ set-up
@@ -226,6 +236,44 @@ class CollisionAvoidance(Limit):
             for b in desc.collision_bodies()
         ]
         return cls(configuration, capsules, desc.self_collision_pairs(), **kwargs)
+
+    def set_approach_only(self, names: Sequence[str]) -> None:
+        """Give the robot capsules ``names`` "no further approach" rows against obstacle spheres.
+
+        Their rows with an obstacle sphere never ask for separation: inside ``d_s`` the
+        bound is 0 (the distance may not decrease) instead of the separation speed, so the
+        spheres only stop these capsules, never push them. Outside ``d_s`` the damper is
+        unchanged. Pairs with other capsules and environment primitives are unchanged.
+        ``names=()`` restores the separation rows everywhere.
+
+        Raises:
+            InvalidInputError: a name that is not a moving robot capsule of this limit.
+        """
+        if isinstance(names, str):
+            names = [names]
+        robot = self._robot["names"]
+        mask = np.zeros(len(robot), dtype=bool)
+        for name in names:
+            if name not in robot or self._robot["joints"][robot.index(name)] == 0:
+                moving = ", ".join(robot[i] for i in self._moving)
+                raise InvalidInputError(
+                    f"approach-only capsule {name!r} is not a moving capsule; expected one of: {moving}"
+                )
+            mask[robot.index(name)] = True
+        self._approach_only = mask
+        self._update_approach_pairs()
+
+    @property
+    def approach_only_capsules(self) -> list[str]:
+        """Robot capsules whose obstacle-sphere rows never ask for separation (:meth:`set_approach_only`)."""
+        return [n for n, hold in zip(self._robot["names"], self._approach_only) if hold]
+
+    def _update_approach_pairs(self) -> None:
+        """Which candidate pairs are (approach-only capsule, obstacle sphere)."""
+        nr = len(self._robot["names"])
+        a = np.minimum(self.pair_a, nr - 1)
+        self._approach_pair = self._approach_only[a] & (self.pair_a < nr) & (self.pair_b >= nr)
+        self._any_approach_only = bool(self._approach_pair.any())
 
     def set_obstacle_spheres(self, centers: np.ndarray, radii: np.ndarray | float) -> None:
         """Replace the obstacle spheres (world centres [m], radii [m]); e.g. from a point cloud.
@@ -285,6 +333,7 @@ class CollisionAvoidance(Limit):
         self._row_d = np.zeros(rows)
         self.active_pairs = self._selected[:0]
         self.num_rows = 0
+        self._update_approach_pairs()
 
     @property
     def num_candidate_pairs(self) -> int:
@@ -322,6 +371,11 @@ class CollisionAvoidance(Limit):
         # Rows 0..n_pairs-1 belong to active_pairs in order; end-point rows follow.
         self.active_pairs = self._selected[:n_pairs]
         self.num_rows = n_rows
+        if self._any_approach_only and n_rows:
+            # "No further approach" for approach-only capsules against obstacle spheres:
+            # a negative bound (inside d_s) would push the capsule away.
+            h = self._h[:n_rows]
+            h[self._approach_pair[self._row_pair[:n_rows]] & (h < 0.0)] = 0.0
         return LimitRows(G=self._G, h=self._h)
 
     def active_pair_distances(self) -> list[tuple[str, str, float]]:

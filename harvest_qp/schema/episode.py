@@ -198,7 +198,8 @@ class ObstacleMap(Section):
     enabled: bool = _f(True, "OctoMap-style grid from every frame; unknown space is free")
     resolution: Positive = _f(0.01, "[m] cell edge (the map's distance is up to sqrt(3) cells short of the surface)")
     arms: expect(Literal["camera", "both"], "one of: camera, both") = _f(
-        "camera", "whose capsules get the map's rows (both: the gripper was held 16 mm off p_gd)")
+        "both", "whose capsules get the map's rows (the grasping arm's only stop it: no further approach "
+                "inside d_s, never a push)")
     clear_rays: PositiveInt = _f(12000, "clearing rays per frame (about)")
     per_capsule: PositiveInt = _f(4, "closest cells per arm capsule within d_i + margin")
     max_cells: PositiveInt = _f(24, "cells fed to the collision limit in all (the closest)")

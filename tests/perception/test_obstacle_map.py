@@ -659,9 +659,9 @@ def test_stem_never_enters_the_map_in_the_lab(lab):
 # --------------------------------------------------------------------------- feeding the QP
 
 
-def _controller(with_map: bool):
-    """Gripper driven at 0.1 m/s towards a wall 10.5 cm ahead of it (its capsule 6 cm from it),
-    the wall known only from a cloud."""
+def _controller(with_map: bool, *, ahead: float = 0.105, speed: float = 0.1):
+    """Gripper driven at ``speed`` [m/s] towards a wall ``ahead`` [m] of it (default 10.5 cm: its
+    capsule 6 cm from it), the wall known only from a cloud."""
     from harvest_qp import Configuration, TaskController
     from harvest_qp.limits import CollisionAvoidance
     from harvest_qp.robot import description as desc
@@ -669,13 +669,13 @@ def _controller(with_map: bool):
 
     config = Configuration.dual_ur5e(desc.HOME_Q)
     gripper = FrameTwistTask("gripper", weight=1.0)
-    gripper.set_reference(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    gripper.set_reference(np.array([speed, 0.0, 0.0, 0.0, 0.0, 0.0]))
     limit = CollisionAvoidance.dual_ur5e(config)
     tasks = [gripper, PostureTask(desc.HOME_Q, weight=1e-3), DampingTask(config.nv)]
     controller = TaskController(config, tasks, [limit], dt=0.002)
     m = ObstacleMap()
     g = config.frame_position("gripper")
-    wall = ([g[0] + 0.105, g[1], g[2]], [0.0, 0.25, 0.0], [0.0, 0.0, 0.2], OBSTACLE)
+    wall = ([g[0] + ahead, g[1], g[2]], [0.0, 0.25, 0.0], [0.0, 0.0, 0.2], OBSTACLE)
     pose = look_at(g + [-0.25, 0.02, 0.15], g + [0.2, 0.0, 0.0])
     for _ in range(3):
         m.update(cast(pose, [wall], size=(160, 220)))
@@ -730,6 +730,37 @@ def test_map_rows_keep_the_gripper_off_a_wall_seen_only_by_the_camera():
         results[with_map] = closest
     assert results[False] < 0.0
     assert results[True] >= 0.01 - 1e-3  # d_s of the limit, within the damper's discretisation (0.1 mm)
+
+
+def test_approach_only_map_rows_stop_the_gripper_inside_d_s_but_never_push_it():
+    """The gripper starts inside d_s of a mapped wall (the map's distance, as on seed 1 of the
+    paper scenes); its capsules' rows are approach-only (``set_approach_only``, as the closed
+    loop sets them for the grasping arm). Driven into the wall its map distance never decreases;
+    left still, the rows alone do not move it; without the option the rows push it off.
+    Oracle: the map's own ``closest_cells`` distance (checked against brute force above), not the
+    limit's. Catches the grasping arm's map rows asking for separation (the seed-1 false success:
+    the stem pre-stretched before the tare) or no longer stopping the approach."""
+    runs = {}
+    for approach_only, speed in ((True, 0.1), (True, 0.0), (False, 0.0)):
+        config, controller, limit, m, feed = _controller(True, ahead=0.0095, speed=speed)
+        if approach_only:
+            limit.set_approach_only([name for name in feed.capsule_names if name.startswith("grasp_")])
+        q = config.q.copy()
+        distances = []
+        for _ in range(60):
+            feed.update(q)
+            w0, w1 = feed.capsule_world(q)
+            query = m.closest_cells(w0, w1, feed.radii, max_distance=0.2, per_capsule=1)
+            distances.append(float(query.distances.min()))
+            step = controller.step(q)
+            assert step.ok, step.status
+            q = q + step.qdot * 0.002
+        runs[approach_only, speed] = np.array(distances)
+    start = runs[True, 0.1][0]
+    assert 0.0 < start < 0.01, f"the set-up must start inside d_s on the map, got {start:.4f} m"
+    assert np.all(np.diff(runs[True, 0.1]) >= -1e-6), "approach-only rows let the gripper closer"
+    assert np.ptp(runs[True, 0.0]) < 1e-5, "approach-only rows moved the gripper"
+    assert runs[False, 0.0][-1] > start + 1e-3, "separation rows should push it off (the option's reason)"
 
 
 def test_feed_gives_no_cells_to_capsules_switched_off():
