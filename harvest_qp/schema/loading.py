@@ -58,10 +58,14 @@ _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
-    """The mapping in the YAML file ``path`` (safe loader: no Python objects; an empty file is ``{}``).
+    """The mapping in the YAML file ``path`` (safe loader: no Python objects).
+
+    An empty file (blank or only comments) is refused rather than read as "every default":
+    a config that silently ran the defaults after a bad copy or a wrong path would reproduce
+    nothing the user meant; ``{}`` asks for the defaults explicitly.
 
     Raises:
-        ConfigError: missing or unreadable file, not YAML, a repeated key, or not a mapping.
+        ConfigError: missing or unreadable file, empty, not YAML, a repeated key, or not a mapping.
     """
     path = Path(path)
     if not path.is_file():
@@ -78,7 +82,8 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         problem = getattr(err, "problem", None) or ""
         raise ConfigError(f"{path}: not valid YAML{where} ({problem}); expected a mapping of keys") from None
     if data is None:
-        return {}
+        raise ConfigError(f"{path}: the file is empty (blank or only comments); expected a mapping of keys "
+                          "(write {} to take every default)")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the file must hold a mapping of keys (a mapping of sections); "
                           f"got {type(data).__name__}")

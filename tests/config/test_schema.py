@@ -177,10 +177,25 @@ def test_a_file_of_the_other_kind_is_named_as_such(tmp_path, capsys):
     assert "this is a QP task configuration" in capsys.readouterr().err
     assert main(["demo", "--kinematic", "--config", str(tasks_dir() / "paper.yaml")]) == 2
     assert "this is an episode configuration" in capsys.readouterr().err
-    empty = tmp_path / "empty.yaml"
-    empty.write_text("# nothing\n")
-    assert main(["demo", "--kinematic", "--config", str(empty)]) == 2
+    no_tasks = tmp_path / "no_tasks.yaml"
+    no_tasks.write_text("{}\n")
+    assert main(["demo", "--kinematic", "--config", str(no_tasks)]) == 2
     assert "'tasks' is required" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("text", ["", "\n\n", "# nothing but a comment\n"])
+def test_an_empty_file_is_refused_not_run_as_defaults(tmp_path, capsys, text):
+    """A blank or comment-only config file is an error naming the file; ``{}`` takes the defaults.
+
+    Catches: an empty file (a bad copy, a wrong path written over) silently running the
+    paper episode with every default, as the previous session's audit found."""
+    empty = tmp_path / "empty.yaml"
+    empty.write_text(text)
+    assert main(["run", str(empty), "--duration", "0.01", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert str(empty) in err and "empty" in err and "{}" in err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
 
 
 # ------------------------------------------------------------------ extends
