@@ -208,3 +208,81 @@ def top_up_diagonal(H, floor, value):
     for i in range(H.shape[0]):
         if floor[i] < value:
             H[i, i] += value - floor[i]
+
+
+@njit(cache=True)
+def same_bits(a, b):
+    """True when the float64 vectors ``a`` and ``b`` have the same length and bit patterns
+    (unlike ``==``, ``0.0`` and ``-0.0`` differ: they can give different kinematics bits)."""
+    if a.shape[0] != b.shape[0]:
+        return False
+    ia = a.view(np.int64)
+    ib = b.view(np.int64)
+    for i in range(ia.shape[0]):
+        if ia[i] != ib[i]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def weighted_rows(J, w, out, start):
+    """Rows ``sqrt(w_r) J_r`` of the rows with ``w_r > 0``, written from row ``start`` of ``out``.
+
+    The same products as ``(np.sqrt(w)[:, None] * J)[w > 0]`` (bit for bit); returns the
+    row after the last one written.
+    """
+    r_out = start
+    for r in range(J.shape[0]):
+        if w[r] > 0.0:
+            scale = np.sqrt(w[r])
+            for c in range(J.shape[1]):
+                out[r_out, c] = scale * J[r, c]
+            r_out += 1
+    return r_out
+
+
+@njit(cache=True)
+def weighted_identity_rows(w, out, start):
+    """:func:`weighted_rows` for ``J = I`` (a joint-space task)."""
+    r_out = start
+    n = w.shape[0]
+    for r in range(n):
+        if w[r] > 0.0:
+            scale = np.sqrt(w[r])
+            for c in range(out.shape[1]):
+                out[r_out, c] = scale * (1.0 if c == r else 0.0)
+            r_out += 1
+    return r_out
+
+
+@njit(cache=True)
+def load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper, n_eq_before, inf):
+    """Write one QP into DAQP's fixed layout: ``n`` bounds, ``n`` equality slots, the inequality rows.
+
+    Equality slots past ``A``'s rows are cleared (free rows) when this QP or the one before
+    had equalities; returns the number of equality rows now loaded.
+    """
+    n = A_buf.shape[1]
+    n_eq = A.shape[0]
+    if n_eq > 0 or n_eq_before > 0:
+        for r in range(n):
+            if r < n_eq:
+                for c in range(n):
+                    A_buf[r, c] = A[r, c]
+                upper[n + r] = b[r]
+                lower[n + r] = b[r]
+                sense[n + r] = 5
+            else:
+                for c in range(n):
+                    A_buf[r, c] = 0.0
+                upper[n + r] = inf
+                lower[n + r] = -inf
+                sense[n + r] = 0
+    for r in range(G.shape[0]):
+        for c in range(n):
+            A_buf[n + r, c] = G[r, c]
+        upper[2 * n + r] = h[r]
+    for i in range(n):
+        upper[i] = box_upper[i]
+        lower[i] = box_lower[i]
+    return n_eq

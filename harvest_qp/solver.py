@@ -58,6 +58,8 @@ from harvest_qp.qp_kernels import (
     max_scaled_violation,
     max_violation,
     top_up_diagonal,
+    weighted_identity_rows,
+    weighted_rows,
 )
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
@@ -72,6 +74,12 @@ RELAXATION_MARGIN = 1e-9
 RELAXATION_TOLERANCE = 1e-9
 #: Backends tried, in order, after the chosen one fails (those not installed are skipped).
 DEFAULT_FALLBACK_BACKENDS = ("quadprog", "proxsuite")
+try:  # numpy's LAPACK SVD gufunc (what np.linalg.svd calls); see _svd
+    from numpy.linalg import _umath_linalg
+
+    _SVD_GUFUNC = _umath_linalg.svd_s
+except (ImportError, AttributeError):  # pragma: no cover - another numpy layout
+    _SVD_GUFUNC = None
 #: Infeasibility reports from this many backends are believed without asking the rest
 #: (the relaxation check that follows still catches a false report; see the module docstring).
 CONFIRMING_REPORTS = 2
@@ -169,11 +177,28 @@ def _intersect(box_limits: list[Limit], lowers: np.ndarray, uppers: np.ndarray, 
     return lower, upper, conflicts
 
 
+def _svd(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.linalg.svd(A, full_matrices=False)`` for a float64 matrix, bit for bit.
+
+    Calls numpy's own LAPACK gufunc without the wrapper's checks and its floating-point
+    checks (~3 us of a ~25 us call on an 11 x 12 matrix). When LAPACK does not converge the
+    gufunc returns NaN everywhere, and the call is repeated through ``np.linalg.svd``,
+    which raises ``LinAlgError`` as before.
+    """
+    if _SVD_GUFUNC is not None and A.dtype == np.float64 and A.ndim == 2:
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore", under="ignore"):
+            U, s, Vt = _SVD_GUFUNC(A, signature="d->ddd")
+        first = s[0]
+        if first == first:  # not NaN: converged
+            return U, s, Vt
+    return np.linalg.svd(A, full_matrices=False)
+
+
 def _orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
     """Equivalent equality rows with orthonormal, independent rows (for consistent ``A x = b``)."""
     if A.shape[0] == 0:
         return A, b
-    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    U, s, Vt = _svd(A)
     rank = int(np.sum(s > tol * max(1.0, s[0])))
     return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
 
@@ -215,6 +240,7 @@ class Solver:
         names = DEFAULT_FALLBACK_BACKENDS if fallback_backends is None else tuple(fallback_backends)
         self.fallback_backends = tuple(name for name in names if name != backend)
         self._unavailable: set[str] = set()
+        self._rows_buffer = np.empty((0, 0))
 
     def _backend(self, level: int, name: str | None = None) -> Backend:
         key = (name or self.backend_name, level)
@@ -254,12 +280,11 @@ class Solver:
         """:meth:`solve` with ``dt`` and ``previous_qdot`` already validated (the controller's path)."""
         n = configuration.nv
         box_limits = self._box_limits(limits, n)
-        for i, limit in enumerate(box_limits):
-            limit.fill_box(configuration, dt, previous_qdot, self._lowers[i], self._uppers[i])
-        G_rows, h_rows, separating = [], [], []
-        for limit in limits:
-            if limit.has_box:
-                continue
+        for limit, lower_row, upper_row in self._box_rows:
+            limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+        row_limits: list[tuple[Limit, np.ndarray]] = []  # (limit, its h): which rows may be relaxed
+        G_rows, h_rows = [], []
+        for limit in self._row_limits:
             rows = limit.compute(configuration, dt, previous_qdot)
             if rows.lower is not None:
                 raise InvalidInputError(
@@ -269,7 +294,7 @@ class Solver:
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
-                separating.append(np.full(len(rows.h), bool(getattr(limit, "separation_rows", False))))
+                row_limits.append((limit, rows.h))
         if len(G_rows) == 1:
             G, h = G_rows[0], h_rows[0]
         elif G_rows:
@@ -290,14 +315,20 @@ class Solver:
         else:
             A, b = np.zeros((0, n)), np.zeros(0)
         k = len(box_limits)
-        lower, upper, conflicts = _intersect(box_limits, self._lowers[:k], self._uppers[:k], n)
+        lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
         retries: list[str] = []
         try:
             return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=CONFIRMING_REPORTS)
         except SolverNotAvailableError:
             raise
         except SolverError as err:
-            sep = np.concatenate(separating) if separating else np.zeros(0, dtype=bool)
+            # Rows that ask for separation (may be lowered to "no further approach"), per limit.
+            sep = (
+                np.concatenate([
+                    np.full(len(rows_h), bool(getattr(limit, "separation_rows", False))) for limit, rows_h in row_limits
+                ])
+                if row_limits else np.zeros(0, dtype=bool)
+            )
             # First ignore a widening below the solvers' noise; if that leaves the QP
             # infeasible after all, take the widening exactly as computed.
             for tolerance in (RELAXATION_TOLERANCE, 0.0):
@@ -321,13 +352,22 @@ class Solver:
             return solution
 
     def _box_limits(self, limits: Sequence[Limit], n: int) -> list[Limit]:
-        """The box limits in priority order, with row buffers for their boxes (cached)."""
+        """The box limits in priority order, with row buffers for their boxes (cached).
+
+        Also caches, for the same ``limits``: ``_box_rows`` (each box limit with its rows of
+        the buffers), ``_lower_rows`` / ``_upper_rows`` (the buffers' rows in use) and
+        ``_row_limits`` (the limits with inequality rows, in the given order).
+        """
         key = (n, *map(id, limits))
         if key != self._box_key:
             self._box_key = key
             self._box_list = sorted((limit for limit in limits if limit.has_box), key=lambda lim: lim.priority)
             self._lowers = np.empty((max(len(self._box_list), 1), n))
             self._uppers = np.empty((max(len(self._box_list), 1), n))
+            k = len(self._box_list)
+            self._box_rows = [(limit, self._lowers[i], self._uppers[i]) for i, limit in enumerate(self._box_list)]
+            self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
+            self._row_limits = [limit for limit in limits if not limit.has_box]
         return self._box_list
 
     # ------------------------------------------------------------------ backends
@@ -420,14 +460,31 @@ class Solver:
             x = clip_inplace(x, lower, upper)
             if level != levels[-1] and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
-                rows = [
-                    (np.sqrt(task.weight)[:, None] * (np.eye(n) if J is None else J))[task.weight > 0]
-                    for task, J, _ in entries
-                ]
-                A_lvl = np.vstack([A, *rows])
+                A_lvl = self._level_rows(A, entries, n)
                 A, b = _orthonormal_rows(A_lvl, A_lvl @ x)
         solution.qdot = x
         return solution
+
+    def _level_rows(self, A: np.ndarray, entries, n: int) -> np.ndarray:
+        """``A`` stacked over each task's rows ``sqrt(w_r) J_r`` with ``w_r > 0`` (``J = I`` for
+        joint-space tasks): the rows that hold a level's optimum for the levels below it.
+
+        Bit for bit ``np.vstack([A, *[(np.sqrt(w)[:, None] * J)[w > 0] ...]])``, written into a
+        buffer kept between steps (the caller only reads it before the next step).
+        """
+        m = A.shape[0] + sum(task.weight.shape[0] if J is None else J.shape[0] for task, J, _ in entries)
+        buffer = self._rows_buffer
+        if buffer.shape[0] < m or buffer.shape[1] != n:
+            buffer = self._rows_buffer = np.empty((max(m, buffer.shape[0]), n))
+        row = A.shape[0]
+        if row:
+            buffer[:row] = A
+        for task, J, _ in entries:
+            if J is None:
+                row = weighted_identity_rows(task.weight, buffer, row)
+            else:
+                row = weighted_rows(J, task.weight, buffer, row)
+        return buffer[:row]
 
     # ------------------------------------------------------------------ relaxation
     def _least_relaxation(self, n, box_limits, lower, upper, A, b, G, h, separating, retries, tolerance=0.0):

@@ -380,12 +380,22 @@ class CollisionAvoidance(Limit):
 
     def active_pair_distances(self) -> list[tuple[str, str, float]]:
         """Pairs that were rows of the last :meth:`compute`: both capsule names and distance [m]."""
-        names = self.capsule_names
-        return [
-            (names[self.pair_a[k]], names[self.pair_b[k]], float(self._dist[k])) for k in self.active_pairs
-        ]
+        return pairs_from_snapshot(self._active_pair_snapshot())
+
+    def _active_pair_snapshot(self) -> tuple:
+        """What :meth:`active_pair_distances` needs, frozen now (names and distances change next tick)."""
+        active = self.active_pairs
+        # capsule_names is changed in place by the obstacle map's feed: copy it (a shallow copy);
+        # pair_a / pair_b are replaced, never changed in place.
+        return list(self.capsule_names), self.pair_a, self.pair_b, active.copy(), self._dist[active]
 
     @property
     def row_pairs(self) -> np.ndarray:
         """Pair index of every row of the last :meth:`compute` (closest-point rows, then end-point rows)."""
         return self._row_pair[: self.num_rows]
+
+
+def pairs_from_snapshot(snapshot: tuple) -> list[tuple[str, str, float]]:
+    """``(name_a, name_b, distance [m])`` of each pair of a ``CollisionAvoidance._active_pair_snapshot``."""
+    names, pair_a, pair_b, active, distances = snapshot
+    return [(names[pair_a[k]], names[pair_b[k]], float(d)) for k, d in zip(active.tolist(), distances.tolist())]
