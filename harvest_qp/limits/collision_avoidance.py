@@ -374,8 +374,7 @@ class CollisionAvoidance(Limit):
         if self._any_approach_only and n_rows:
             # "No further approach" for approach-only capsules against obstacle spheres:
             # a negative bound (inside d_s) would push the capsule away.
-            h = self._h[:n_rows]
-            h[self._approach_pair[self._row_pair[:n_rows]] & (h < 0.0)] = 0.0
+            kernels.clamp_approach_rows(self._h, self._approach_pair, self._row_pair, n_rows)
         return LimitRows(G=self._G, h=self._h)
 
     def active_pair_distances(self) -> list[tuple[str, str, float]]:
