@@ -7,8 +7,18 @@ same-arm, arm-to-arm, arm-to-stand and 8 obstacle-sphere candidate pairs. Every
 contender is timed in the same process, in closed loop (q += qdot dt), from the
 kinematics update to the solved joint velocities.
 
-Usage: ``python benchmarks/bench_qp.py [-n 2000] [--peers placo,mink,pink]``.
+Usage: ``python benchmarks/bench_qp.py [-n 2000] [--peers placo,mink,pink] [--episode 20]``.
 The last line printed is one JSON object with the medians [us].
+
+``--episode S`` (0: off) adds ``harvest_qp_episode_us``: the paper episode's own QP
+(``tasks/paper.yaml``: two priority levels, the camera/gripper/roll twist tasks, posture and
+damping, the joint limits and the collision limit with the obstacle map's cells), recorded
+from the first ``S`` simulated seconds of the default episode (every ``--episode-every``-th
+tick: joint positions, previous command, the three task references and the map cells fed
+to the collision limit) and replayed problem by problem on the episode's own
+:class:`~harvest_qp.TaskController`, next to ``harvest_qp_collision_us`` timed the same way
+(thread CPU time, interleaved rounds): the like-for-like figure for the in-episode QP step
+of ``bench_episode.py`` (issue 7 section 7).
 """
 
 from __future__ import annotations
@@ -16,6 +26,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +118,128 @@ class HarvestQPBindingStep(HarvestQPStep):
         return result.qdot
 
 
+@dataclass
+class EpisodeTick:
+    """What the paper episode's QP step saw at one tick (enough to rebuild its problem exactly)."""
+
+    q: np.ndarray
+    previous_qdot: np.ndarray
+    references: tuple[np.ndarray, np.ndarray, np.ndarray]
+    """Camera, gripper and roll task references [m/s, rad/s]."""
+    obstacle_p0: np.ndarray
+    obstacle_p1: np.ndarray
+    obstacle_radius: np.ndarray
+    qdot: np.ndarray | None = None
+    """The command the episode's step returned (the replay is checked against it)."""
+
+
+class EpisodeProblems:
+    """The paper episode's own QP problems, recorded from a run and replayed on its controller.
+
+    Args:
+        duration: simulated seconds of the default paper episode (seed 0) to record [s].
+        every: record every ``every``-th tick.
+        settings: settings file (default ``tasks/paper.yaml``).
+    """
+
+    def __init__(self, duration: float = 20.0, every: int = 10, settings: Path | None = None) -> None:
+        from harvest_qp.loop.controller import HarvestController
+        from harvest_qp.loop.episode import build_robot, environment_capsules_for
+        from harvest_qp.loop.settings import load_settings
+        from harvest_qp.robot.paths import tasks_dir
+        from harvest_qp.runner import run_episode
+
+        settings = load_settings(settings or tasks_dir() / "paper.yaml")
+        robot = build_robot(settings, 0)
+        controller = HarvestController(
+            settings, environment=environment_capsules_for(robot, settings["qp"]["environment"])
+        )
+        qp = controller.qp
+        self.controller = controller
+        self.tasks = (controller.camera_task, controller.gripper_task, controller.roll_task)
+        self.collision = controller.collision
+        self.first = self.collision.cap_p0.shape[0] - controller.map_feed.slots
+        self.ticks: list[EpisodeTick] = []
+        step = qp.step
+        count = [0]
+
+        def recording_step(q):
+            record = count[0] % every == 0
+            count[0] += 1
+            if record:
+                lim, first = self.collision, self.first
+                tick = EpisodeTick(
+                    q=np.array(q, dtype=float), previous_qdot=qp.previous_qdot.copy(),
+                    references=tuple(task.reference.copy() for task in self.tasks),
+                    obstacle_p0=lim.cap_p0[first:].copy(), obstacle_p1=lim.cap_p1[first:].copy(),
+                    obstacle_radius=lim.cap_radius[first:].copy(),
+                )
+            result = step(q)
+            if record:
+                tick.qdot = result.qdot.copy()
+                self.ticks.append(tick)
+            return result
+
+        qp.step = recording_step
+        try:
+            run_episode(robot, controller, duration=duration)
+        finally:
+            del qp.step  # the instance attribute: back to the class's method
+        self.qp = qp
+        self.levels = sorted({task.level for task in qp.tasks})
+
+    def load(self, tick: EpisodeTick) -> None:
+        """Put the controller in the state of ``tick`` (outside any timed region)."""
+        for task, reference in zip(self.tasks, tick.references):
+            task.reference = reference
+        lim, first = self.collision, self.first
+        lim.cap_p0[first:] = tick.obstacle_p0
+        lim.cap_p1[first:] = tick.obstacle_p1
+        lim.cap_radius[first:] = tick.obstacle_radius
+        self.qp.previous_qdot = tick.previous_qdot.copy()
+
+    def replay(self, clock=time.thread_time) -> tuple[np.ndarray, float]:
+        """Step every recorded problem once; per-step times [s] on ``clock`` and the largest
+        difference [rad/s] between the replayed and the episode's commands."""
+        times = np.empty(len(self.ticks))
+        worst = 0.0
+        step = self.qp.step
+        for j, tick in enumerate(self.ticks):
+            self.load(tick)
+            t0 = clock()
+            result = step(tick.q)
+            times[j] = clock() - t0
+            worst = max(worst, float(np.max(np.abs(result.qdot - tick.qdot))))
+        return times, worst
+
+
+def time_episode_problems(
+    episode: EpisodeProblems, problem: peers.BenchProblem, rounds: int, clock=time.thread_time
+) -> dict[str, float]:
+    """Median CPU time [us] per step of the episode's problems and of ``harvest_qp_collision``, interleaved."""
+    bench = HarvestQPStep(problem, True)
+    n = len(episode.ticks)
+    state = {"q": problem.q0.copy(), "t": 0.0}
+    ep_rounds, bench_rounds, worst = [], [], 0.0
+    for _ in range(rounds):
+        times, diff = episode.replay(clock)
+        worst = max(worst, diff)
+        ep_rounds.append(float(np.median(times)))
+        samples = np.empty(n)
+        for j in range(n):
+            t0 = clock()
+            qdot = bench.step(state["q"], state["t"])
+            samples[j] = clock() - t0
+            state["q"] = state["q"] + qdot * problem.dt
+            state["t"] += problem.dt
+        bench_rounds.append(float(np.median(samples)))
+    return {
+        "harvest_qp_episode_us": 1e6 * float(np.median(ep_rounds)),
+        "harvest_qp_collision_cpu_us": 1e6 * float(np.median(bench_rounds)),
+        "episode_replay_max_diff": worst,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-n", type=int, default=2000, help="timed steps per contender (split over the rounds)")
@@ -113,6 +247,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--check", type=int, default=200, help="closed-loop check steps (0: none)")
     parser.add_argument("--peers", default="placo,mink,pink", help="comma-separated subset of peers")
     parser.add_argument("--differences", action="store_true", help="print how the peers' set-ups differ")
+    parser.add_argument("--episode", type=float, default=20.0,
+                        help="simulated seconds of the paper episode whose QP problems are replayed (0: skip)")
+    parser.add_argument("--episode-every", type=int, default=10, help="record every N-th tick of that episode")
     args = parser.parse_args(argv)
 
     problem = peers.BenchProblem()
@@ -178,6 +315,17 @@ def main(argv: list[str] | None = None) -> int:
             ours, theirs = results.get(f"harvest_qp{suffix}_us"), results.get(f"{peer}{suffix}_us")
             if ours and theirs:
                 print(f"  {peer + suffix:20s} {theirs / ours:6.2f}x")
+    if args.episode > 0:
+        episode = EpisodeProblems(args.episode, args.episode_every)
+        figures = time_episode_problems(episode, problem, max(args.rounds, 1))
+        print(
+            f"paper episode's own QP (levels {episode.levels}, {len(episode.ticks)} problems from "
+            f"{args.episode:g} s, every {args.episode_every}th tick), thread CPU time, {args.rounds} interleaved "
+            f"rounds: {figures['harvest_qp_episode_us']:.1f} us per step; harvest_qp_collision the same way: "
+            f"{figures['harvest_qp_collision_cpu_us']:.1f} us; replayed commands equal the episode's to "
+            f"{figures['episode_replay_max_diff']:.1e} rad/s"
+        )
+        results.update(figures)
     print(json.dumps({k: (None if v is None else round(v, 2)) for k, v in results.items()}))
     return 0
 

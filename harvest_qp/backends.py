@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from harvest_qp.exceptions import InfeasibleProblemError, SolverError, SolverNotAvailableError
+from harvest_qp.qp_kernels import load_daqp_rows, max_scaled_violation
 
 if TYPE_CHECKING:
     from harvest_qp.solver import QPProblem
@@ -111,21 +112,12 @@ class DaqpBackend:
             self._allocate(n, n_in)
         A, upper, lower, sense = self._A, self._upper, self._lower, self._sense
         rows_changed = fresh or n_in > 0 or n_eq > 0 or self._n_eq > 0
-        if n_eq or self._n_eq:
-            A[:n] = 0.0
-            A[:n_eq] = problem.A
-            upper[n : 2 * n] = _INF
-            lower[n : 2 * n] = -_INF
-            upper[n : n + n_eq] = problem.b
-            lower[n : n + n_eq] = problem.b
-            sense[n : 2 * n] = 0
-            sense[n : n + n_eq] = 5
-            self._n_eq = n_eq
-        if n_in:
-            A[n:] = problem.G
-            upper[2 * n :] = problem.h
-        upper[:n] = problem.upper
-        lower[:n] = problem.lower
+        # One compiled call writes the bounds, equality slots and inequality rows (ten numpy
+        # slice assignments before: ~13 us per level inside the episode).
+        self._n_eq = load_daqp_rows(
+            A, upper, lower, sense, problem.A, problem.b, problem.G, problem.h, problem.lower, problem.upper,
+            self._n_eq, _INF,
+        )
         if fresh:
             self._model = self._daqp.Model()
             flag, _ = self._model.setup(problem.H, problem.f, A, upper, lower, sense)
@@ -152,7 +144,13 @@ class DaqpBackend:
                 backend=self.name,
                 status=flag,
             )
-        return _checked(x, problem, self.name)
+        # The check of _checked, without its conversions (x is DAQP's own float64 copy).
+        violation = max_scaled_violation(
+            x, problem.lower, problem.upper, problem.A, problem.b, problem.G, problem.h
+        )
+        if violation <= FEASIBILITY_TOLERANCE:
+            return x
+        return _checked(x, problem, self.name)  # raises with the message and the last-resort data
 
 
 class ProxsuiteBackend:

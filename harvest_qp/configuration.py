@@ -17,6 +17,7 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.exceptions import InvalidInputError, ModelError, UnknownFrameError
+from harvest_qp.qp_kernels import same_bits
 from harvest_qp.validation import as_scalar, as_vector, describe
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
@@ -105,10 +106,29 @@ class Configuration:
 
     def update(self, q: np.ndarray | Sequence[float]) -> None:
         """Set joint positions [rad] and recompute placements and joint Jacobians."""
-        q = as_vector(q, self.model.nq, "Configuration q")
+        self._set_q(as_vector(q, self.model.nq, "Configuration q"))
+
+    def _set_q(self, q: np.ndarray) -> None:
+        """:meth:`update` for a ``q`` already checked by :func:`as_vector` (a private copy)."""
         self._q = q
+        # The q the kinematics were computed at, apart from ``self._q`` (which the ``q``
+        # property hands out, so a caller could change it in place).
+        self._q_kinematics = q.copy()
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
+
+    def _update_if_changed(self, q: np.ndarray) -> None:
+        """:meth:`update` for the library's own control loop, skipped when nothing changed.
+
+        ``q`` must already be checked (:func:`as_vector`: a finite float64 copy of size nq).
+        When it is bitwise equal to the ``q`` of the last update, the placements and Jacobians
+        are already those of ``q`` and are kept (a controller tick updates the same
+        configuration twice: once for its reference laws, once in the QP step).
+        """
+        if same_bits(q, self._q_kinematics):
+            self._q = q
+            return
+        self._set_q(q)
 
     def integrate(self, qdot: np.ndarray | Sequence[float], dt: float) -> np.ndarray:
         """Joint positions [rad] after applying ``qdot`` [rad/s] for ``dt`` [s] (does not update)."""

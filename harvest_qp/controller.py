@@ -21,14 +21,14 @@ import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import HarvestQPError
-from harvest_qp.limits.collision_avoidance import CollisionAvoidance
+from harvest_qp.limits.collision_avoidance import CollisionAvoidance, pairs_from_snapshot
 from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
 from harvest_qp.limits.joint_position_limit import JointPositionLimit
 from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
 from harvest_qp.limits.limit import Limit
 from harvest_qp.solver import Solver
 from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_nonnegative_vector, as_positive_scalar, check_limits, check_tasks
+from harvest_qp.validation import as_nonnegative_vector, as_positive_scalar, as_vector, check_limits, check_tasks
 
 OK = "ok"
 FALLBACK = "fallback"
@@ -54,7 +54,9 @@ class ControlStep:
     """Commanded acceleration ``(qdot - previous qdot) / dt`` [rad/s^2] of this tick."""
     active_pairs: list[tuple[str, str, float]] = field(default_factory=list)
     """Collision pairs that were rows of the QP this tick: both bodies' names and the
-    surface distance [m] (from every :class:`CollisionAvoidance` among the limits)."""
+    surface distance [m] (from every :class:`CollisionAvoidance` among the limits).
+    Built on first access from a snapshot taken at the step (the names and distances
+    of that tick), so a loop that never reads it does not pay for it."""
 
     @property
     def ok(self) -> bool:
@@ -65,6 +67,29 @@ class ControlStep:
     def max_acceleration(self) -> float:
         """Largest commanded joint acceleration of this tick [rad/s^2] (0 when unknown)."""
         return 0.0 if self.acceleration is None else float(np.max(np.abs(self.acceleration), initial=0.0))
+
+
+def _get_active_pairs(step: ControlStep) -> list[tuple[str, str, float]]:
+    state = step.__dict__
+    snapshots = state.pop("_pair_snapshots", None)
+    if snapshots is not None:
+        state["_active_pairs"] = [pair for snapshot in snapshots for pair in pairs_from_snapshot(snapshot)]
+    return state["_active_pairs"]
+
+
+def _set_active_pairs(step: ControlStep, value: list[tuple[str, str, float]]) -> None:
+    step.__dict__.pop("_pair_snapshots", None)
+    step.__dict__["_active_pairs"] = value
+
+
+# A property in place of the dataclass field (the constructor, repr and comparison still see
+# ``active_pairs``): the list is built lazily from the step's snapshot (``_pair_snapshots``).
+ControlStep.active_pairs = property(
+    _get_active_pairs,
+    _set_active_pairs,
+    doc="Collision pairs that were rows of the QP this tick: both bodies' names and the surface "
+    "distance [m] (from every CollisionAvoidance among the limits); built on first access.",
+)
 
 
 class _BrakeTask(Task):
@@ -136,7 +161,11 @@ class TaskController:
         """Joint velocities [rad/s] for the measured joint positions ``q`` [rad]. Never raises."""
         measured = False
         try:
-            self.configuration.update(q)
+            # Checked here (the public entry point), then the kinematics are recomputed only
+            # when q differs from the configuration's last update (the episode's loop has
+            # already updated it to this very q for its reference laws).
+            q = as_vector(q, self.configuration.model.nq, "Configuration q")
+            self.configuration._update_if_changed(q)
             measured = True
             # previous_qdot is this controller's own finite output: skip re-validating it.
             solution = self.solver._solve(self.configuration, self.tasks, self.limits, self.dt, self.previous_qdot)
@@ -159,8 +188,8 @@ class TaskController:
                 status=f"{FALLBACK}: {type(err).__name__}: {err}{how}",
                 acceleration=(qdot - np.nan_to_num(self.previous_qdot)) / self.dt,
             )
-        if measured:
-            result.active_pairs = [pair for limit in self._collisions for pair in limit.active_pair_distances()]
+        if measured and self._collisions:
+            result.__dict__["_pair_snapshots"] = [limit._active_pair_snapshot() for limit in self._collisions]
         self.previous_qdot = result.qdot
         return result
 

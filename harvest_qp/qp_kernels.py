@@ -208,3 +208,170 @@ def top_up_diagonal(H, floor, value):
     for i in range(H.shape[0]):
         if floor[i] < value:
             H[i, i] += value - floor[i]
+
+
+@njit(cache=True)
+def same_bits(a, b):
+    """True when the float64 vectors ``a`` and ``b`` have the same length and bit patterns
+    (unlike ``==``, ``0.0`` and ``-0.0`` differ: they can give different kinematics bits)."""
+    if a.shape[0] != b.shape[0]:
+        return False
+    ia = a.view(np.int64)
+    ib = b.view(np.int64)
+    for i in range(ia.shape[0]):
+        if ia[i] != ib[i]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def weighted_rows(J, w, out, start):
+    """Rows ``sqrt(w_r) J_r`` of the rows with ``w_r > 0``, written from row ``start`` of ``out``.
+
+    The same products as ``(np.sqrt(w)[:, None] * J)[w > 0]`` (bit for bit); returns the
+    row after the last one written.
+    """
+    r_out = start
+    for r in range(J.shape[0]):
+        if w[r] > 0.0:
+            scale = np.sqrt(w[r])
+            for c in range(J.shape[1]):
+                out[r_out, c] = scale * J[r, c]
+            r_out += 1
+    return r_out
+
+
+@njit(cache=True)
+def weighted_identity_rows(w, out, start):
+    """:func:`weighted_rows` for ``J = I`` (a joint-space task)."""
+    r_out = start
+    n = w.shape[0]
+    for r in range(n):
+        if w[r] > 0.0:
+            scale = np.sqrt(w[r])
+            for c in range(out.shape[1]):
+                out[r_out, c] = scale * (1.0 if c == r else 0.0)
+            r_out += 1
+    return r_out
+
+
+@njit(cache=True)
+def load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper, n_eq_before, inf):
+    """Write one QP into DAQP's fixed layout: ``n`` bounds, ``n`` equality slots, the inequality rows.
+
+    Equality slots past ``A``'s rows are cleared (free rows) when this QP or the one before
+    had equalities; returns the number of equality rows now loaded.
+    """
+    n = A_buf.shape[1]
+    n_eq = A.shape[0]
+    if n_eq > 0 or n_eq_before > 0:
+        for r in range(n):
+            if r < n_eq:
+                for c in range(n):
+                    A_buf[r, c] = A[r, c]
+                upper[n + r] = b[r]
+                lower[n + r] = b[r]
+                sense[n + r] = 5
+            else:
+                for c in range(n):
+                    A_buf[r, c] = 0.0
+                upper[n + r] = inf
+                lower[n + r] = -inf
+                sense[n + r] = 0
+    for r in range(G.shape[0]):
+        for c in range(n):
+            A_buf[n + r, c] = G[r, c]
+        upper[2 * n + r] = h[r]
+    for i in range(n):
+        upper[i] = box_upper[i]
+        lower[i] = box_lower[i]
+    return n_eq
+
+
+@njit(cache=True)
+def orthonormal_rows_qr(A, c, tol, rows_out, rhs_out):
+    """Orthonormal rows spanning the rows of ``A`` (m x n) and the right-hand side that keeps
+    ``A x = c``: Householder QR of ``A^T`` with column pivoting (``A^T P = Q R``).
+
+    Writes the ``rank`` rows of ``Q^T`` into ``rows_out[:rank]`` and ``y`` with
+    ``R11^T y = (P^T c)[:rank]`` into ``rhs_out[:rank]``; returns ``rank``, the number of
+    pivots with ``|R_kk| > tol * max(1, |R_00|)`` (``|R_00|``: the largest row norm of ``A``).
+    For consistent ``c`` (``c = A x0``), ``{x : rows x = y}`` is ``{x : A x = c}``.
+    """
+    m, n = A.shape
+    M = np.empty((n, m))  # A^T, overwritten by R above the diagonal and the reflectors below
+    for i in range(m):
+        for j in range(n):
+            M[j, i] = A[i, j]
+    piv = np.arange(m)
+    beta = np.zeros(n)
+    diag = np.zeros(min(m, n))
+    steps = min(m, n)
+    rank = 0
+    threshold = 0.0
+    for k in range(steps):
+        # Pivot: the remaining column (row of A) with the largest norm below row k (recomputed,
+        # not downdated: exact on these small sizes).
+        best = -1.0
+        p = k
+        for col in range(k, m):
+            acc = 0.0
+            for r in range(k, n):
+                acc += M[r, col] * M[r, col]
+            if acc > best:
+                best = acc
+                p = col
+        if p != k:
+            for r in range(n):
+                tmp = M[r, k]
+                M[r, k] = M[r, p]
+                M[r, p] = tmp
+            tmp_i = piv[k]
+            piv[k] = piv[p]
+            piv[p] = tmp_i
+        norm = np.sqrt(best)
+        if k == 0:
+            threshold = tol * max(1.0, norm)
+        if not norm > threshold:
+            break
+        # Householder reflector H = I - beta v v^T with v[k] = 1 mapping M[k:, k] to alpha e_k.
+        x0 = M[k, k]
+        alpha = -norm if x0 >= 0.0 else norm
+        v0 = x0 - alpha
+        for r in range(k + 1, n):
+            M[r, k] /= v0
+        beta[k] = -v0 / alpha
+        M[k, k] = alpha
+        diag[k] = alpha
+        for col in range(k + 1, m):
+            acc = M[k, col]
+            for r in range(k + 1, n):
+                acc += M[r, k] * M[r, col]
+            acc *= beta[k]
+            M[k, col] -= acc
+            for r in range(k + 1, n):
+                M[r, col] -= acc * M[r, k]
+        rank += 1
+    # Q[:, :rank] = H_0 H_1 ... H_{rank-1} [e_0 .. e_{rank-1}], built backwards; rows_out = Q^T.
+    Q = np.zeros((n, rank))
+    for j in range(rank):
+        Q[j, j] = 1.0
+    for k in range(rank - 1, -1, -1):
+        for j in range(rank):
+            acc = Q[k, j]
+            for r in range(k + 1, n):
+                acc += M[r, k] * Q[r, j]
+            acc *= beta[k]
+            Q[k, j] -= acc
+            for r in range(k + 1, n):
+                Q[r, j] -= acc * M[r, k]
+    for j in range(rank):
+        for r in range(n):
+            rows_out[j, r] = Q[r, j]
+    # R11^T y = c[piv[:rank]] (R11 upper triangular: forward substitution).
+    for i in range(rank):
+        acc = c[piv[i]]
+        for j in range(i):
+            acc -= M[j, i] * rhs_out[j]
+        rhs_out[i] = acc / M[i, i]
+    return rank

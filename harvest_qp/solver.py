@@ -10,8 +10,8 @@ For each priority level ``k = 1, 2, ...`` (in increasing order) the solver compu
 
 so that a lower level only optimises within the optimal set of the levels above
 it: a cascade of QPs (strict priorities). With a single soft level it is one QP.
-The equality rows of earlier levels are compressed to an orthonormal basis (an SVD),
-so redundant rows never make the solver see dependent equalities.
+The equality rows of earlier levels are compressed to an orthonormal basis (a Householder
+QR with column pivoting), so redundant rows never make the solver see dependent equalities.
 
 ``E`` is a diagonal regularization that only tops the Hessian's diagonal up to
 ``regularization`` where joint-space tasks (damping, posture) do not already put
@@ -57,7 +57,10 @@ from harvest_qp.qp_kernels import (
     intersect_boxes,
     max_scaled_violation,
     max_violation,
+    orthonormal_rows_qr,
     top_up_diagonal,
+    weighted_identity_rows,
+    weighted_rows,
 )
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
@@ -170,12 +173,21 @@ def _intersect(box_limits: list[Limit], lowers: np.ndarray, uppers: np.ndarray, 
 
 
 def _orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
-    """Equivalent equality rows with orthonormal, independent rows (for consistent ``A x = b``)."""
+    """Equivalent equality rows with orthonormal, independent rows (for consistent ``A x = b``).
+
+    A Householder QR of ``A^T`` with column pivoting (:func:`orthonormal_rows_qr`), rank from
+    its pivots ``|R_kk| > tol max(1, |R_00|)``. Deviation from the earlier SVD basis (same
+    span, another orthonormal basis of it): the SVD cost ~20 us of the ~140 us QP step replayed
+    alone and more inside the episode, the compiled QR ~2 us; the paper episode's log then
+    differs from the SVD run by round-off only (joint positions <= 4e-12 rad over 20 s, see
+    the README's QP-speed notes).
+    """
     if A.shape[0] == 0:
         return A, b
-    U, s, Vt = np.linalg.svd(A, full_matrices=False)
-    rank = int(np.sum(s > tol * max(1.0, s[0])))
-    return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
+    k = min(A.shape)
+    rows, rhs = np.empty((k, A.shape[1])), np.empty(k)
+    rank = orthonormal_rows_qr(np.asarray(A, dtype=float), np.asarray(b, dtype=float), tol, rows, rhs)
+    return rows[:rank], rhs[:rank]
 
 
 class Solver:
@@ -215,6 +227,7 @@ class Solver:
         names = DEFAULT_FALLBACK_BACKENDS if fallback_backends is None else tuple(fallback_backends)
         self.fallback_backends = tuple(name for name in names if name != backend)
         self._unavailable: set[str] = set()
+        self._rows_buffer = np.empty((0, 0))
 
     def _backend(self, level: int, name: str | None = None) -> Backend:
         key = (name or self.backend_name, level)
@@ -254,12 +267,11 @@ class Solver:
         """:meth:`solve` with ``dt`` and ``previous_qdot`` already validated (the controller's path)."""
         n = configuration.nv
         box_limits = self._box_limits(limits, n)
-        for i, limit in enumerate(box_limits):
-            limit.fill_box(configuration, dt, previous_qdot, self._lowers[i], self._uppers[i])
-        G_rows, h_rows, separating = [], [], []
-        for limit in limits:
-            if limit.has_box:
-                continue
+        for limit, lower_row, upper_row in self._box_rows:
+            limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+        row_limits: list[tuple[Limit, np.ndarray]] = []  # (limit, its h): which rows may be relaxed
+        G_rows, h_rows = [], []
+        for limit in self._row_limits:
             rows = limit.compute(configuration, dt, previous_qdot)
             if rows.lower is not None:
                 raise InvalidInputError(
@@ -269,7 +281,7 @@ class Solver:
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
-                separating.append(np.full(len(rows.h), bool(getattr(limit, "separation_rows", False))))
+                row_limits.append((limit, rows.h))
         if len(G_rows) == 1:
             G, h = G_rows[0], h_rows[0]
         elif G_rows:
@@ -290,14 +302,20 @@ class Solver:
         else:
             A, b = np.zeros((0, n)), np.zeros(0)
         k = len(box_limits)
-        lower, upper, conflicts = _intersect(box_limits, self._lowers[:k], self._uppers[:k], n)
+        lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
         retries: list[str] = []
         try:
             return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=CONFIRMING_REPORTS)
         except SolverNotAvailableError:
             raise
         except SolverError as err:
-            sep = np.concatenate(separating) if separating else np.zeros(0, dtype=bool)
+            # Rows that ask for separation (may be lowered to "no further approach"), per limit.
+            sep = (
+                np.concatenate([
+                    np.full(len(rows_h), bool(getattr(limit, "separation_rows", False))) for limit, rows_h in row_limits
+                ])
+                if row_limits else np.zeros(0, dtype=bool)
+            )
             # First ignore a widening below the solvers' noise; if that leaves the QP
             # infeasible after all, take the widening exactly as computed.
             for tolerance in (RELAXATION_TOLERANCE, 0.0):
@@ -321,13 +339,22 @@ class Solver:
             return solution
 
     def _box_limits(self, limits: Sequence[Limit], n: int) -> list[Limit]:
-        """The box limits in priority order, with row buffers for their boxes (cached)."""
+        """The box limits in priority order, with row buffers for their boxes (cached).
+
+        Also caches, for the same ``limits``: ``_box_rows`` (each box limit with its rows of
+        the buffers), ``_lower_rows`` / ``_upper_rows`` (the buffers' rows in use) and
+        ``_row_limits`` (the limits with inequality rows, in the given order).
+        """
         key = (n, *map(id, limits))
         if key != self._box_key:
             self._box_key = key
             self._box_list = sorted((limit for limit in limits if limit.has_box), key=lambda lim: lim.priority)
             self._lowers = np.empty((max(len(self._box_list), 1), n))
             self._uppers = np.empty((max(len(self._box_list), 1), n))
+            k = len(self._box_list)
+            self._box_rows = [(limit, self._lowers[i], self._uppers[i]) for i, limit in enumerate(self._box_list)]
+            self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
+            self._row_limits = [limit for limit in limits if not limit.has_box]
         return self._box_list
 
     # ------------------------------------------------------------------ backends
@@ -420,14 +447,31 @@ class Solver:
             x = clip_inplace(x, lower, upper)
             if level != levels[-1] and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
-                rows = [
-                    (np.sqrt(task.weight)[:, None] * (np.eye(n) if J is None else J))[task.weight > 0]
-                    for task, J, _ in entries
-                ]
-                A_lvl = np.vstack([A, *rows])
+                A_lvl = self._level_rows(A, entries, n)
                 A, b = _orthonormal_rows(A_lvl, A_lvl @ x)
         solution.qdot = x
         return solution
+
+    def _level_rows(self, A: np.ndarray, entries, n: int) -> np.ndarray:
+        """``A`` stacked over each task's rows ``sqrt(w_r) J_r`` with ``w_r > 0`` (``J = I`` for
+        joint-space tasks): the rows that hold a level's optimum for the levels below it.
+
+        Bit for bit ``np.vstack([A, *[(np.sqrt(w)[:, None] * J)[w > 0] ...]])``, written into a
+        buffer kept between steps (the caller only reads it before the next step).
+        """
+        m = A.shape[0] + sum(task.weight.shape[0] if J is None else J.shape[0] for task, J, _ in entries)
+        buffer = self._rows_buffer
+        if buffer.shape[0] < m or buffer.shape[1] != n:
+            buffer = self._rows_buffer = np.empty((max(m, buffer.shape[0]), n))
+        row = A.shape[0]
+        if row:
+            buffer[:row] = A
+        for task, J, _ in entries:
+            if J is None:
+                row = weighted_identity_rows(task.weight, buffer, row)
+            else:
+                row = weighted_rows(J, task.weight, buffer, row)
+        return buffer[:row]
 
     # ------------------------------------------------------------------ relaxation
     def _least_relaxation(self, n, box_limits, lower, upper, A, b, G, h, separating, retries, tolerance=0.0):

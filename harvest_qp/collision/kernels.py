@@ -359,3 +359,11 @@ def collision_step(
         support, joint_type, joint_R, joint_p, axis, idx_v, safety, influence, gain, recovery_time, G, h, normals,
     )
     return n, n + extra
+
+
+@njit(cache=True)
+def clamp_approach_rows(h, approach_pair, row_pair, n_rows):
+    """``h[r] = 0`` where row ``r``'s pair is approach-only and ``h[r] < 0`` ("no further approach")."""
+    for r in range(n_rows):
+        if approach_pair[row_pair[r]] and h[r] < 0.0:
+            h[r] = 0.0

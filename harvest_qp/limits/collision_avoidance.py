@@ -374,18 +374,27 @@ class CollisionAvoidance(Limit):
         if self._any_approach_only and n_rows:
             # "No further approach" for approach-only capsules against obstacle spheres:
             # a negative bound (inside d_s) would push the capsule away.
-            h = self._h[:n_rows]
-            h[self._approach_pair[self._row_pair[:n_rows]] & (h < 0.0)] = 0.0
+            kernels.clamp_approach_rows(self._h, self._approach_pair, self._row_pair, n_rows)
         return LimitRows(G=self._G, h=self._h)
 
     def active_pair_distances(self) -> list[tuple[str, str, float]]:
         """Pairs that were rows of the last :meth:`compute`: both capsule names and distance [m]."""
-        names = self.capsule_names
-        return [
-            (names[self.pair_a[k]], names[self.pair_b[k]], float(self._dist[k])) for k in self.active_pairs
-        ]
+        return pairs_from_snapshot(self._active_pair_snapshot())
+
+    def _active_pair_snapshot(self) -> tuple:
+        """What :meth:`active_pair_distances` needs, frozen now (names and distances change next tick)."""
+        active = self.active_pairs
+        # capsule_names is changed in place by the obstacle map's feed: copy it (a shallow copy);
+        # pair_a / pair_b are replaced, never changed in place.
+        return list(self.capsule_names), self.pair_a, self.pair_b, active.copy(), self._dist[active]
 
     @property
     def row_pairs(self) -> np.ndarray:
         """Pair index of every row of the last :meth:`compute` (closest-point rows, then end-point rows)."""
         return self._row_pair[: self.num_rows]
+
+
+def pairs_from_snapshot(snapshot: tuple) -> list[tuple[str, str, float]]:
+    """``(name_a, name_b, distance [m])`` of each pair of a ``CollisionAvoidance._active_pair_snapshot``."""
+    names, pair_a, pair_b, active, distances = snapshot
+    return [(names[pair_a[k]], names[pair_b[k]], float(d)) for k, d in zip(active.tolist(), distances.tolist())]

@@ -1,0 +1,232 @@
+"""The QP step's fast paths against what they replaced (numpy, LAPACK's SVD, pinocchio, the eager lists).
+
+Each fast path of the control tick (issue 7 section 7) is compared with an independent
+computation of the same quantity: bit for bit where the fast path must not change results,
+to round-off where it is a different algorithm (the QR basis of the level rows).
+"""
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from harvest_qp import Configuration, TaskController
+from harvest_qp.backends import DaqpBackend
+from harvest_qp.collision.kernels import clamp_approach_rows
+from harvest_qp.limits import CollisionAvoidance
+from harvest_qp.qp_kernels import (
+    load_daqp_rows,
+    orthonormal_rows_qr,
+    same_bits,
+    weighted_identity_rows,
+    weighted_rows,
+)
+from harvest_qp.robot.description import HOME_Q
+from harvest_qp.solver import _orthonormal_rows
+from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
+
+
+def _low_rank(rng, m, n, rank, scale):
+    return scale * rng.normal(size=(m, rank)) @ rng.normal(size=(rank, n))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_orthonormal_rows_span_the_rows_and_keep_the_equalities_like_the_svd(seed):
+    """Oracle: numpy's SVD (the basis used before). Same rank, same row space (projectors agree),
+    orthonormal rows, and every x with ``A x = c`` satisfies the new rows.
+
+    Bugs caught: a wrong Householder scale (rows not orthonormal), a missing pivot (rank lost
+    on a rank-deficient stack), a transposed triangular solve (right-hand side wrong).
+    """
+    rng = np.random.default_rng(seed)
+    for m, rank, scale in ((11, 11, 1.0), (14, 9, 1e-3), (5, 2, 1e3), (13, 12, 1.0), (1, 1, 1.0)):
+        A = _low_rank(rng, m, 12, rank, scale)
+        x0 = rng.normal(size=12)
+        c = A @ x0
+        rows, rhs = _orthonormal_rows(A, c)
+        s = np.linalg.svd(A, compute_uv=False)
+        expected_rank = int(np.sum(s > 1e-9 * max(1.0, s[0])))
+        assert rows.shape == (expected_rank, 12)
+        np.testing.assert_allclose(rows @ rows.T, np.eye(expected_rank), atol=1e-12)
+        Vt = np.linalg.svd(A)[2][:expected_rank]
+        np.testing.assert_allclose(rows.T @ rows, Vt.T @ Vt, atol=1e-9)
+        np.testing.assert_allclose(rows @ x0, rhs, atol=1e-9 * max(1.0, np.abs(rhs).max()))
+        # Another point of the same affine set (x0 plus a null-space direction) satisfies them too.
+        null = np.eye(12) - Vt.T @ Vt
+        x1 = x0 + null @ rng.normal(size=12)
+        np.testing.assert_allclose(rows @ x1, rhs, atol=1e-8 * max(1.0, np.abs(rhs).max()))
+
+
+def test_orthonormal_rows_drop_an_exactly_repeated_row():
+    """Oracle: by hand. Two equal rows and one independent row have rank 2, and the kept rows
+    reproduce both right-hand sides. Bug caught: a rank threshold that keeps a zero pivot."""
+    A = np.array([[1.0, 2.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 3.0]])
+    c = A @ np.array([0.5, -1.0, 2.0])
+    rows = np.empty((3, 3))
+    rhs = np.empty(3)
+    rank = orthonormal_rows_qr(A, c, 1e-9, rows, rhs)
+    assert rank == 2
+    x = np.linalg.lstsq(rows[:rank], rhs[:rank], rcond=None)[0]
+    np.testing.assert_allclose(A @ x, c, atol=1e-12)
+
+
+def test_weighted_rows_are_bit_identical_to_numpy(configuration, rng):
+    """Oracle: ``(np.sqrt(w)[:, None] * J)[w > 0]`` (the expression they replace), bit for bit.
+    Bug caught: a row with zero weight kept, or sqrt(w) applied twice."""
+    J = np.asfortranarray(rng.normal(size=(6, 12)))  # pinocchio hands out Fortran-ordered Jacobians
+    w = np.array([1.0, 0.0, 2.5, 1e-3, 0.0, 7.0])
+    out = np.full((20, 12), np.nan)
+    end = weighted_rows(J, w, out, 3)
+    expected = (np.sqrt(w)[:, None] * J)[w > 0]
+    assert end == 3 + expected.shape[0]
+    assert np.array_equal(out[3:end], expected)
+    wj = rng.uniform(0, 2, 12)
+    wj[[2, 7]] = 0.0
+    end2 = weighted_identity_rows(wj, out, end)
+    assert np.array_equal(out[end:end2], (np.sqrt(wj)[:, None] * np.eye(12))[wj > 0])
+
+
+def test_load_daqp_rows_writes_what_the_slice_assignments_wrote(rng):
+    """Oracle: the numpy slice assignments of the backend before (copied here), bit for bit,
+    for a QP with equalities after one with more equalities (slots to clear) and without.
+    Bug caught: an equality slot left over from the previous QP (a stale constraint)."""
+    n, n_in, inf = 12, 5, 1e30
+
+    def by_slices(A_buf, upper, lower, sense, A, b, G, h, lo, hi, n_eq_before):
+        n_eq = A.shape[0]
+        if n_eq or n_eq_before:
+            A_buf[:n] = 0.0
+            A_buf[:n_eq] = A
+            upper[n:2 * n] = inf
+            lower[n:2 * n] = -inf
+            upper[n:n + n_eq] = b
+            lower[n:n + n_eq] = b
+            sense[n:2 * n] = 0
+            sense[n:n + n_eq] = 5
+        A_buf[n:] = G
+        upper[2 * n:] = h
+        upper[:n] = hi
+        lower[:n] = lo
+        return n_eq if (n_eq or n_eq_before) else n_eq_before
+
+    buffers = [[np.zeros((n + n_in, n)), np.full(2 * n + n_in, inf), np.full(2 * n + n_in, -inf),
+                np.zeros(2 * n + n_in, dtype=np.int32)] for _ in range(2)]
+    n_eq_before = [0, 0]
+    for n_eq in (7, 3, 0, 0, 11):
+        A, b = rng.normal(size=(n_eq, n)), rng.normal(size=n_eq)
+        G, h = rng.normal(size=(n_in, n)), rng.normal(size=n_in)
+        lo, hi = -rng.uniform(size=n), rng.uniform(size=n)
+        n_eq_before[0] = load_daqp_rows(*buffers[0], A, b, G, h, lo, hi, n_eq_before[0], inf)
+        n_eq_before[1] = by_slices(*buffers[1], A, b, G, h, lo, hi, n_eq_before[1])
+        for fast, slow in zip(*buffers):
+            assert np.array_equal(fast, slow)
+
+
+def test_same_bits_tells_zero_from_minus_zero():
+    """Oracle: the bit patterns. Bug caught: ``==`` semantics (0.0 == -0.0) skipping a needed update."""
+    a = np.array([0.0, 1.0])
+    assert same_bits(a, a.copy())
+    assert not same_bits(a, np.array([-0.0, 1.0]))
+    assert not same_bits(a, np.array([0.0, 1.0 + 1e-16 * 2]))
+    assert not same_bits(a, np.zeros(3))
+
+
+def test_skipped_kinematics_update_equals_a_fresh_one(rng):
+    """Oracle: pinocchio on fresh data. After ``_update_if_changed`` with the same q (skipped),
+    with another q, and after the q array handed out by ``Configuration.q`` was changed in
+    place, placements and Jacobians are those of the q given.
+    Bug caught: comparing against the array the caller can change (a stale update skipped)."""
+    config = Configuration.dual_ur5e()
+    frame = config.frame_id("camera")
+
+    def check(q):
+        data = config.model.createData()
+        pin.computeJointJacobians(config.model, data, q)
+        pin.updateFramePlacements(config.model, data)
+        expected = pin.getFrameJacobian(config.model, data, frame, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        assert np.array_equal(config.frame_jacobian("camera"), expected)
+        assert np.array_equal(config.frame_position("camera"), data.oMf[frame].translation)
+        assert np.array_equal(config.q, q)
+
+    q1 = HOME_Q + rng.normal(0, 0.2, 12)
+    config.update(q1)
+    config._update_if_changed(q1.copy())
+    check(q1)
+    q2 = q1 + 0.05
+    config._update_if_changed(q2.copy())
+    check(q2)
+    config.q[:] = q1  # changed in place behind the kinematics' back
+    config._update_if_changed(q1.copy())
+    check(q1)
+
+
+def test_controller_active_pairs_equal_the_limits_pairs_of_that_tick(rng):
+    """Oracle: ``CollisionAvoidance.active_pair_distances`` right after the step. The lazy list
+    read after a later step still holds the earlier tick's pairs and distances.
+    Bug caught: a snapshot that aliases the limit's buffers (pairs of the wrong tick)."""
+    config = Configuration.dual_ur5e(HOME_Q)
+    limit = CollisionAvoidance.dual_ur5e(config, influence_distance=0.3)
+    limit.set_obstacle_spheres(rng.uniform([0.3, -0.3, 0.9], [0.7, 0.6, 1.3], (6, 3)), 0.05)
+    camera = FrameTwistTask("camera")
+    camera.set_reference([0.05, 0.0, -0.05, 0.0, 0.0, 0.0])
+    controller = TaskController(config, [camera, PostureTask(HOME_Q, weight=1e-3), DampingTask(12)], [limit])
+    steps, eager = [], []
+    for _ in range(5):
+        # Another posture every tick: other pairs (a view of the limit's buffer would show the last tick's).
+        q = HOME_Q + rng.normal(0, 0.15, 12)
+        controller.reset()
+        result = controller.step(q)
+        steps.append(result)
+        eager.append(limit.active_pair_distances())
+    assert any(eager)
+    assert len({tuple(pairs) for pairs in eager}) > 1
+    for result, pairs in zip(steps, eager):
+        assert result.active_pairs == pairs
+
+
+def test_clamp_approach_rows_matches_the_numpy_mask():
+    """Oracle: the numpy expression it replaced. Bug caught: clamping rows of other pairs, or -0.0 rows."""
+    h = np.array([-0.2, 0.3, -0.1, -0.0, -0.5, 0.1])
+    row_pair = np.array([0, 1, 2, 3, 0, 4])
+    approach = np.array([True, False, True, True, False])
+    expected = h.copy()
+    expected[approach[row_pair] & (expected < 0.0)] = 0.0
+    clamp_approach_rows(h, approach, row_pair, 5)  # the last row is not in use: left alone
+    expected[5] = 0.1
+    assert np.array_equal(h, expected)
+    assert np.signbit(h[3])
+
+
+def test_daqp_backend_fast_check_rejects_what_checked_rejects(rng):
+    """Oracle: the scale-relative violation of ``QPProblem.scaled_violation``. An answer outside
+    the tolerance raises SolverAccuracyError with the violation; one inside is returned.
+    Bug caught: the inlined check returning x without looking at the violation."""
+    from harvest_qp.backends import FEASIBILITY_TOLERANCE, SolverAccuracyError
+    from harvest_qp.solver import QPProblem
+
+    n = 3
+    problem = QPProblem(
+        H=np.eye(n), f=rng.normal(size=n), lower=-np.ones(n), upper=np.ones(n),
+        A=np.zeros((0, n)), b=np.zeros(0), G=np.array([[1.0, 0.0, 0.0]]), h=np.array([0.2]),
+    )
+    backend = DaqpBackend()
+    x = backend.solve(problem)
+    assert problem.scaled_violation(x) <= FEASIBILITY_TOLERANCE
+
+    class Answer:  # stands in for daqp.Model: returns a given x
+        def __init__(self, x):
+            self.x = x
+
+        def update(self, **kwargs):
+            return 0
+
+        def solve(self):
+            return self.x.copy(), 0.0, 1, {}
+
+    bad = np.array([0.2 + 1e-5, 0.0, 0.0])  # row off by 1e-5 / (1 + 0.2 + 0.2): ~7e-6 > 1e-7
+    backend._model = Answer(bad)
+    with pytest.raises(SolverAccuracyError) as info:
+        backend.solve(problem)
+    assert info.value.violation == pytest.approx(problem.scaled_violation(bad))
+    good = np.array([0.2 + 1e-9, 0.0, 0.0])
+    backend._model = Answer(good)
+    assert np.array_equal(backend.solve(problem), good)
