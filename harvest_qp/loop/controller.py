@@ -46,7 +46,9 @@ Where this differs from the paper (measured in ``/work/shared/FINDINGS.md``):
 
 from __future__ import annotations
 
+import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
@@ -68,8 +70,9 @@ from harvest_qp.references import (
     StemStretching,
     Unveiling,
     predicted_stem_points,
-    switch_ready,
 )
+from harvest_qp.references._checks import as_position, cross3
+from harvest_qp.references.coordination import _switch_ready
 from harvest_qp.runner import Command, Observation
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 
@@ -146,7 +149,16 @@ class _State:
     frame: _Frame | None = None
     hold_pose: pin.SE3 | None = None
     previous_qdot: np.ndarray = field(default_factory=lambda: np.zeros(12))
-    camera_history: list = field(default_factory=list)
+    camera_history: deque = field(default_factory=deque)
+    #: hold_pose's translation and transposed rotation, read once (pinocchio builds a new
+    #: array on every attribute access).
+    hold_translation: np.ndarray | None = None
+    hold_rotation_T: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.hold_pose is not None:
+            self.hold_translation = self.hold_pose.translation
+            self.hold_rotation_T = self.hold_pose.rotation.T
 
 
 @dataclass(frozen=True)
@@ -184,11 +196,17 @@ def _rotations_between(a: np.ndarray, b: np.ndarray, fractions) -> np.ndarray:
     return (np.eye(3) + np.sin(th)[..., None, None] * K[:, None] + (1 - np.cos(th))[..., None, None] * K2[:, None])
 
 
+#: Shared read-only values of the per-tick log and references (the runner copies what it logs).
+_NAN3 = np.full(3, np.nan)
+_NAN3.setflags(write=False)
+_ZEROS6 = np.zeros(6)
+_ZEROS6.setflags(write=False)
+
+
 def _pose_matrix(pose: pin.SE3) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = pose.rotation
-    T[:3, 3] = pose.translation
-    return T
+    """The ``(4, 4)`` homogeneous matrix of ``pose``: a new C-ordered array (pinocchio's own
+    ``homogeneous``, the same numbers as filling ``np.eye(4)``, ~10x cheaper)."""
+    return pose.homogeneous
 
 
 def _wrap_half_turn(angle: float) -> float:
@@ -678,14 +696,26 @@ class HarvestController:
         history.append((t, T_c[:3, 3].copy(), T_c[:3, 2].copy()))
         window = self.settings["switch"]["window"]
         while len(history) > 1 and history[1][0] <= t - window + 1e-12:
-            history.pop(0)
+            history.popleft()
         t0, p0, z0 = history[0]
         if t - t0 < window - 1e-9:
             return float("inf"), float("inf")
         span = t - t0
-        linear = float(np.linalg.norm(T_c[:3, 3] - p0)) / span
-        angular = float(np.arccos(np.clip(z0 @ T_c[:3, 2], -1.0, 1.0))) / span
+        moved = T_c[:3, 3] - p0
+        linear = math.sqrt(float(moved @ moved)) / span  # = np.linalg.norm, bit for bit
+        # np.arccos, not math.acos: the two differ in the last bit on ~10 % of arguments.
+        angular = float(np.arccos(min(max(float(z0 @ T_c[:3, 2]), -1.0), 1.0))) / span
         return linear, angular
+
+    def _keep_out_linear(self, T_c: np.ndarray) -> np.ndarray | None:
+        """The linear part of :meth:`_keep_out` [m/s], or None where it is zero."""
+        r = self.settings["reaching"]
+        minimum = r["min_distance_factor"] * r["radius"]
+        offset = T_c[:3, 3] - self.reaching.roi_centre
+        distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+        if minimum > 0 and 1e-9 < distance < minimum:
+            return r["k_keep_out"] * (minimum - distance) * offset / distance
+        return None
 
     def _keep_out(self, T_c: np.ndarray) -> np.ndarray:
         """Outward speed below the minimum distance from the ROI centre (beyond the paper).
@@ -695,13 +725,10 @@ class HarvestController:
         the default scene without occluder, colliding with the vine and blind below the
         camera's 0.1 m minimum depth).
         """
-        r = self.settings["reaching"]
-        minimum = r["min_distance_factor"] * r["radius"]
-        offset = T_c[:3, 3] - self.reaching.roi_centre
-        distance = float(np.linalg.norm(offset))
         twist = np.zeros(6)
-        if minimum > 0 and 1e-9 < distance < minimum:
-            twist[:3] = r["k_keep_out"] * (minimum - distance) * offset / distance
+        linear = self._keep_out_linear(T_c)
+        if linear is not None:
+            twist[:3] = linear
         return twist
 
     def _roll_reference(self, T_c: np.ndarray, direction: np.ndarray | None) -> tuple[np.ndarray, float]:
@@ -711,19 +738,25 @@ class HarvestController:
             return twist, float("nan")
         z, y = T_c[:3, 2], T_c[:3, 1]
         d = direction - (direction @ z) * z
-        if np.linalg.norm(d) < 1e-6:
+        if math.sqrt(float(d @ d)) < 1e-6:  # = np.linalg.norm, bit for bit
             return twist, float("nan")
-        angle = _wrap_half_turn(float(np.arctan2(np.cross(y, d) @ z, y @ d)))
+        # np.arctan2 (not math.atan2, which differs in the last bit) on the same numpy scalars.
+        angle = _wrap_half_turn(float(np.arctan2(cross3(y, d) @ z, y @ d)))
         twist[3:] = self.settings["roll"]["k_roll"] * angle * z
         return twist, angle
 
     def step(self, obs: Observation) -> Command:
+        # Speed (this runs every 2 ms tick): the reference laws are called through their
+        # unchecked private paths (the arguments are the loop's own, already well-formed), and
+        # the 3-vector arithmetic avoids np.cross / np.linalg.norm; every numpy dot product and
+        # transcendental call of the checked version is kept, so the results are bit-identical.
         st, s = self.state, self.settings
         t = float(obs.time)
         config = self.configuration
         config.update(obs.q)
-        T_c = _pose_matrix(config.data.oMf[self._camera_id])
-        T_g = _pose_matrix(config.data.oMf[self._gripper_id])
+        oMf = config.data.oMf
+        T_c = _pose_matrix(oMf[self._camera_id])
+        T_g = _pose_matrix(oMf[self._gripper_id])
         timing = self.timing
         if obs.new_cloud and obs.cloud is not None:
             t0 = time.perf_counter()
@@ -734,45 +767,55 @@ class HarvestController:
                 timing.setdefault("perception", []).append(time.perf_counter() - t0)
         t_ref = time.perf_counter()
 
-        if st.phase == Phase.APPROACH:
+        phase = st.phase
+        if phase == Phase.APPROACH:
             if st.p_sb is None and t > s["safety"]["no_stem_timeout"]:
                 self._abort(t, f"no stem base found within {s['safety']['no_stem_timeout']} s")
             else:
                 linear_speed, angular_speed = self._camera_speeds(t, T_c)
                 self._switch_gripper_pose = T_g
-                sw = s["switch"]
-                distance = float(np.linalg.norm(self.reaching.roi_centre - T_c[:3, 3]))
-                if st.p_sb is not None and switch_ready(
-                    distance, s["reaching"]["radius"], linear_speed, angular_speed,
-                    distance_factor=sw["distance_factor"], max_linear=sw["max_linear_speed"],
-                    max_angular=sw["max_angular_speed"],
-                ):
-                    self._try_switch(t, obs)
-        elif st.phase in (Phase.BIMANUAL, Phase.PRECUT):
+                if st.p_sb is not None:
+                    sw = s["switch"]
+                    offset = self.reaching.roi_centre - T_c[:3, 3]
+                    distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+                    if _switch_ready(distance, s["reaching"]["radius"], linear_speed, angular_speed,
+                                     sw["distance_factor"], sw["max_linear_speed"], sw["max_angular_speed"]):
+                        self._try_switch(t, obs)
+        elif phase == Phase.BIMANUAL or phase == Phase.PRECUT:
             if t - st.last_stem_time > s["safety"]["stem_lost_timeout"]:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
         values: dict[str, Any] = {}
-        V_c = np.zeros(6)
-        V_g = np.zeros(6)
+        V_c = _ZEROS6
+        V_g = _ZEROS6
+        roll = None
         force_nc = float("nan")
+        roi_distance = None
         if st.phase != Phase.ABORT:
-            V_cr = self.reaching.update(T_c, self.dt) + self._keep_out(T_c)
-            V_cu = self.unveiling.update(self.dt) if s["unveiling"]["enabled"] else np.zeros(6)
-            V_c = V_cr + V_cu
+            dt = self.dt
+            reaching = self.reaching
+            V_c = reaching._update_unchecked(T_c, dt)  # V_cr: a new array, owned here
+            roi_distance = reaching.distance  # |p_r - p_c| with this tick's filtered p_r
+            keep_out = self._keep_out_linear(T_c)
+            if keep_out is not None:
+                V_c[:3] += keep_out
+            if s["unveiling"]["enabled"]:
+                V_c = V_c + self.unveiling._update_unchecked(dt)  # V_cr + V_cu
             if st.phase == Phase.APPROACH:
-                hold = st.hold_pose
                 k = s["grasping"]["k_hold"]
-                V_g[:3] = -k * (T_g[:3, 3] - hold.translation)
-                V_g[3:] = -k * pin.log3(T_g[:3, :3] @ hold.rotation.T)
+                V_g = np.empty(6)
+                V_g[:3] = -k * (T_g[:3, 3] - st.hold_translation)
+                V_g[3:] = -k * pin.log3(T_g[:3, :3] @ st.hold_rotation_T)
                 direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
             else:
-                force = np.asarray(obs.force, float) if t > st.t_switch else np.zeros(3)
-                V_g = self.stretching.update(T_g, force, self.dt)
-                force_nc = float(self.stretching.n_c @ force)
+                # The wrist force is the robot's reading: checked as StemStretching.update does.
+                force = as_position(obs.force, "force") if t > st.t_switch else np.zeros(3)
+                stretching = self.stretching
+                V_g = stretching._update_unchecked(T_g, force, dt)
+                force_nc = stretching.force_along_nc  # float(n_c @ force)
                 if s["grasping"]["feed_forward"]:
-                    V_c = V_c + self.feed_forward(V_g[:3], T_c[:3, 3], st.p_sb)
-                direction = self.stretching.n_c
+                    V_c = V_c + self.feed_forward._call_unchecked(V_g[:3], T_c[:3, 3] - st.p_sb)
+                direction = stretching.n_c
                 if force_nc > self.force_limit:
                     self._abort(t, f"stem force {force_nc:.2f} N above the limit {self.force_limit:.2f} N")
                 else:
@@ -782,7 +825,7 @@ class HarvestController:
                     if st.force_filtered is None or tau == 0:
                         st.force_filtered = force_nc
                     else:
-                        st.force_filtered += (-np.expm1(-self.dt / tau)) * (force_nc - st.force_filtered)
+                        st.force_filtered += (-np.expm1(-dt / tau)) * (force_nc - st.force_filtered)
                     self._check_precut(t, st.force_filtered)
             roll, roll_angle = self._roll_reference(T_c, direction)
             values["roll_error"] = roll_angle
@@ -802,14 +845,15 @@ class HarvestController:
             self.roll_task.set_reference(roll)
             if self.map_feed is not None:
                 values["map_cells"] = float(self.map_feed.update(obs.q))
-            previous = self.qp.previous_qdot.copy()
+            backup_solver = self.qp_backup
+            previous = self.qp.previous_qdot.copy() if backup_solver is not None else None
             result = self.qp.step(obs.q)
-            if not result.ok and self.qp_backup is not None:
+            if not result.ok and backup_solver is not None:
                 # Stopgap until the QP core retries itself (issue 10 section 1): daqp answers
                 # slightly outside the constraints (2e-7..1e-6) and the core brakes; the same
                 # problem is re-solved by the backup backend from the same previous command.
-                self.qp_backup.previous_qdot = previous
-                backup = self.qp_backup.step(obs.q)
+                backup_solver.previous_qdot = previous
+                backup = backup_solver.step(obs.q)
                 if backup.ok:
                     st.backup_solves += 1
                     result = backup
@@ -826,18 +870,18 @@ class HarvestController:
             t_end = time.perf_counter()
             timing.setdefault("references", []).append(t_map - t_ref)
             timing.setdefault("mapper", []).append(t_end - t_map)
+        qdot = np.asarray(qdot, float)
         if st.phase != Phase.ABORT:
-            self.qp.previous_qdot = np.asarray(qdot, float)
-        st.previous_qdot = np.asarray(qdot, float)
+            self.qp.previous_qdot = qdot
+        st.previous_qdot = qdot
 
-        values.update(self._log_values(T_c, V_c, V_g, force_nc))
+        self._log_values(T_c, V_c, V_g, force_nc, into=values, roi_distance=roi_distance)
         done = False
-        end_after = s["episode"]["end_after_precut"]
-        if st.phase == Phase.PRECUT and end_after is not None and t - st.t_precut >= end_after:
-            done = True
-        stop_after = s["episode"]["stop_after_abort"]
-        if st.phase == Phase.ABORT and st.t_at_rest is not None and t - st.t_at_rest >= stop_after:
-            done = True
+        if st.phase == Phase.PRECUT:
+            end_after = s["episode"]["end_after_precut"]
+            done = end_after is not None and t - st.t_precut >= end_after
+        elif st.phase == Phase.ABORT:
+            done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
         return Command(qdot=qdot, status=status, values=values, collision_pairs=self._active_pairs(), done=done)
 
     def _check_precut(self, t: float, force_nc: float) -> None:
@@ -855,41 +899,54 @@ class HarvestController:
         if st.phase == Phase.BIMANUAL and t - st.precut_since >= p["hold_time"]:
             st.phase, st.t_precut = Phase.PRECUT, t
 
-    def _log_values(self, T_c: np.ndarray, V_c: np.ndarray, V_g: np.ndarray, force_nc: float) -> dict[str, Any]:
+    def _log_values(self, T_c: np.ndarray, V_c: np.ndarray, V_g: np.ndarray, force_nc: float, *,
+                    into: dict[str, Any] | None = None, roi_distance: float | None = None) -> dict[str, Any]:
+        """The per-tick values for the log (``value/<name>``), added to ``into`` (a new dict by default).
+
+        ``roi_distance``: |p_r - p_c| [m] if already computed this tick with the current p_r
+        (:attr:`ReachingCentering.distance` right after its update), else computed here.
+        The arrays are the controller's own (views of this tick's poses, the reference laws'
+        latest outputs, a shared read-only NaN vector): the runner copies them into its log.
+        """
         st = self.state
-        nan3 = np.full(3, np.nan)
-        bimanual = st.phase in (Phase.BIMANUAL, Phase.PRECUT) or st.t_switch is not None
-        return {
-            "phase": float(st.phase),
-            "p_r": self.reaching.roi_centre,
-            "p_c": T_c[:3, 3],
-            "z_c": T_c[:3, 2],
-            "x_c": T_c[:3, 0],
-            "p_sb": st.p_sb if st.p_sb is not None else nan3,
-            "p_gd": st.p_gd if st.p_gd is not None else nan3,
-            "n_c": self.stretching.n_c if bimanual else nan3,
-            "V_c": V_c,
-            "V_g": V_g,
-            "force_nc": force_nc,
-            "theta": self.reaching.theta,
-            "roi_distance": float(np.linalg.norm(self.reaching.roi_centre - T_c[:3, 3])),
-            "position_error": self.stretching.position_error if bimanual else float("nan"),
-            "alignment": self.stretching.alignment if bimanual else float("nan"),
-            "unveiling_pairs": float(self.unveiling.n_pairs),
-        }
+        values = {} if into is None else into
+        bimanual = st.phase == Phase.BIMANUAL or st.phase == Phase.PRECUT or st.t_switch is not None
+        reaching, stretching = self.reaching, self.stretching
+        if roi_distance is None:
+            offset = reaching.roi_centre - T_c[:3, 3]
+            roi_distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+        values["phase"] = float(st.phase)
+        values["p_r"] = reaching.roi_centre
+        values["p_c"] = T_c[:3, 3]
+        values["z_c"] = T_c[:3, 2]
+        values["x_c"] = T_c[:3, 0]
+        values["p_sb"] = st.p_sb if st.p_sb is not None else _NAN3
+        values["p_gd"] = st.p_gd if st.p_gd is not None else _NAN3
+        values["n_c"] = stretching.n_c if bimanual else _NAN3
+        values["V_c"] = V_c
+        values["V_g"] = V_g
+        values["force_nc"] = force_nc
+        values["theta"] = reaching.theta
+        values["roi_distance"] = roi_distance
+        values["position_error"] = stretching.position_error if bimanual else float("nan")
+        values["alignment"] = stretching.alignment if bimanual else float("nan")
+        values["unveiling_pairs"] = float(self.unveiling.n_pairs)
+        return values
 
     def _active_pairs(self) -> list[tuple[str, str, float]]:
         lim = self.collision
         if lim is None or self.mapper_kind != "qp":
             return []
-        active = getattr(lim, "active_pairs", ())
+        active = np.asarray(getattr(lim, "active_pairs", ()), dtype=np.int64)
+        if active.size == 0:
+            return []
         names = lim.capsule_names
         distances = getattr(lim, "_dist", None)
-        out = []
-        for index in np.asarray(active, dtype=np.int64):
-            d = float(distances[index]) if distances is not None else float("nan")
-            out.append((names[lim.pair_a[index]], names[lim.pair_b[index]], d))
-        return out
+        # One fancy index and tolist() per column instead of numpy scalar indexing per pair.
+        first = lim.pair_a[active].tolist()
+        second = lim.pair_b[active].tolist()
+        gaps = distances[active].tolist() if distances is not None else [float("nan")] * len(first)
+        return [(names[a], names[b], float(d)) for a, b, d in zip(first, second, gaps)]
 
     # ------------------------------------------------------------------ summary
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from harvest_qp.references._checks import as_position, as_positive_scalar
+from harvest_qp.references._checks import as_position, as_positive_scalar, cross3
 
 __all__ = ["GraspFeedForward", "switch_ready"]
 
@@ -44,7 +44,12 @@ class GraspFeedForward:
         """
         v = as_position(v_gt, "v_gt")
         lever = as_position(camera_position, "camera_position") - as_position(stem_base, "stem_base")
-        angular = np.cross(lever, v)  # S(p_c - p_sb) v_gt
+        return self._call_unchecked(v, lever)
+
+    def _call_unchecked(self, v: NDArray[np.float64], lever: NDArray[np.float64]) -> NDArray[np.float64]:
+        """:meth:`__call__` from v_gt [m/s] and p_c - p_sb [m] (float64 ``(3,)``), without checks
+        (the control loop)."""
+        angular = cross3(lever, v)  # S(p_c - p_sb) v_gt; bit-identical to np.cross
         if self.normalise:
             squared = float(lever @ lever)
             angular = angular / squared if squared > 0.0 else np.zeros(3)
@@ -76,4 +81,21 @@ def switch_ready(
     distance_factor = as_positive_scalar(distance_factor, "distance_factor")
     max_linear = as_positive_scalar(max_linear, "max_linear")
     max_angular = as_positive_scalar(max_angular, "max_angular")
+    return _switch_ready(distance, radius, linear_speed, angular_speed, distance_factor, max_linear, max_angular)
+
+
+def _switch_ready(
+    distance: float,
+    radius: float,
+    linear_speed: float,
+    angular_speed: float,
+    distance_factor: float,
+    max_linear: float,
+    max_angular: float,
+) -> bool:
+    """:func:`switch_ready` without the argument checks (the control loop, on its checked settings).
+
+    A speed of ``inf`` (the loop's "window not full yet") is simply not below the threshold
+    here, where :func:`switch_ready` rejects it as not finite.
+    """
     return distance <= distance_factor * radius and linear_speed < max_linear and angular_speed < max_angular

@@ -123,6 +123,16 @@ class StemStretching:
         dt = as_time_step(dt)
         if self.target is None:
             raise InvalidInputError("StemStretching.update needs a target: call set_target(p_sb, p_gd) first")
+        return self._update_unchecked(pose, f, dt)
+
+    def _update_unchecked(
+        self, pose: NDArray[np.float64], f: NDArray[np.float64], dt: float
+    ) -> NDArray[np.float64]:
+        """:meth:`update` without the argument checks, for the library's control loop.
+
+        ``pose``: float64 ``(4, 4)`` homogeneous pose; ``f``: contiguous float64 ``(3,)`` [N]
+        (both as :meth:`update`'s checks return them); ``dt`` > 0 [s]; a target set.
+        """
         n = self.n_c
         # eq:gr_pos_contr on the space orthogonal to n_c.
         e_pg = pose[:3, 3] - self.target
@@ -152,7 +162,7 @@ class StemStretching:
         # eq:rot_contr
         y_g = pose[:3, 1]
         v_gw = -self.k_og * cross3(n, y_g)
-        self.position_error = float(np.linalg.norm(projected))
+        self.position_error = math.sqrt(float(projected @ projected))  # = np.linalg.norm, bit for bit
         self.alignment = math.atan2(math.sqrt(float(v_gw @ v_gw)) / self.k_og, float(y_g @ n))
         self.force_along_nc = force_along
         self.v_gt = v_p + v_f

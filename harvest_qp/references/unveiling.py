@@ -491,12 +491,16 @@ class Unveiling:
 
     def update(self, dt: float) -> NDArray[np.float64]:
         """Advance the first-order low-pass towards :attr:`raw` by ``dt`` [s]; returns V_cu ``(6,)``."""
-        dt = as_time_step(dt)
+        return self._update_unchecked(as_time_step(dt)).copy()
+
+    def _update_unchecked(self, dt: float) -> NDArray[np.float64]:
+        """:meth:`update` for the control loop: ``dt`` > 0 [s] unchecked, and :attr:`value`
+        itself returned (a new array each call; the caller must not modify it)."""
         if self.time_constant == 0.0:
             self.value = self.raw.copy()
         else:
             self.value = self.value + (-math.expm1(-dt / self.time_constant)) * (self.raw - self.value)
-        return self.value.copy()
+        return self.value
 
     @property
     def clear_fraction(self) -> float:
