@@ -218,6 +218,23 @@ def _rows(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return points[mask]
 
 
+def _first_in_each_voxel(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of the first point in each occupied voxel of edge ``voxel`` [m], ascending.
+
+    The same as ``np.sort(np.unique(keys, axis=0, return_index=True)[1])`` on the integer
+    voxel keys, whose row-wise unique sorts (n, 3) records; here the three keys are packed
+    into one int64 (21 bits each, offset by their minimum) and a 1-D unique does it (both
+    return each key's first occurrence). Keys spanning more than 2^21 voxels fall back.
+    """
+    keys = np.floor(points / voxel).astype(np.int64)
+    keys -= keys.min(axis=0)
+    if int(keys.max()) >= 1 << 21:
+        _, first = np.unique(keys, axis=0, return_index=True)
+    else:
+        _, first = np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2], return_index=True)
+    return np.sort(first)
+
+
 def _pose_matrix(pose: pin.SE3) -> np.ndarray:
     """The ``(4, 4)`` homogeneous matrix of ``pose``: a new C-ordered array (pinocchio's own
     ``homogeneous``, the same numbers as filling ``np.eye(4)``, ~10x cheaper)."""
@@ -496,9 +513,7 @@ class HarvestController:
         outside_cluster = np.einsum("ij,ij->i", radial, radial) > o["cluster_radius"] ** 2
         points = points[outside_cluster]
         if len(points):
-            keys = np.floor(points / o["voxel"]).astype(np.int64)
-            _, first = np.unique(keys, axis=0, return_index=True)
-            centres = points[np.sort(first)]
+            centres = points[_first_in_each_voxel(points, o["voxel"])]
         else:
             centres = np.zeros((0, 3))
         self.collision.set_obstacle_spheres(centres, o["radius"])
@@ -710,7 +725,7 @@ class HarvestController:
         step = self.max_acceleration * self.dt
         return prev - np.clip(prev, -step, step)
 
-    def _camera_speeds(self, t: float, T_c: np.ndarray) -> tuple[float, float]:
+    def _camera_speeds(self, t: float, T_c: np.ndarray, *, measure: bool = True) -> tuple[float, float]:
         """Mean camera speeds over the last ``switch.window`` [m/s], [rad/s] for the switch rule.
 
         Linear: displacement of p_c over the window / window; angular: the angle turned by the
@@ -718,20 +733,24 @@ class HarvestController:
         Deviation: the paper compares the instantaneous tip speeds; with V_cu acting, the
         camera dithers about a fixed view (measured +-0.06 rad/s on seed 1) and never met
         0.025 rad/s in 35 s, while its mean motion was nil.
+
+        Every call records the pose; with ``measure`` false (no stem base yet: the switch
+        rule is not evaluated) the speeds are not computed and (inf, inf) is returned.
         """
         history = self.state.camera_history
-        history.append((t, T_c[:3, 3].copy(), T_c[:3, 2].copy()))
+        # T_c is this tick's own new array (never modified): kept whole, p_c read from it later.
+        history.append((t, T_c, T_c[:3, 2].copy()))
         window = self.settings["switch"]["window"]
         while len(history) > 1 and history[1][0] <= t - window + 1e-12:
             history.popleft()
-        t0, p0, z0 = history[0]
-        if t - t0 < window - 1e-9:
+        t0, T0, z0 = history[0]
+        if not measure or t - t0 < window - 1e-9:
             return float("inf"), float("inf")
         span = t - t0
-        moved = T_c[:3, 3] - p0
-        linear = math.sqrt(float(moved @ moved)) / span  # = np.linalg.norm, bit for bit
+        moved = T_c[:3, 3] - T0[:3, 3]
+        linear = math.sqrt(float(moved.dot(moved))) / span  # = np.linalg.norm, bit for bit
         # np.arccos, not math.acos: the two differ in the last bit on ~10 % of arguments.
-        angular = float(np.arccos(min(max(float(z0 @ T_c[:3, 2]), -1.0), 1.0))) / span
+        angular = float(np.arccos(min(max(float(z0.dot(T_c[:3, 2])), -1.0), 1.0))) / span
         return linear, angular
 
     def _camera_twist(self, T_c: np.ndarray, dt: float) -> list[float]:
@@ -839,7 +858,7 @@ class HarvestController:
             if st.p_sb is None and t > s["safety"]["no_stem_timeout"]:
                 self._abort(t, f"no stem base found within {s['safety']['no_stem_timeout']} s")
             else:
-                linear_speed, angular_speed = self._camera_speeds(t, T_c)
+                linear_speed, angular_speed = self._camera_speeds(t, T_c, measure=st.p_sb is not None)
                 self._switch_gripper_pose = T_g
                 if st.p_sb is not None:
                     sw = s["switch"]

@@ -19,7 +19,7 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
-from harvest_qp.loop.controller import HarvestController, _rows, _wrap_half_turn
+from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
 from harvest_qp.loop.settings import check_settings
 
 def _bits(values) -> list[int]:
@@ -120,8 +120,9 @@ def test_roll_reference_equals_the_numpy_formula(controller):
 
 
 def test_camera_speeds_equal_the_numpy_formula(controller):
-    """Mean speeds over the window from a deque of (t, p_c, z_c) == the numpy norm/arccos formula.
-    Catches: math.acos for np.arccos, a history kept one sample too long or too short."""
+    """Mean speeds over the window from a deque of poses == the numpy norm/arccos formula, also
+    after ticks that only record (``measure=False``). Catches: math.acos for np.arccos, a
+    history kept one sample too long or too short, a pose not recorded when not measured."""
     c = controller
     rng = np.random.default_rng(14)
     c.state.camera_history.clear()
@@ -132,6 +133,9 @@ def test_camera_speeds_equal_the_numpy_formula(controller):
         pose = _random_pose(rng, scale=0.01)
         poses.append(pose)
         times.append(t)
+        if k % 3 == 0:  # no stem base yet: recorded, not measured
+            assert c._camera_speeds(t, pose, measure=False) == (float("inf"), float("inf"))
+            continue
         linear, angular = c._camera_speeds(t, pose)
         first = next(j for j, s in enumerate(times) if s > t - window + 1e-12) - 1
         first = max(first, 0)
@@ -183,3 +187,18 @@ def test_a_non_finite_cloud_point_still_raises(controller):
                        timestamp=0.1, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(8, 8))
     with pytest.raises(InvalidInputError, match="obstacle_points"):
         c._perceive(cloud, np.eye(4))
+
+
+@pytest.mark.parametrize("spread", [0.25, 1e5])
+def test_first_in_each_voxel_equals_the_row_unique(spread):
+    """The packed 1-D unique gives the same first points per voxel, in the same order, as
+    ``np.unique(axis=0)`` (the previous code), also for negative coordinates and (with
+    ``spread`` 1e5 m, 1e7 voxels) through the fallback. Catches: a packing that lets two
+    voxels collide (too few bits, no offset for negative keys), last instead of first
+    occurrences."""
+    rng = np.random.default_rng(17)
+    points = spread * (rng.random((5000, 3)) - 0.5)
+    points = np.vstack((points, points[::7] + 1e-4))  # repeats in the same voxels
+    keys = np.floor(points / 0.01).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    np.testing.assert_array_equal(_first_in_each_voxel(points, 0.01), np.sort(first))
