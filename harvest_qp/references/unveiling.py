@@ -45,7 +45,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_points, as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._checks import (
+    as_points,
+    as_pose,
+    as_position,
+    as_positive_scalar,
+    as_time_step,
+    cross_rows,
+)
 from harvest_qp.references.next_best_view import NextBestView
 
 if TYPE_CHECKING:  # a module-level import would be circular (perception re-exports this module)
@@ -188,7 +195,7 @@ def _stem_angular_velocities_from_weights(pairs: RayObstaclePairs, weight: NDArr
     rays = pairs.stem_points - pairs.camera_position
     if n_stem == 0:
         return np.zeros((0, 3))
-    return -np.cross(rays, summed) / np.einsum("ij,ij->i", rays, rays)[:, None]
+    return -cross_rows(rays, summed) / np.einsum("ij,ij->i", rays, rays)[:, None]
 
 
 def unveiling_velocity(
@@ -221,7 +228,7 @@ def _unveiling_velocity_from_weights(
     """:func:`unveiling_velocity` from the pairs' :func:`_pair_weights`."""
     omega = _stem_angular_velocities_from_weights(pairs, weight)
     rays = pairs.stem_points - pairs.camera_position
-    linear = np.cross(rays, omega).sum(axis=0)  # S(p_cs) omega = p_cs x omega
+    linear = cross_rows(rays, omega).sum(axis=0)  # S(p_cs) omega = p_cs x omega
     return k_c * np.concatenate((linear, omega.sum(axis=0)))
 
 

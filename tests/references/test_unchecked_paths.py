@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from harvest_qp.references import GraspFeedForward, ReachingCentering, StemStretching, Unveiling
-from harvest_qp.references._checks import cross3
+from harvest_qp.references._checks import cross3, cross_rows
 
 def _bits(values) -> list[int]:
     """The IEEE bit patterns (so that -0.0 differs from 0.0, and NaN equals itself)."""
@@ -44,6 +44,15 @@ def test_cross3_equals_np_cross_bit_for_bit():
     for _ in range(2000):
         a, b = rng.normal(size=3) * rng.uniform(1e-3, 1e3), rng.normal(size=3)
         assert _bits(cross3(a, b)) == _bits(np.cross(a, b))
+
+
+def test_cross_rows_equals_np_cross_bit_for_bit():
+    """Row-wise cross products of the unveiling law (eq:omega_pivot, eq:v_c2) as np.cross gives them.
+    Catches: a component's operands swapped, an empty (0, 3) input mishandled."""
+    rng = np.random.default_rng(6)
+    a, b = rng.normal(size=(500, 3)) * rng.uniform(1e-3, 1e3, size=(500, 1)), rng.normal(size=(500, 3))
+    assert _bits(cross_rows(a, b)) == _bits(np.cross(a, b))
+    assert cross_rows(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)
 
 
 def test_reaching_fast_path_equals_update():
