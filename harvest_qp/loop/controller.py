@@ -46,7 +46,9 @@ Where this differs from the paper (measured in ``/work/shared/FINDINGS.md``):
 
 from __future__ import annotations
 
+import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
@@ -68,8 +70,9 @@ from harvest_qp.references import (
     StemStretching,
     Unveiling,
     predicted_stem_points,
-    switch_ready,
 )
+from harvest_qp.references._checks import as_position
+from harvest_qp.references.coordination import _switch_ready
 from harvest_qp.runner import Command, Observation
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 
@@ -146,7 +149,16 @@ class _State:
     frame: _Frame | None = None
     hold_pose: pin.SE3 | None = None
     previous_qdot: np.ndarray = field(default_factory=lambda: np.zeros(12))
-    camera_history: list = field(default_factory=list)
+    camera_history: deque = field(default_factory=deque)
+    #: hold_pose's translation and transposed rotation, read once (pinocchio builds a new
+    #: array on every attribute access).
+    hold_translation: np.ndarray | None = None
+    hold_rotation_T: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.hold_pose is not None:
+            self.hold_translation = self.hold_pose.translation
+            self.hold_rotation_T = self.hold_pose.rotation.T
 
 
 @dataclass(frozen=True)
@@ -184,11 +196,49 @@ def _rotations_between(a: np.ndarray, b: np.ndarray, fractions) -> np.ndarray:
     return (np.eye(3) + np.sin(th)[..., None, None] * K[:, None] + (1 - np.cos(th))[..., None, None] * K2[:, None])
 
 
+#: Shared read-only values of the per-tick log and references (the runner copies what it logs).
+_NAN3 = np.full(3, np.nan)
+_NAN3.setflags(write=False)
+_ZEROS6 = np.zeros(6)
+_ZEROS6.setflags(write=False)
+
+
+_ROW = np.dtype((np.void, 24))
+
+
+def _rows(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``points[mask]`` for ``(n, 3)`` points and a boolean ``(n,)`` mask, as a new array.
+
+    numpy's boolean indexing of a 2-D array copies element by element (measured 3.0 ms for
+    190k of 193k rows at 848x480); on a view with one 24-byte record per row it copies whole
+    rows (0.5 ms). The bytes, hence the values, are the same.
+    """
+    if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 and points.flags.c_contiguous:
+        return points.view(_ROW).reshape(-1)[mask].view(np.float64).reshape(-1, 3)
+    return points[mask]
+
+
+def _first_in_each_voxel(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of the first point in each occupied voxel of edge ``voxel`` [m], ascending.
+
+    The same as ``np.sort(np.unique(keys, axis=0, return_index=True)[1])`` on the integer
+    voxel keys, whose row-wise unique sorts (n, 3) records; here the three keys are packed
+    into one int64 (21 bits each, offset by their minimum) and a 1-D unique does it (both
+    return each key's first occurrence). Keys spanning more than 2^21 voxels fall back.
+    """
+    keys = np.floor(points / voxel).astype(np.int64)
+    keys -= keys.min(axis=0)
+    if int(keys.max()) >= 1 << 21:
+        _, first = np.unique(keys, axis=0, return_index=True)
+    else:
+        _, first = np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2], return_index=True)
+    return np.sort(first)
+
+
 def _pose_matrix(pose: pin.SE3) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = pose.rotation
-    T[:3, 3] = pose.translation
-    return T
+    """The ``(4, 4)`` homogeneous matrix of ``pose``: a new C-ordered array (pinocchio's own
+    ``homogeneous``, the same numbers as filling ``np.eye(4)``, ~10x cheaper)."""
+    return pose.homogeneous
 
 
 def _wrap_half_turn(angle: float) -> float:
@@ -399,10 +449,19 @@ class HarvestController:
     # ------------------------------------------------------------------ perception
 
     def _perceive(self, cloud: PointCloud, T_g: np.ndarray) -> None:
+        # Speed (per camera frame): each label mask is computed once and the rows are gathered
+        # through a 24-byte record view (_rows: ~8x cheaper than points[mask] on (n, 3) float64);
+        # the cloud's finiteness is checked once, then the unveiling law gets the split points
+        # unchecked (its public observe() checks the same points again, ~0.3 ms at 848x480).
         st, s = self.state, self.settings
         labels = cloud.labels
-        stem = cloud.points[labels == STEM]
-        non_stem = cloud.points[labels != STEM]
+        points = cloud.points
+        is_stem = labels == STEM
+        stem = _rows(points, is_stem)
+        non_stem = _rows(points, ~is_stem)
+        approach = st.phase == Phase.APPROACH
+        spheres = self.collision is not None and s["obstacles"]["enabled"]
+        obstacles = _rows(points, labels == OBSTACLE) if approach or spheres else None
         st.n_stem = int(stem.shape[0])
         if st.n_stem > 0:
             st.last_stem_time = cloud.timestamp
@@ -414,14 +473,17 @@ class HarvestController:
             predicted = None
             if s["unveiling"]["predicted_stem"]:
                 predicted = self._predicted_stem(T_g)
-            self.unveiling.observe(p_c, stem, non_stem, predicted_stem_points=predicted,
-                                   roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
-        if self.collision is not None and s["obstacles"]["enabled"]:
-            self._update_obstacle_spheres(cloud.points[labels == OBSTACLE], T_g)
-        if st.phase != Phase.APPROACH:
+            if np.isfinite(points).all():
+                self.unveiling._observe_points(p_c, stem, non_stem, predicted_stem_points=predicted,
+                                               roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
+            else:  # the checked call raises the package's error naming the bad points
+                self.unveiling.observe(p_c, stem, non_stem, predicted_stem_points=predicted,
+                                       roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
+        if spheres:
+            self._update_obstacle_spheres(obstacles, T_g)
+        if not approach:
             return
-        frame = _Frame(cloud.timestamp, p_c.copy(), cloud.camera_pose.copy(), stem, non_stem,
-                       cloud.points[labels == OBSTACLE])
+        frame = _Frame(cloud.timestamp, p_c.copy(), cloud.camera_pose.copy(), stem, non_stem, obstacles)
         if st.n_stem >= s["perception"]["min_stem_points"]:
             fit = fit_stem(stem, T_g[:3, 3])
             if fit.valid and np.linalg.norm(fit.base - T_g[:3, 3]) <= s["perception"]["max_base_distance"]:
@@ -451,9 +513,7 @@ class HarvestController:
         outside_cluster = np.einsum("ij,ij->i", radial, radial) > o["cluster_radius"] ** 2
         points = points[outside_cluster]
         if len(points):
-            keys = np.floor(points / o["voxel"]).astype(np.int64)
-            _, first = np.unique(keys, axis=0, return_index=True)
-            centres = points[np.sort(first)]
+            centres = points[_first_in_each_voxel(points, o["voxel"])]
         else:
             centres = np.zeros((0, 3))
         self.collision.set_obstacle_spheres(centres, o["radius"])
@@ -665,7 +725,7 @@ class HarvestController:
         step = self.max_acceleration * self.dt
         return prev - np.clip(prev, -step, step)
 
-    def _camera_speeds(self, t: float, T_c: np.ndarray) -> tuple[float, float]:
+    def _camera_speeds(self, t: float, T_c: np.ndarray, *, measure: bool = True) -> tuple[float, float]:
         """Mean camera speeds over the last ``switch.window`` [m/s], [rad/s] for the switch rule.
 
         Linear: displacement of p_c over the window / window; angular: the angle turned by the
@@ -673,19 +733,65 @@ class HarvestController:
         Deviation: the paper compares the instantaneous tip speeds; with V_cu acting, the
         camera dithers about a fixed view (measured +-0.06 rad/s on seed 1) and never met
         0.025 rad/s in 35 s, while its mean motion was nil.
+
+        Every call records the pose; with ``measure`` false (no stem base yet: the switch
+        rule is not evaluated) the speeds are not computed and (inf, inf) is returned.
         """
         history = self.state.camera_history
-        history.append((t, T_c[:3, 3].copy(), T_c[:3, 2].copy()))
+        # T_c is this tick's own new array (never modified): kept whole, p_c read from it later.
+        history.append((t, T_c, T_c[:3, 2].copy()))
         window = self.settings["switch"]["window"]
         while len(history) > 1 and history[1][0] <= t - window + 1e-12:
-            history.pop(0)
-        t0, p0, z0 = history[0]
-        if t - t0 < window - 1e-9:
+            history.popleft()
+        t0, T0, z0 = history[0]
+        if not measure or t - t0 < window - 1e-9:
             return float("inf"), float("inf")
         span = t - t0
-        linear = float(np.linalg.norm(T_c[:3, 3] - p0)) / span
-        angular = float(np.arccos(np.clip(z0 @ T_c[:3, 2], -1.0, 1.0))) / span
+        moved = T_c[:3, 3] - T0[:3, 3]
+        linear = math.sqrt(float(moved.dot(moved))) / span  # = np.linalg.norm, bit for bit
+        # np.arccos, not math.acos: the two differ in the last bit on ~10 % of arguments.
+        angular = float(np.arccos(min(max(float(z0.dot(T_c[:3, 2])), -1.0), 1.0))) / span
         return linear, angular
+
+    def _camera_twist(self, T_c: np.ndarray, dt: float) -> list[float]:
+        """V_cr + keep-out + V_cu of this tick as 6 Python floats [m/s; rad/s] (advances the
+        p_r and V_cu filters).
+
+        Speed (every tick): element-wise steps on Python floats, each the IEEE operation of the
+        numpy expression it replaces (``reaching.update(T_c, dt) + self._keep_out(T_c) +
+        unveiling.update(dt)``), in the same order, and numpy's own dot products: the same
+        bits (tests/loop/test_fast_paths.py) at a fraction of the cost.
+        """
+        s = self.settings
+        reaching = self.reaching
+        V = reaching._update_unchecked(T_c, dt).tolist()  # V_cr
+        # The keep-out term (_keep_out); |p_c - p_r| is bit for bit reaching's |p_r - p_c|.
+        distance = reaching.distance
+        r = s["reaching"]
+        minimum = r["min_distance_factor"] * r["radius"]
+        if minimum > 0 and 1e-9 < distance < minimum:
+            gain = r["k_keep_out"] * (minimum - distance)
+            (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = T_c[:3].tolist()
+            p0, p1, p2 = reaching.roi_centre.tolist()
+            V = [V[0] + gain * (c0 - p0) / distance, V[1] + gain * (c1 - p1) / distance,
+                 V[2] + gain * (c2 - p2) / distance, V[3] + 0.0, V[4] + 0.0, V[5] + 0.0]
+        else:
+            V = [v + 0.0 for v in V]  # V_cr + zeros, as the numpy sum did (-0.0 becomes 0.0)
+        if s["unveiling"]["enabled"]:
+            return [v + u for v, u in zip(V, self.unveiling._update_list(dt))]
+        return [v + 0.0 for v in V]
+
+    def _hold_twist(self, T_g: np.ndarray) -> np.ndarray:
+        """V_g of the approach: the grasping arm held at its initial pose (gain ``grasping.k_hold``).
+
+        -k_hold [p_g - p_hold; log3(R_g R_hold^T)], element-wise on Python floats (bit-identical
+        to the numpy expression, tests/loop/test_fast_paths.py)."""
+        st = self.state
+        k = -self.settings["grasping"]["k_hold"]
+        (_, _, _, g0), (_, _, _, g1), (_, _, _, g2) = T_g[:3].tolist()
+        h0, h1, h2 = st.hold_translation.tolist()
+        w0, w1, w2 = pin.log3(T_g[:3, :3] @ st.hold_rotation_T).tolist()
+        return np.array((k * (g0 - h0), k * (g1 - h1), k * (g2 - h2), k * w0, k * w1, k * w2))
 
     def _keep_out(self, T_c: np.ndarray) -> np.ndarray:
         """Outward speed below the minimum distance from the ROI centre (beyond the paper).
@@ -693,7 +799,7 @@ class HarvestController:
         Inside the ROI V_cr's translation is zero, so nothing in the paper's laws stops the
         camera drifting inwards while V_cu acts (measured: from 0.43 m to 0.05 m from p_sb on
         the default scene without occluder, colliding with the vine and blind below the
-        camera's 0.1 m minimum depth).
+        camera's 0.1 m minimum depth). :meth:`step` computes the same on Python floats.
         """
         r = self.settings["reaching"]
         minimum = r["min_distance_factor"] * r["radius"]
@@ -705,25 +811,38 @@ class HarvestController:
         return twist
 
     def _roll_reference(self, T_c: np.ndarray, direction: np.ndarray | None) -> tuple[np.ndarray, float]:
-        """World twist turning the camera about z_c so that the blade (x_c) is across the stem."""
-        twist = np.zeros(6)
+        """World twist turning the camera about z_c so that the blade (x_c) is across the stem.
+
+        Python floats for the element-wise steps, numpy for the dot products and arctan2: the
+        same bits as the numpy formula (tests/loop/test_fast_paths.py)."""
         if direction is None:
-            return twist, float("nan")
+            return np.zeros(6), float("nan")
         z, y = T_c[:3, 2], T_c[:3, 1]
-        d = direction - (direction @ z) * z
-        if np.linalg.norm(d) < 1e-6:
-            return twist, float("nan")
-        angle = _wrap_half_turn(float(np.arctan2(np.cross(y, d) @ z, y @ d)))
-        twist[3:] = self.settings["roll"]["k_roll"] * angle * z
-        return twist, angle
+        (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = T_c[:3].tolist()
+        along = direction.dot(z)
+        u0, u1, u2 = direction.tolist()
+        d0, d1, d2 = u0 - along * z0, u1 - along * z1, u2 - along * z2  # direction - (direction @ z) z
+        d = np.array((d0, d1, d2))
+        if math.sqrt(float(d.dot(d))) < 1e-6:  # = np.linalg.norm, bit for bit
+            return np.zeros(6), float("nan")
+        cross = np.array((y1 * d2 - y2 * d1, y2 * d0 - y0 * d2, y0 * d1 - y1 * d0))  # y x d
+        # np.arctan2 (not math.atan2, which differs in the last bit) on the same numpy scalars.
+        angle = _wrap_half_turn(float(np.arctan2(cross.dot(z), y.dot(d))))
+        gain = self.settings["roll"]["k_roll"] * angle
+        return np.array((0.0, 0.0, 0.0, gain * z0, gain * z1, gain * z2)), angle
 
     def step(self, obs: Observation) -> Command:
+        # Speed (this runs every 2 ms tick): the reference laws are called through their
+        # unchecked private paths (the arguments are the loop's own, already well-formed), and
+        # the 3-vector arithmetic avoids np.cross / np.linalg.norm; every numpy dot product and
+        # transcendental call of the checked version is kept, so the results are bit-identical.
         st, s = self.state, self.settings
         t = float(obs.time)
         config = self.configuration
         config.update(obs.q)
-        T_c = _pose_matrix(config.data.oMf[self._camera_id])
-        T_g = _pose_matrix(config.data.oMf[self._gripper_id])
+        oMf = config.data.oMf
+        T_c = _pose_matrix(oMf[self._camera_id])
+        T_g = _pose_matrix(oMf[self._gripper_id])
         timing = self.timing
         if obs.new_cloud and obs.cloud is not None:
             t0 = time.perf_counter()
@@ -734,45 +853,49 @@ class HarvestController:
                 timing.setdefault("perception", []).append(time.perf_counter() - t0)
         t_ref = time.perf_counter()
 
-        if st.phase == Phase.APPROACH:
+        phase = st.phase
+        if phase == Phase.APPROACH:
             if st.p_sb is None and t > s["safety"]["no_stem_timeout"]:
                 self._abort(t, f"no stem base found within {s['safety']['no_stem_timeout']} s")
             else:
-                linear_speed, angular_speed = self._camera_speeds(t, T_c)
+                linear_speed, angular_speed = self._camera_speeds(t, T_c, measure=st.p_sb is not None)
                 self._switch_gripper_pose = T_g
-                sw = s["switch"]
-                distance = float(np.linalg.norm(self.reaching.roi_centre - T_c[:3, 3]))
-                if st.p_sb is not None and switch_ready(
-                    distance, s["reaching"]["radius"], linear_speed, angular_speed,
-                    distance_factor=sw["distance_factor"], max_linear=sw["max_linear_speed"],
-                    max_angular=sw["max_angular_speed"],
-                ):
-                    self._try_switch(t, obs)
-        elif st.phase in (Phase.BIMANUAL, Phase.PRECUT):
+                if st.p_sb is not None:
+                    sw = s["switch"]
+                    offset = self.reaching.roi_centre - T_c[:3, 3]
+                    distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+                    if _switch_ready(distance, s["reaching"]["radius"], linear_speed, angular_speed,
+                                     sw["distance_factor"], sw["max_linear_speed"], sw["max_angular_speed"]):
+                        self._try_switch(t, obs)
+        elif phase == Phase.BIMANUAL or phase == Phase.PRECUT:
             if t - st.last_stem_time > s["safety"]["stem_lost_timeout"]:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
         values: dict[str, Any] = {}
-        V_c = np.zeros(6)
-        V_g = np.zeros(6)
+        V_c = _ZEROS6
+        V_g = _ZEROS6
+        roll = None
         force_nc = float("nan")
+        roi_distance = None
         if st.phase != Phase.ABORT:
-            V_cr = self.reaching.update(T_c, self.dt) + self._keep_out(T_c)
-            V_cu = self.unveiling.update(self.dt) if s["unveiling"]["enabled"] else np.zeros(6)
-            V_c = V_cr + V_cu
+            dt = self.dt
+            V = self._camera_twist(T_c, dt)  # V_cr + keep-out + V_cu, 6 floats
+            roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
             if st.phase == Phase.APPROACH:
-                hold = st.hold_pose
-                k = s["grasping"]["k_hold"]
-                V_g[:3] = -k * (T_g[:3, 3] - hold.translation)
-                V_g[3:] = -k * pin.log3(T_g[:3, :3] @ hold.rotation.T)
+                V_g = self._hold_twist(T_g)
                 direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
             else:
-                force = np.asarray(obs.force, float) if t > st.t_switch else np.zeros(3)
-                V_g = self.stretching.update(T_g, force, self.dt)
-                force_nc = float(self.stretching.n_c @ force)
+                # The wrist force is the robot's reading: checked as StemStretching.update does.
+                force = as_position(obs.force, "force") if t > st.t_switch else np.zeros(3)
+                stretching = self.stretching
+                V_g = stretching._update_unchecked(T_g, force, dt)
+                force_nc = stretching.force_along_nc  # float(n_c @ force)
                 if s["grasping"]["feed_forward"]:
-                    V_c = V_c + self.feed_forward(V_g[:3], T_c[:3, 3], st.p_sb)
-                direction = self.stretching.n_c
+                    (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = T_c[:3].tolist()
+                    b0, b1, b2 = st.p_sb.tolist()
+                    terms = self.feed_forward._terms(V_g[:3].tolist(), [c0 - b0, c1 - b1, c2 - b2])
+                    V = [v + w for v, w in zip(V, terms)]
+                direction = stretching.n_c
                 if force_nc > self.force_limit:
                     self._abort(t, f"stem force {force_nc:.2f} N above the limit {self.force_limit:.2f} N")
                 else:
@@ -782,8 +905,9 @@ class HarvestController:
                     if st.force_filtered is None or tau == 0:
                         st.force_filtered = force_nc
                     else:
-                        st.force_filtered += (-np.expm1(-self.dt / tau)) * (force_nc - st.force_filtered)
+                        st.force_filtered += (-np.expm1(-dt / tau)) * (force_nc - st.force_filtered)
                     self._check_precut(t, st.force_filtered)
+            V_c = np.array(V)
             roll, roll_angle = self._roll_reference(T_c, direction)
             values["roll_error"] = roll_angle
 
@@ -802,14 +926,15 @@ class HarvestController:
             self.roll_task.set_reference(roll)
             if self.map_feed is not None:
                 values["map_cells"] = float(self.map_feed.update(obs.q))
-            previous = self.qp.previous_qdot.copy()
+            backup_solver = self.qp_backup
+            previous = self.qp.previous_qdot.copy() if backup_solver is not None else None
             result = self.qp.step(obs.q)
-            if not result.ok and self.qp_backup is not None:
+            if not result.ok and backup_solver is not None:
                 # Stopgap until the QP core retries itself (issue 10 section 1): daqp answers
                 # slightly outside the constraints (2e-7..1e-6) and the core brakes; the same
                 # problem is re-solved by the backup backend from the same previous command.
-                self.qp_backup.previous_qdot = previous
-                backup = self.qp_backup.step(obs.q)
+                backup_solver.previous_qdot = previous
+                backup = backup_solver.step(obs.q)
                 if backup.ok:
                     st.backup_solves += 1
                     result = backup
@@ -826,18 +951,18 @@ class HarvestController:
             t_end = time.perf_counter()
             timing.setdefault("references", []).append(t_map - t_ref)
             timing.setdefault("mapper", []).append(t_end - t_map)
+        qdot = np.asarray(qdot, float)
         if st.phase != Phase.ABORT:
-            self.qp.previous_qdot = np.asarray(qdot, float)
-        st.previous_qdot = np.asarray(qdot, float)
+            self.qp.previous_qdot = qdot
+        st.previous_qdot = qdot
 
-        values.update(self._log_values(T_c, V_c, V_g, force_nc))
+        self._log_values(T_c, V_c, V_g, force_nc, into=values, roi_distance=roi_distance)
         done = False
-        end_after = s["episode"]["end_after_precut"]
-        if st.phase == Phase.PRECUT and end_after is not None and t - st.t_precut >= end_after:
-            done = True
-        stop_after = s["episode"]["stop_after_abort"]
-        if st.phase == Phase.ABORT and st.t_at_rest is not None and t - st.t_at_rest >= stop_after:
-            done = True
+        if st.phase == Phase.PRECUT:
+            end_after = s["episode"]["end_after_precut"]
+            done = end_after is not None and t - st.t_precut >= end_after
+        elif st.phase == Phase.ABORT:
+            done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
         return Command(qdot=qdot, status=status, values=values, collision_pairs=self._active_pairs(), done=done)
 
     def _check_precut(self, t: float, force_nc: float) -> None:
@@ -855,41 +980,54 @@ class HarvestController:
         if st.phase == Phase.BIMANUAL and t - st.precut_since >= p["hold_time"]:
             st.phase, st.t_precut = Phase.PRECUT, t
 
-    def _log_values(self, T_c: np.ndarray, V_c: np.ndarray, V_g: np.ndarray, force_nc: float) -> dict[str, Any]:
+    def _log_values(self, T_c: np.ndarray, V_c: np.ndarray, V_g: np.ndarray, force_nc: float, *,
+                    into: dict[str, Any] | None = None, roi_distance: float | None = None) -> dict[str, Any]:
+        """The per-tick values for the log (``value/<name>``), added to ``into`` (a new dict by default).
+
+        ``roi_distance``: |p_r - p_c| [m] if already computed this tick with the current p_r
+        (:attr:`ReachingCentering.distance` right after its update), else computed here.
+        The arrays are the controller's own (views of this tick's poses, the reference laws'
+        latest outputs, a shared read-only NaN vector): the runner copies them into its log.
+        """
         st = self.state
-        nan3 = np.full(3, np.nan)
-        bimanual = st.phase in (Phase.BIMANUAL, Phase.PRECUT) or st.t_switch is not None
-        return {
-            "phase": float(st.phase),
-            "p_r": self.reaching.roi_centre,
-            "p_c": T_c[:3, 3],
-            "z_c": T_c[:3, 2],
-            "x_c": T_c[:3, 0],
-            "p_sb": st.p_sb if st.p_sb is not None else nan3,
-            "p_gd": st.p_gd if st.p_gd is not None else nan3,
-            "n_c": self.stretching.n_c if bimanual else nan3,
-            "V_c": V_c,
-            "V_g": V_g,
-            "force_nc": force_nc,
-            "theta": self.reaching.theta,
-            "roi_distance": float(np.linalg.norm(self.reaching.roi_centre - T_c[:3, 3])),
-            "position_error": self.stretching.position_error if bimanual else float("nan"),
-            "alignment": self.stretching.alignment if bimanual else float("nan"),
-            "unveiling_pairs": float(self.unveiling.n_pairs),
-        }
+        values = {} if into is None else into
+        bimanual = st.phase == Phase.BIMANUAL or st.phase == Phase.PRECUT or st.t_switch is not None
+        reaching, stretching = self.reaching, self.stretching
+        if roi_distance is None:
+            offset = reaching.roi_centre - T_c[:3, 3]
+            roi_distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+        values["phase"] = float(st.phase)
+        values["p_r"] = reaching.roi_centre
+        values["p_c"] = T_c[:3, 3]
+        values["z_c"] = T_c[:3, 2]
+        values["x_c"] = T_c[:3, 0]
+        values["p_sb"] = st.p_sb if st.p_sb is not None else _NAN3
+        values["p_gd"] = st.p_gd if st.p_gd is not None else _NAN3
+        values["n_c"] = stretching.n_c if bimanual else _NAN3
+        values["V_c"] = V_c
+        values["V_g"] = V_g
+        values["force_nc"] = force_nc
+        values["theta"] = reaching.theta
+        values["roi_distance"] = roi_distance
+        values["position_error"] = stretching.position_error if bimanual else float("nan")
+        values["alignment"] = stretching.alignment if bimanual else float("nan")
+        values["unveiling_pairs"] = float(self.unveiling.n_pairs)
+        return values
 
     def _active_pairs(self) -> list[tuple[str, str, float]]:
         lim = self.collision
         if lim is None or self.mapper_kind != "qp":
             return []
-        active = getattr(lim, "active_pairs", ())
+        active = np.asarray(getattr(lim, "active_pairs", ()), dtype=np.int64)
+        if active.size == 0:
+            return []
         names = lim.capsule_names
         distances = getattr(lim, "_dist", None)
-        out = []
-        for index in np.asarray(active, dtype=np.int64):
-            d = float(distances[index]) if distances is not None else float("nan")
-            out.append((names[lim.pair_a[index]], names[lim.pair_b[index]], d))
-        return out
+        # One fancy index and tolist() per column instead of numpy scalar indexing per pair.
+        first = lim.pair_a[active].tolist()
+        second = lim.pair_b[active].tolist()
+        gaps = distances[active].tolist() if distances is not None else [float("nan")] * len(first)
+        return [(names[a], names[b], float(d)) for a, b, d in zip(first, second, gaps)]
 
     # ------------------------------------------------------------------ summary
 

@@ -16,12 +16,30 @@ from harvest_qp.validation import as_matrix, as_positive_scalar, as_vector
 _IDENTITY = np.eye(3)
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
-__all__ = ["as_points", "as_pose", "as_position", "as_positive_scalar", "as_time_step", "cross3"]
+__all__ = ["as_points", "as_pose", "as_position", "as_positive_scalar", "as_time_step", "cross3", "cross_rows"]
 
 
 def cross3(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """a x b for two 3-vectors (np.cross costs ~15 us per call on 3-vectors, this ~2 us)."""
-    return np.array((a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]))
+    """a x b for two float64 ``(3,)`` arrays (np.cross costs ~15 us per call on 3-vectors, this ~1 us).
+
+    Bit-identical to np.cross: each entry is the same two products and one difference, here on
+    Python floats (no fused multiply-add either way).
+    """
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b.tolist()
+    return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
+
+
+def cross_rows(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Row-wise a x b for two ``(n, 3)`` float arrays: np.cross's own arithmetic (per entry
+    the same two products and one difference), without its axis moving (~20 us per call)."""
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    out = np.empty((max(a.shape[0], b.shape[0]), 3))
+    np.subtract(a1 * b2, a2 * b1, out=out[:, 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[:, 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[:, 2])
+    return out
 
 
 def as_position(value: ArrayLike, name: str) -> NDArray[np.float64]:

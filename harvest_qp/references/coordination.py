@@ -50,6 +50,26 @@ class GraspFeedForward:
             angular = angular / squared if squared > 0.0 else np.zeros(3)
         return np.concatenate((v, angular))
 
+    def _terms(self, v: list[float], lever: list[float]) -> list[float]:
+        """:meth:`__call__` on Python floats for the control loop: v_gt [m/s] and
+        p_c - p_sb [m] as 3 floats each, the 6 terms returned as a list.
+
+        The same IEEE operations in the same order as :meth:`__call__` (the cross product's
+        two products and one difference per entry, the division) and numpy's dot product for
+        |p_c - p_sb|^2: bit-identical (tests/references/test_unchecked_paths.py).
+        """
+        v0, v1, v2 = v
+        l0, l1, l2 = lever
+        a0, a1, a2 = l1 * v2 - l2 * v1, l2 * v0 - l0 * v2, l0 * v1 - l1 * v0  # S(p_c - p_sb) v_gt
+        if self.normalise:
+            arm = np.array(lever)
+            squared = float(arm.dot(arm))
+            if squared > 0.0:
+                a0, a1, a2 = a0 / squared, a1 / squared, a2 / squared
+            else:
+                a0 = a1 = a2 = 0.0
+        return [v0, v1, v2, a0, a1, a2]
+
 
 def switch_ready(
     distance: float,
@@ -76,4 +96,21 @@ def switch_ready(
     distance_factor = as_positive_scalar(distance_factor, "distance_factor")
     max_linear = as_positive_scalar(max_linear, "max_linear")
     max_angular = as_positive_scalar(max_angular, "max_angular")
+    return _switch_ready(distance, radius, linear_speed, angular_speed, distance_factor, max_linear, max_angular)
+
+
+def _switch_ready(
+    distance: float,
+    radius: float,
+    linear_speed: float,
+    angular_speed: float,
+    distance_factor: float,
+    max_linear: float,
+    max_angular: float,
+) -> bool:
+    """:func:`switch_ready` without the argument checks (the control loop, on its checked settings).
+
+    A speed of ``inf`` (the loop's "window not full yet") is simply not below the threshold
+    here, where :func:`switch_ready` rejects it as not finite.
+    """
     return distance <= distance_factor * radius and linear_speed < max_linear and angular_speed < max_angular

@@ -130,6 +130,20 @@ class StemStretching:
         v_p = -self.k_pg * projected
         # eq:gr_forc_contr: PI along n_c with conditional integration.
         force_along = float(n @ f)
+        command = self._force_command(force_along, dt)
+        v_f = -n * command
+        # eq:rot_contr
+        y_g = pose[:3, 1]
+        v_gw = -self.k_og * cross3(n, y_g)
+        self.position_error = float(np.linalg.norm(projected))
+        self.alignment = math.atan2(math.sqrt(float(v_gw @ v_gw)) / self.k_og, float(y_g @ n))
+        self.force_along_nc = force_along
+        self.v_gt = v_p + v_f
+        return np.concatenate((self.v_gt, v_gw))
+
+    def _force_command(self, force_along: float, dt: float) -> float:
+        """The saturated speed command of ``eq:gr_forc_contr`` along n_c [m/s] for n_c^T f =
+        ``force_along`` [N]; advances the integral (conditional integration, see the class)."""
         e_fg = force_along - self.f_d
         if (
             not self._integrating
@@ -147,13 +161,37 @@ class StemStretching:
         self.integral = integral
         command = self.k_fp * e_fg + self.k_fi * integral
         self.saturated = abs(command) > self.max_speed
-        command = min(max(command, -self.max_speed), self.max_speed)
-        v_f = -n * command
-        # eq:rot_contr
+        return min(max(command, -self.max_speed), self.max_speed)
+
+    def _update_unchecked(
+        self, pose: NDArray[np.float64], f: NDArray[np.float64], dt: float
+    ) -> NDArray[np.float64]:
+        """:meth:`update` without the argument checks, for the library's control loop.
+
+        ``pose``: float64 ``(4, 4)`` homogeneous pose; ``f``: float64 ``(3,)`` [N]; ``dt`` > 0
+        [s]; a target set.  Element-wise arithmetic on Python floats (the same IEEE operations
+        in the same order as :meth:`update`'s numpy expressions), the dot products numpy's:
+        bit-identical to :meth:`update` (tests/references/test_unchecked_paths.py).
+        """
+        n = self.n_c
+        n0, n1, n2 = n.tolist()
+        (_, y0, _, p0), (_, y1, _, p1), (_, y2, _, p2) = pose[:3].tolist()
+        t0, t1, t2 = self.target.tolist()
+        e_pg = np.array((p0 - t0, p1 - t1, p2 - t2))
+        e0, e1, e2 = e_pg.tolist()
+        along = float(n.dot(e_pg))
+        q0, q1, q2 = e0 - along * n0, e1 - along * n1, e2 - along * n2  # projected
+        projected = np.array((q0, q1, q2))
+        k = -self.k_pg
+        force_along = float(n.dot(f))
+        command = self._force_command(force_along, dt)
         y_g = pose[:3, 1]
-        v_gw = -self.k_og * cross3(n, y_g)
-        self.position_error = float(np.linalg.norm(projected))
-        self.alignment = math.atan2(math.sqrt(float(v_gw @ v_gw)) / self.k_og, float(y_g @ n))
+        k_og = -self.k_og
+        w0, w1, w2 = k_og * (n1 * y2 - n2 * y1), k_og * (n2 * y0 - n0 * y2), k_og * (n0 * y1 - n1 * y0)
+        v_gw = np.array((w0, w1, w2))
+        self.position_error = math.sqrt(float(projected.dot(projected)))  # = np.linalg.norm, bit for bit
+        self.alignment = math.atan2(math.sqrt(float(v_gw.dot(v_gw))) / self.k_og, float(y_g.dot(n)))
         self.force_along_nc = force_along
-        self.v_gt = v_p + v_f
-        return np.concatenate((self.v_gt, v_gw))
+        g0, g1, g2 = k * q0 + -n0 * command, k * q1 + -n1 * command, k * q2 + -n2 * command
+        self.v_gt = np.array((g0, g1, g2))
+        return np.array((g0, g1, g2, w0, w1, w2))

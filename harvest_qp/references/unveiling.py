@@ -45,7 +45,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_points, as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._checks import (
+    as_points,
+    as_pose,
+    as_position,
+    as_positive_scalar,
+    as_time_step,
+    cross_rows,
+)
 from harvest_qp.references.next_best_view import NextBestView
 
 if TYPE_CHECKING:  # a module-level import would be circular (perception re-exports this module)
@@ -172,7 +179,11 @@ def stem_angular_velocities(
     """
     floor = as_positive_scalar(min_surface_distance, "min_surface_distance")
     min_pivot = as_positive_scalar(min_pivot, "min_pivot", allow_zero=True)
-    weight = _pair_weights(pairs, floor, min_pivot)
+    return _stem_angular_velocities_from_weights(pairs, _pair_weights(pairs, floor, min_pivot))
+
+
+def _stem_angular_velocities_from_weights(pairs: RayObstaclePairs, weight: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`stem_angular_velocities` from the pairs' :func:`_pair_weights`."""
     n_stem = pairs.stem_points.shape[0]
     summed = np.stack(
         [
@@ -184,7 +195,7 @@ def stem_angular_velocities(
     rays = pairs.stem_points - pairs.camera_position
     if n_stem == 0:
         return np.zeros((0, 3))
-    return -np.cross(rays, summed) / np.einsum("ij,ij->i", rays, rays)[:, None]
+    return -cross_rows(rays, summed) / np.einsum("ij,ij->i", rays, rays)[:, None]
 
 
 def unveiling_velocity(
@@ -206,9 +217,18 @@ def unveiling_velocity(
         ``(6,)`` twist: linear [m/s] then angular [rad/s].
     """
     k_c = as_positive_scalar(k_c, "k_c")
-    omega = stem_angular_velocities(pairs, min_surface_distance=min_surface_distance, min_pivot=min_pivot)
+    floor = as_positive_scalar(min_surface_distance, "min_surface_distance")
+    min_pivot = as_positive_scalar(min_pivot, "min_pivot", allow_zero=True)
+    return _unveiling_velocity_from_weights(pairs, _pair_weights(pairs, floor, min_pivot), k_c)
+
+
+def _unveiling_velocity_from_weights(
+    pairs: RayObstaclePairs, weight: NDArray[np.float64], k_c: float
+) -> NDArray[np.float64]:
+    """:func:`unveiling_velocity` from the pairs' :func:`_pair_weights`."""
+    omega = _stem_angular_velocities_from_weights(pairs, weight)
     rays = pairs.stem_points - pairs.camera_position
-    linear = np.cross(rays, omega).sum(axis=0)  # S(p_cs) omega = p_cs x omega
+    linear = cross_rows(rays, omega).sum(axis=0)  # S(p_cs) omega = p_cs x omega
     return k_c * np.concatenate((linear, omega.sum(axis=0)))
 
 
@@ -453,9 +473,26 @@ class Unveiling:
             timestamp: frame time [s] for the stall rule (default: ``frame_period`` after the
                 previous frame).
         """
-        camera = as_position(camera_position, "camera_position")
+        as_position(camera_position, "camera_position")
         stem = as_points(stem_points, "stem_points")
         obstacles = as_points(obstacle_points, "obstacle_points")
+        self._observe_points(camera_position, stem, obstacles, predicted_stem_points=predicted_stem_points,
+                             roi_centre=roi_centre, timestamp=timestamp)
+
+    def _observe_points(
+        self,
+        camera_position: ArrayLike,
+        stem: NDArray[np.float64],
+        obstacles: NDArray[np.float64],
+        *,
+        predicted_stem_points: ArrayLike | None = None,
+        roi_centre: ArrayLike | None = None,
+        timestamp: float | None = None,
+    ) -> None:
+        """:meth:`observe` on ``stem`` and ``obstacles`` already known to be finite float64
+        ``(n, 3)`` arrays (the control loop checks its whole cloud once); the few small
+        arguments are still checked."""
+        camera = as_position(camera_position, "camera_position")
         predicted = None if predicted_stem_points is None else as_points(predicted_stem_points, "predicted_stem_points")
         self._time = self._time + self.frame_period if timestamp is None else float(timestamp)
         if predicted is not None and predicted.shape[0] > 0 and stem.shape[0] < self.min_stem_points:
@@ -482,10 +519,12 @@ class Unveiling:
             obstacles = obstacles[:: -(-obstacles.shape[0] // self.max_obstacle_points)]
         pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=self.d_a, d_o=self.d_o)
         self.mode = "paper"
-        self.n_pairs = int(np.count_nonzero(_pair_weights(pairs, 1e-6, self.min_pivot)))
-        self.raw = bounded_unveiling_velocity(
-            pairs, k_c=self.k_c, min_pivot=self.min_pivot, max_linear=self.max_linear, max_angular=self.max_angular
-        )
+        # The pair weights once, for the count and the law (bounded_unveiling_velocity with its
+        # default 1e-6 floor would compute the same weights a second time).
+        weight = _pair_weights(pairs, 1e-6, self.min_pivot)
+        self.n_pairs = int(np.count_nonzero(weight))
+        twist = _unveiling_velocity_from_weights(pairs, weight, self.k_c)
+        self.raw = saturate_twist(twist, self.max_linear, self.max_angular)
 
     # ------------------------------------------------------------ per tick
 
@@ -497,6 +536,18 @@ class Unveiling:
         else:
             self.value = self.value + (-math.expm1(-dt / self.time_constant)) * (self.raw - self.value)
         return self.value.copy()
+
+    def _update_list(self, dt: float) -> list[float]:
+        """:meth:`update` for the control loop: ``dt`` > 0 [s] unchecked, V_cu as 6 Python
+        floats (:attr:`value` is set as in :meth:`update`, bit for bit: the same IEEE
+        operations in the same order)."""
+        if self.time_constant == 0.0:
+            self.value = self.raw.copy()
+            return self.value.tolist()
+        fraction = -math.expm1(-dt / self.time_constant)
+        value = [v + fraction * (r - v) for v, r in zip(self.value.tolist(), self.raw.tolist())]
+        self.value = np.array(value)
+        return value
 
     @property
     def clear_fraction(self) -> float:

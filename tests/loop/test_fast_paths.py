@@ -1,0 +1,204 @@
+"""HarvestController's per-tick and per-frame fast paths equal the numpy formulas they replace, bit for bit.
+
+The controller computes its references on Python floats (``_camera_twist``, ``_hold_twist``,
+``_roll_reference``, ``_camera_speeds``), splits the cloud through a record view (``_rows``)
+and lists the active collision pairs column-wise (``_active_pairs``). Oracles: the reference
+laws' checked public methods, the numpy expressions of the previous implementation (written
+out here), numpy's boolean indexing, and the collision limit's own
+``active_pair_distances``. Exact equality is asserted: the closed loop's results must not
+move by a bit (``/work/notes/compare_golden.py``).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
+from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
+from harvest_qp.loop.settings import check_settings
+
+def _bits(values) -> list[int]:
+    """The IEEE bit patterns (so that -0.0 differs from 0.0, and NaN equals itself)."""
+    return np.asarray(values, dtype=np.float64).reshape(-1).view(np.int64).tolist()
+
+
+
+@pytest.fixture(scope="module")
+def controller():
+    return HarvestController(check_settings({}))
+
+
+def _random_pose(rng: np.random.Generator, scale: float = 0.5) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    pose = np.eye(4)
+    pose[:3, :3] = q
+    pose[:3, 3] = scale * rng.normal(size=3)
+    return pose
+
+
+def test_camera_twist_equals_the_checked_laws(controller):
+    """V_cr + keep-out + V_cu on floats == ``reaching.update + _keep_out + unveiling.update`` (numpy).
+
+    A third of the poses lie inside the keep-out distance (0.85 r from p_r) so that its
+    branch runs. Catches: the keep-out distance not equal to |p_r - p_c| of V_cr, a missing
+    ``+ 0.0`` (V_cr + zeros), the filters' arithmetic reordered."""
+    c = controller
+    rng = np.random.default_rng(11)
+    r = c.settings["reaching"]
+    keep_out = r["min_distance_factor"] * r["radius"]
+    inside = 0
+    for i in range(600):
+        centre = 0.3 * rng.normal(size=3)
+        c.reaching.reset(centre)
+        c.reaching.set_roi_centre(centre + 0.05 * rng.normal(size=3))
+        c.unveiling.reset()
+        c.unveiling.raw = 0.1 * rng.normal(size=6)
+        pose = _random_pose(rng)
+        if i % 3 == 0:
+            pose[:3, 3] = centre + rng.uniform(0.1, 0.95) * keep_out * pose[:3, 2]
+        reaching, unveiling = copy.deepcopy(c.reaching), copy.deepcopy(c.unveiling)
+        got = c._camera_twist(pose, 0.002)
+        expected = reaching.update(pose, 0.002) + c._keep_out(pose) + unveiling.update(0.002)
+        inside += bool(np.any(c._keep_out(pose)))
+        assert _bits(got) == _bits(expected)
+        assert c.reaching.distance == float(np.linalg.norm(c.reaching.roi_centre - pose[:3, 3]))
+    assert inside > 100
+
+
+def test_hold_twist_equals_the_numpy_formula(controller):
+    """Catches: the hold gain's sign or the rotation error taken as R_hold R_g^T."""
+    c = controller
+    rng = np.random.default_rng(12)
+    k = c.settings["grasping"]["k_hold"]
+    for _ in range(300):
+        hold = pin.SE3(_random_pose(rng))
+        c.state.hold_translation, c.state.hold_rotation_T = hold.translation, hold.rotation.T
+        T_g = _random_pose(rng)
+        expected = np.zeros(6)
+        expected[:3] = -k * (T_g[:3, 3] - hold.translation)
+        expected[3:] = -k * pin.log3(T_g[:3, :3] @ hold.rotation.T)
+        assert _bits(c._hold_twist(T_g)) == _bits(expected)
+
+
+def _roll_reference_numpy(k_roll: float, T_c: np.ndarray, direction: np.ndarray):
+    """The previous implementation (numpy), the oracle."""
+    twist = np.zeros(6)
+    z, y = T_c[:3, 2], T_c[:3, 1]
+    d = direction - (direction @ z) * z
+    if np.linalg.norm(d) < 1e-6:
+        return twist, float("nan")
+    angle = _wrap_half_turn(float(np.arctan2(np.cross(y, d) @ z, y @ d)))
+    twist[3:] = k_roll * angle * z
+    return twist, angle
+
+
+def test_roll_reference_equals_the_numpy_formula(controller):
+    """Including a direction given as a strided view (the gripper's y axis, as in the loop)
+    and one along the optical axis (no roll). Catches: math.atan2 for np.arctan2 (they differ
+    in the last bit on ~7 % of arguments), y x d swapped."""
+    c = controller
+    rng = np.random.default_rng(13)
+    k_roll = c.settings["roll"]["k_roll"]
+    for i in range(1000):
+        T_c = _random_pose(rng)
+        direction = _random_pose(rng)[:3, 1] if i % 2 else rng.normal(size=3)
+        twist, angle = c._roll_reference(T_c, direction)
+        twist_np, angle_np = _roll_reference_numpy(k_roll, T_c, direction)
+        assert _bits(twist) == _bits(twist_np)
+        assert _bits(angle) == _bits(angle_np)
+    T_c = _random_pose(rng)
+    twist, angle = c._roll_reference(T_c, T_c[:3, 2].copy())
+    assert np.isnan(angle) and not np.any(twist)
+
+
+def test_camera_speeds_equal_the_numpy_formula(controller):
+    """Mean speeds over the window from a deque of poses == the numpy norm/arccos formula, also
+    after ticks that only record (``measure=False``). Catches: math.acos for np.arccos, a
+    history kept one sample too long or too short, a pose not recorded when not measured."""
+    c = controller
+    rng = np.random.default_rng(14)
+    c.state.camera_history.clear()
+    window = c.settings["switch"]["window"]
+    poses, times = [], []
+    for k in range(600):
+        t = 0.002 * (k + 1)
+        pose = _random_pose(rng, scale=0.01)
+        poses.append(pose)
+        times.append(t)
+        if k % 3 == 0:  # no stem base yet: recorded, not measured
+            assert c._camera_speeds(t, pose, measure=False) == (float("inf"), float("inf"))
+            continue
+        linear, angular = c._camera_speeds(t, pose)
+        first = next(j for j, s in enumerate(times) if s > t - window + 1e-12) - 1
+        first = max(first, 0)
+        if t - times[first] < window - 1e-9:
+            assert linear == angular == float("inf")
+            continue
+        span = t - times[first]
+        assert _bits(linear) == _bits(float(np.linalg.norm(pose[:3, 3] - poses[first][:3, 3])) / span)
+        z0 = poses[first][:3, 2].copy()
+        assert _bits(angular) == _bits(float(np.arccos(np.clip(z0 @ pose[:3, 2], -1.0, 1.0))) / span)
+
+
+def test_rows_equal_boolean_indexing():
+    """Catches: a record view of the wrong width (rows mixed up) or a non-contiguous input
+    read through the view."""
+    rng = np.random.default_rng(15)
+    points = rng.normal(size=(1001, 3))
+    mask = rng.random(1001) < 0.3
+    for p in (points, np.asfortranarray(points), points[::2], points.astype(np.float32)):
+        m = mask[: len(p)]
+        got = _rows(p, m)
+        assert got.dtype == p.dtype and got.shape == (int(m.sum()), 3)
+        np.testing.assert_array_equal(got, p[m])
+    assert _rows(points, np.zeros(1001, bool)).shape == (0, 3)
+
+
+def test_active_pairs_equal_the_limits_own_listing(controller):
+    """Catches: distances or names taken from the wrong index column."""
+    c = controller
+    q = c.configuration.q.copy()
+    c.qp.reset(q)
+    c.qp.step(q)
+    pairs = c._active_pairs()
+    assert pairs == c.collision.active_pair_distances()
+    assert all(isinstance(d, float) for _, _, d in pairs)
+
+
+def test_a_non_finite_cloud_point_still_raises(controller):
+    """The cloud is checked once per frame instead of per split: a NaN obstacle point still
+    raises the package's error naming the obstacle points (as Unveiling.observe's check did)."""
+    c = controller
+    c.state = type(c.state)()
+    n = 40
+    points = np.random.default_rng(16).normal(size=(n, 3))
+    # 3 stem points: the predicted (next-best-view) mode, where nothing downstream checks the points.
+    labels = np.array([STEM] * 3 + [OBSTACLE] * 27 + [ROBOT] * 10, dtype=np.int8)
+    points[15] = np.nan
+    cloud = PointCloud(points=points, labels=labels, colors=np.zeros((n, 3), np.uint8), camera_pose=np.eye(4),
+                       timestamp=0.1, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(8, 8))
+    with pytest.raises(InvalidInputError, match="obstacle_points"):
+        c._perceive(cloud, np.eye(4))
+
+
+@pytest.mark.parametrize("spread", [0.25, 1e5])
+def test_first_in_each_voxel_equals_the_row_unique(spread):
+    """The packed 1-D unique gives the same first points per voxel, in the same order, as
+    ``np.unique(axis=0)`` (the previous code), also for negative coordinates and (with
+    ``spread`` 1e5 m, 1e7 voxels) through the fallback. Catches: a packing that lets two
+    voxels collide (too few bits, no offset for negative keys), last instead of first
+    occurrences."""
+    rng = np.random.default_rng(17)
+    points = spread * (rng.random((5000, 3)) - 0.5)
+    points = np.vstack((points, points[::7] + 1e-4))  # repeats in the same voxels
+    keys = np.floor(points / 0.01).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    np.testing.assert_array_equal(_first_in_each_voxel(points, 0.01), np.sort(first))
