@@ -3,7 +3,8 @@
 Speed work replaced per-tick Python by unchecked private calls and numba kernels; these tests
 hold each of them to an independent oracle: the runner's full command check, a plain
 per-event loop for the collision-pair log, numpy's ``site_force_world`` for the stem
-tension, and every arm-vine pair's segment distance for the pruned ground-truth search.
+tension, every arm-vine pair's segment distance for the pruned ground-truth search, every
+ray against every geom for the culled ray caster, and the two-pass cloud for the one-pass one.
 """
 
 from __future__ import annotations
@@ -14,11 +15,14 @@ import mujoco
 import numpy as np
 import pytest
 
+from numba import njit
+
 import harvest_qp.runner as runner
 from harvest_qp.runner import Command, run_episode
-from harvest_qp.sim import SimRobot, VineSceneParams
+from harvest_qp.sim import CameraConfig, SimRobot, VineSceneParams, _raycast
 from harvest_qp.sim import contacts as contacts_module
 from harvest_qp.sim.force import site_force_world
+from tests.sim.helpers import look_at
 
 
 class _Mixed:
@@ -189,3 +193,99 @@ def test_pruned_vine_distance_search_equals_every_pair():
             assert np.all(np.diff(lower) >= 0)
         hint = k
         assert k // nv < cm.arm_geoms.size
+
+
+@njit(cache=True)
+def _cast_every_geom(rays_c, origin, rotation, geom_type, geom_size, geom_xpos, geom_xmat, mask, cutoff, geomid, dist):
+    """Brute force: every pixel ray against every geom, in id order (nearest wins, ties to the lowest id)."""
+    for i in range(rays_c.shape[0]):
+        geomid[i] = -1
+        dist[i] = -1.0
+        for g in range(geom_type.shape[0]):
+            if not mask[g]:
+                continue
+            ex, ey, ez = rays_c[i, 0], rays_c[i, 1], rays_c[i, 2]
+            # Ray in the world, then in the geom frame (the caster's own order of operations).
+            px = geom_xpos[g, 0] - origin[0]
+            py = geom_xpos[g, 1] - origin[1]
+            pz = geom_xpos[g, 2] - origin[2]
+            c0 = rotation[0, 0] * px + rotation[1, 0] * py + rotation[2, 0] * pz
+            c1 = rotation[0, 1] * px + rotation[1, 1] * py + rotation[2, 1] * pz
+            c2 = rotation[0, 2] * px + rotation[1, 2] * py + rotation[2, 2] * pz
+            rg = np.empty((3, 3))
+            for a in range(3):
+                for b in range(3):
+                    rg[a, b] = (
+                        rotation[0, a] * geom_xmat[g, b]
+                        + rotation[1, a] * geom_xmat[g, 3 + b]
+                        + rotation[2, a] * geom_xmat[g, 6 + b]
+                    )
+            ox = -(rg[0, 0] * c0 + rg[1, 0] * c1 + rg[2, 0] * c2)
+            oy = -(rg[0, 1] * c0 + rg[1, 1] * c1 + rg[2, 1] * c2)
+            oz = -(rg[0, 2] * c0 + rg[1, 2] * c1 + rg[2, 2] * c2)
+            dx = rg[0, 0] * ex + rg[1, 0] * ey + rg[2, 0] * ez
+            dy = rg[0, 1] * ex + rg[1, 1] * ey + rg[2, 1] * ez
+            dz = rg[0, 2] * ex + rg[1, 2] * ey + rg[2, 2] * ez
+            t = _raycast._geom_local(geom_type[g], geom_size[g], ox, oy, oz, dx, dy, dz)
+            if t >= 0.0 and t <= cutoff and (dist[i] < 0.0 or t < dist[i]):
+                dist[i] = t
+                geomid[i] = g
+
+
+@pytest.mark.parametrize("downsample", [4, 8])
+def test_culled_caster_equals_every_ray_against_every_geom_bit_for_bit(downsample):
+    """Bug caught: a per-row span (bounding-sphere cone, the ellipsoid or infinite-cylinder
+    quadric) that cuts off a pixel the geom covers, or an occlusion skip that drops the
+    nearest hit. Oracle: a brute-force kernel that casts every pixel ray against every
+    geom with the shared per-geom intersection routine, in id order; the two must agree
+    exactly (distances and ids) on views from the episode and random views near the vine.
+    """
+    robot = SimRobot(VineSceneParams.sample(2), camera=CameraConfig(downsample=downsample))
+    cam, m, d = robot._camera, robot.model, robot.data
+    rng = np.random.default_rng(downsample)
+    centre = np.asarray(robot.scene.stem_base)
+    bounded = m.geom_rbound > 0
+    leaves = [g for g in range(m.ngeom) if m.geom(g).name.startswith("leaf")]
+    views = [robot.site_pose("camera")]
+    while len(views) < 25:
+        eye = centre + rng.normal(0.0, 0.3, 3)
+        eye[2] = max(eye[2], 0.05)
+        if np.any(np.linalg.norm(d.geom_xpos[bounded] - eye, axis=1) < m.geom_rbound[bounded] + 0.01):
+            continue  # inside a geom's bounding sphere the casters may differ by design
+        # Every other view looks at a leaf (the ellipsoid quadric), the rest at the stem region.
+        target = d.geom_xpos[leaves[rng.integers(len(leaves))]] if len(views) % 2 else centre + rng.normal(0, 0.15, 3)
+        views.append(look_at(eye, target, rng.normal(0.0, 0.3, 3) + (0.0, 0.0, -1.0)))
+    n = cam.n_pixels
+    ids, lengths = np.empty(n, np.int32), np.empty(n)
+    hits = {int(t): 0 for t in np.unique(m.geom_type)}
+    for pose in views:
+        dist, geomid = cam.cast(d, pose)
+        _cast_every_geom(
+            cam._rays_c, np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]), cam._geom_type,
+            m.geom_size, d.geom_xpos, d.geom_xmat, cam._mask, cam._cutoff, ids, lengths,
+        )  # fmt: skip
+        np.testing.assert_array_equal(geomid, ids)
+        np.testing.assert_array_equal(dist, lengths)
+        for t in hits:
+            hits[t] += int(np.sum(m.geom_type[ids[ids >= 0]] == t))
+    # The views did hit ellipsoids (leaves), capsules (arms, canes) and the floor.
+    assert hits[int(mujoco.mjtGeom.mjGEOM_ELLIPSOID)] > 1000 and hits[int(mujoco.mjtGeom.mjGEOM_CAPSULE)] > 1000
+    assert hits[int(mujoco.mjtGeom.mjGEOM_PLANE)] > 100
+
+
+def test_one_pass_cloud_equals_the_two_pass_cloud_with_noise_and_dropout():
+    """Bug caught: the one-pass compaction (depth per pixel, row/column from the loop) changing
+    a point, its order, a label or the noise/dropout draws. Oracle: the shared
+    ``_finish(pose, dist * ray_z, ...)`` path (also used by the OpenGL camera)."""
+    cfg = CameraConfig(downsample=4, depth_noise=0.003, dropout=0.1, stem_range=0.9)
+    robot = SimRobot(camera=cfg, seed=3)
+    cam, d = robot._camera, robot.data
+    pose = robot.site_pose("camera")
+    dist, geomid = (x.copy() for x in cam.cast(d, pose))
+    cam.reset(seed=3)
+    one = cam._finish_rays(pose, dist, geomid, 0.5)
+    cam.reset(seed=3)
+    two = cam._finish(pose, dist * cam._ray_z, geomid, 0.5)
+    assert len(one) > 1000
+    for name in ("points", "labels", "colors", "depth", "pixels", "camera_pose"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
