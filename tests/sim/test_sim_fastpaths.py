@@ -14,7 +14,6 @@ import math
 import mujoco
 import numpy as np
 import pytest
-
 from numba import njit
 
 import harvest_qp.runner as runner
