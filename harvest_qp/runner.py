@@ -229,6 +229,60 @@ def _as_command(out: Any) -> Command:
                    done=bool(cmd.done))
 
 
+_FLOAT64 = np.dtype(np.float64)
+
+
+def _as_command_fast(out: Any) -> Command:
+    """:func:`_as_command` for the common case, without rebuilding what is already valid.
+
+    A :class:`Command` whose qdot is a finite float64 (12,) array, whose task errors and
+    values are floats or float64 arrays and whose collision pairs are ``(str, str, float)``
+    tuples is returned with the same contents as :func:`_as_command` gives (qdot, values
+    and pairs are passed through, as ``np.asarray`` would pass them); anything else goes
+    through :func:`_as_command`, which raises the same errors as before.
+    """
+    if type(out) is not Command:
+        return _as_command(out)
+    qd = out.qdot
+    if (
+        type(qd) is not np.ndarray
+        or qd.dtype is not _FLOAT64
+        or qd.shape != (N_JOINTS,)
+        or not np.isfinite(qd).all()
+        or type(out.status) is not str
+    ):
+        return _as_command(out)
+    errors = out.task_errors
+    if errors:
+        if type(errors) is not dict:
+            return _as_command(out)
+        for name, value in errors.items():
+            if type(name) is not str or type(value) is not float:
+                return _as_command(out)
+    values = out.values
+    if values:
+        if type(values) is not dict:
+            return _as_command(out)
+        for name, value in values.items():
+            kind = type(value)
+            scalar = kind is float or kind is np.float64
+            if type(name) is not str or not (scalar or (kind is np.ndarray and value.dtype is _FLOAT64)):
+                return _as_command(out)
+    pairs = out.collision_pairs
+    if pairs:
+        for pair in pairs:
+            if (
+                type(pair) is not tuple
+                or len(pair) != 3
+                or type(pair[0]) is not str
+                or type(pair[1]) is not str
+                or type(pair[2]) is not float
+            ):
+                return _as_command(out)
+    return Command(qdot=qd, status=out.status, task_errors=dict(errors), values=dict(values),
+                   collision_pairs=list(pairs), done=bool(out.done))
+
+
 class _Log:
     """Preallocated per-tick arrays plus per-frame lists."""
 
@@ -248,7 +302,11 @@ class _Log:
         self.task_errors: dict[str, NDArray[np.float64]] = {}
         self.values: dict[str, NDArray[np.float64]] = {}
         self.pair_index: dict[str, int] = {}
-        self.pair_events: list[tuple[int, int, float]] = []  # (tick, pair index, distance)
+        self._pair_key: dict[tuple[str, str], int] = {}  # (a, b) -> index into pair_index's order
+        # Active pair events, as three parallel lists (tick, pair index, distance), in tick order.
+        self.pair_ticks: list[int] = []
+        self.pair_ids: list[int] = []
+        self.pair_distances: list[float] = []
         self.truth = {k: np.full((n, *np.shape(v)), np.nan) for k, v in (truth or {}).items()}
         self.controller_time = np.full(n, np.nan) if log_timing else None
         # every how many camera frames a cloud is logged (0: none); True = every frame
@@ -276,8 +334,17 @@ class _Log:
                 self.task_errors[name] = np.full(self.n, np.nan)
             self.task_errors[name][k] = value
 
-    def value(self, k: int, values: Mapping[str, NDArray[np.float64]]) -> None:
+    def value(self, k: int, values: Mapping[str, NDArray[np.float64] | float]) -> None:
+        store = self.values
         for name, value in values.items():
+            if type(value) is float or type(value) is np.float64:  # a scalar (passed through by the fast check)
+                column = store.get(name)
+                if column is None:
+                    column = store[name] = np.full(self.n, np.nan)
+                elif column.ndim != 1:
+                    raise InvalidInputError(f"value {name!r} changed shape from {column.shape[1:]} to ()")
+                column[k] = value
+                continue
             if name not in self.values:
                 self.values[name] = np.full((self.n, *value.shape), np.nan)
             if self.values[name].shape[1:] != value.shape:
@@ -287,26 +354,40 @@ class _Log:
             self.values[name][k] = value
 
     def pairs(self, k: int, pairs: Sequence[tuple[str, str, float]]) -> None:
+        if not pairs:
+            return
+        keys = self._pair_key
+        ids = self.pair_ids
+        distances = self.pair_distances
         for a, b, distance in pairs:
-            name = f"{a}|{b}"
-            index = self.pair_index.setdefault(name, len(self.pair_index))
-            self.pair_events.append((k, index, distance))
+            index = keys.get((a, b))
+            if index is None:
+                name = f"{a}|{b}"
+                index = keys[(a, b)] = self.pair_index.setdefault(name, len(self.pair_index))
+            ids.append(index)
+            distances.append(distance)
+        self.pair_ticks.extend([k] * len(pairs))
+
+    @property
+    def pair_events(self) -> list[tuple[int, int, float]]:
+        """The active pair events as (tick, pair index, distance), in tick order."""
+        return list(zip(self.pair_ticks, self.pair_ids, self.pair_distances))
 
     def pair_arrays(self, k: int) -> dict[str, NDArray[Any]]:
         names = sorted(self.pair_index, key=self.pair_index.get)
         width = max([len(n) for n in names] + [1])
-        counts = np.zeros(max(k, 1), dtype=np.int64)
-        for tick, _, _ in self.pair_events:
-            counts[tick] += 1
-        columns = int(counts.max()) if self.pair_events else 0
+        ticks = np.array(self.pair_ticks, dtype=np.int64)
+        counts = np.bincount(ticks, minlength=max(k, 1)) if ticks.size else np.zeros(max(k, 1), np.int64)
+        columns = int(counts.max()) if ticks.size else 0
         index = np.full((k, columns), -1, np.int32)
         distance = np.full((k, columns), np.nan, np.float32)
-        fill = np.zeros(max(k, 1), dtype=np.int64)
-        for tick, pair, d in self.pair_events:
-            if tick < k:
-                index[tick, fill[tick]] = pair
-                distance[tick, fill[tick]] = d
-                fill[tick] += 1
+        if ticks.size:
+            # Events are in tick order: an event's column is its rank among its tick's events.
+            starts = np.cumsum(counts) - counts
+            fill = np.arange(ticks.size) - starts[ticks]
+            inside = ticks < k
+            index[ticks[inside], fill[inside]] = np.array(self.pair_ids, dtype=np.int64)[inside]
+            distance[ticks[inside], fill[inside]] = np.array(self.pair_distances, dtype=np.float64)[inside]
         return {
             "collision/pair_names": np.array(names, dtype=f"<U{width}"),
             "collision/active_pair": index,
@@ -411,6 +492,11 @@ def run_episode(
     if cloud_max_points is not None and (bad_count or cloud_max_points < 1):
         raise InvalidInputError(f"cloud_max_points must be an integer >= 1 or None, got {cloud_max_points!r}")
     log = _Log(n_ticks, truth0, log_timing, log_clouds, cloud_max_points)
+    # Every command is checked here (finite float64, shape (12,)): a robot that offers it
+    # gets it through its sender without a second check.
+    unchecked = getattr(robot, "_unchecked_sender", None)
+    send = (unchecked() if callable(unchecked) else None) or robot.send_joint_velocities
+    truth_log = log.truth
 
     status, error = "completed", None
     latest: PointCloud | None = None
@@ -442,7 +528,7 @@ def run_episode(
                 log.cloud_time[k] = latest.timestamp
             if truth_fn is not None:
                 for name, value in truth_fn().items():
-                    log.truth[name][k] = value
+                    truth_log[name][k] = value
             t0 = time.perf_counter()
             try:
                 out = controller.step(obs)
@@ -450,7 +536,7 @@ def run_episode(
                 status, error = "controller_error", "controller.step failed: " + _format_error(exc)
             else:
                 try:
-                    cmd = _as_command(out)
+                    cmd = _as_command_fast(out)
                 except InvalidInputError as exc:
                     status, error = "invalid_command", str(exc)
             if log.controller_time is not None:
@@ -464,7 +550,7 @@ def run_episode(
             log.task(k, cmd.task_errors)
             log.value(k, cmd.values)
             log.pairs(k, cmd.collision_pairs)
-            robot.send_joint_velocities(cmd.qdot)
+            send(cmd.qdot)
             k += 1
             try:
                 robot.step()

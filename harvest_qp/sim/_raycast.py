@@ -262,6 +262,53 @@ def _sphere_row_span(c0, c1, c2, r, y, focal, width):
 
 
 @njit(cache=True)
+def _quadric_row_span(w0, w1, w2, o0, o1, o2, a0, a1, a2, rg, y, focal, width, pad):
+    """Pixel columns (u0, u1) of image row ``y`` whose rays' lines can meet a quadric; (0, -1): none.
+
+    The quadric is sum_i w_i x_i^2 <= 1 in a geom's frame (an ellipsoid, or with w_2 = 0 the
+    infinite cylinder around a capsule or cylinder), seen from the ray origin ``o`` in that
+    frame; ``a = (sum_i w_i o_i rg[0, i], sum_i w_i rg[0, i]^2, sum_i w_i o_i^2 - 1)`` are the
+    row-independent sums. The ray through (x, y, 1) in the camera frame has the direction
+    d = x rg[0] + y rg[1] + rg[2] in the geom frame, and its line meets the quadric where
+    (sum w o d)^2 - (sum w d^2)(sum w o^2 - 1) >= 0: a quadratic A x^2 + 2 B x + C >= 0 in x,
+    one interval when A < 0 (scaling d does not change its sign, so the unit rays the
+    kernel casts hit the same set). The interval is padded by ``pad`` pixels on each side,
+    far beyond its round-off, so every pixel outside it misses the geom in the kernel's own
+    arithmetic too. Returns the whole row (no restriction) when the origin is inside or
+    near the quadric or A is not clearly negative (the set is not one bounded interval).
+    """
+    p0, q0, c = a0, a1, a2
+    if not c > 1e-6:
+        return 0, width - 1
+    k0 = y * rg[1, 0] + rg[2, 0]
+    k1 = y * rg[1, 1] + rg[2, 1]
+    k2 = y * rg[1, 2] + rg[2, 2]
+    pk = w0 * o0 * k0 + w1 * o1 * k1 + w2 * o2 * k2
+    rk = w0 * rg[0, 0] * k0 + w1 * rg[0, 1] * k1 + w2 * rg[0, 2] * k2
+    kk = w0 * k0 * k0 + w1 * k1 * k1 + w2 * k2 * k2
+    qa = p0 * p0 - c * q0
+    qb = p0 * pk - c * rk
+    qc = pk * pk - c * kk
+    if not qa < -1e-9 * (p0 * p0 + c * q0):
+        return 0, width - 1
+    disc = qb * qb - qa * qc
+    scale = qb * qb + abs(qa * qc)
+    if disc < -1e-9 * scale:
+        return 0, -1  # the row's plane misses the quadric
+    sq = math.sqrt(max(disc, 0.0))
+    lo = (-qb + sq) / qa  # qa < 0: the smaller root
+    hi = (-qb - sq) / qa
+    half = width / 2.0 - 0.5
+    ul = focal * lo + half
+    uh = focal * hi + half
+    if not (abs(ul) < 1e9 and abs(uh) < 1e9):
+        return 0, width - 1
+    u0 = max(0, int(math.floor(ul)) - pad)
+    u1 = min(width - 1, int(math.ceil(uh)) + pad)
+    return u0, u1
+
+
+@njit(cache=True)
 def cast_rays(
     rays_c,  # (h*w, 3) unit pixel rays in the camera frame, row-major
     height,
@@ -303,6 +350,10 @@ def cast_rays(
     cens = np.empty((ng, 3))  # centre in the camera frame
     nsub = np.zeros(ng, np.int64)  # bounding spheres per row span (0: whole rows)
     rsub = np.zeros(ng)  # their radius
+    # Quadric bounding the geom's footprint per row (see _quadric_row_span): weights and sums.
+    quad = np.zeros(ng, np.bool_)
+    qw = np.zeros((ng, 3))
+    qsum = np.zeros((ng, 3))
     todo = np.empty(ng, np.int64)
     count = 0
     for g in range(ng):
@@ -381,6 +432,23 @@ def cast_rays(
             rects[g, 2] = rect[2]
             rects[g, 3] = rect[3]
             near[g] = max(0.0, centre_distance - r)
+            if gt == 4 or gt == 3 or gt == 5:
+                # Ellipsoid: itself; capsule and cylinder: the infinite cylinder around them.
+                if gt == 4:
+                    w0 = 1.0 / (geom_size[g, 0] * geom_size[g, 0])
+                    w1 = 1.0 / (geom_size[g, 1] * geom_size[g, 1])
+                    w2 = 1.0 / (geom_size[g, 2] * geom_size[g, 2])
+                else:
+                    w0 = 1.0 / (radius * radius)
+                    w1 = w0
+                    w2 = 0.0
+                quad[g] = True
+                qw[g, 0] = w0
+                qw[g, 1] = w1
+                qw[g, 2] = w2
+                qsum[g, 0] = w0 * ox * rg[0, 0] + w1 * oy * rg[0, 1] + w2 * oz * rg[0, 2]
+                qsum[g, 1] = w0 * rg[0, 0] * rg[0, 0] + w1 * rg[0, 1] * rg[0, 1] + w2 * rg[0, 2] * rg[0, 2]
+                qsum[g, 2] = w0 * ox * ox + w1 * oy * oy + w2 * oz * oz - 1.0
         elif gt == 0:
             # Plane: only its front face is hit, from a camera above it and within range.
             if oz < 0.0 or oz > cutoff:
@@ -420,14 +488,28 @@ def cast_rays(
         r10, r11, r12 = rg[1, 0], rg[1, 1], rg[1, 2]
         r20, r21, r22 = rg[2, 0], rg[2, 1], rg[2, 2]
         s0, s1, s2 = size[0], size[1], size[2]
+        use_quad = quad[g]
+        w0, w1, w2 = qw[g, 0], qw[g, 1], qw[g, 2]
+        a0, a1, a2 = qsum[g, 0], qsum[g, 1], qsum[g, 2]
         for v in range(v0, v1 + 1):
             ua, ub = u0, u1
             y = (v + 0.5 - height / 2.0) / focal
+            restricted = False
+            if use_quad:
+                # The geom's quadric (see _quadric_row_span); for a long capsule or cylinder its
+                # infinite cylinder makes the axis spheres' spans below unnecessary, the
+                # geom's rectangle bounding it along the axis.
+                ua, ub = _quadric_row_span(w0, w1, w2, ox, oy, oz, a0, a1, a2, rg, y, focal, width, 2)
+                restricted = ua > 0 or ub < width - 1
+                if ua > ub:
+                    continue
             if plane:
                 ua, ub = _cone_row_span(-n0, -n1, -n2, k_plane, y, focal, width)
             elif m == 1:
-                ua, ub = _sphere_row_span(c0, c1, c2, rs, y, focal, width)
-            elif m > 1:
+                sa, sb = _sphere_row_span(c0, c1, c2, rs, y, focal, width)
+                ua = max(ua, sa)
+                ub = min(ub, sb)
+            elif m > 1 and not restricted:
                 # Long capsule or cylinder: the hull of its axis spheres' spans (its footprint
                 # on a row is one interval: the geom is convex).
                 ua, ub = width, -1
@@ -529,4 +611,74 @@ def compact_cloud(
         out_pixels[count, 0] = i // width
         out_pixels[count, 1] = i % width
         count += 1
+    return count
+
+
+@njit(cache=True)
+def compact_rays(
+    dist,  # (h*w,) ray length per pixel [m] (-1: no hit)
+    geomid,  # (h*w,) geom hit per pixel (-1: none)
+    rays_c,  # (h*w, 3) unit pixel rays in the camera frame, row-major
+    rotation,  # (3, 3) camera rotation (world from camera)
+    origin,  # (3,) camera position
+    min_depth,
+    max_depth,
+    stem_range,
+    noise,  # (h*w,) standard normal draws for depth noise, or (0,)
+    noise_scale,  # depth noise std at 1 m [m]
+    keep,  # (h*w,) bool: pixel not dropped out, or (0,)
+    geom_ok,  # (ngeom,) bool: geoms the camera may see
+    geom_label,  # (ngeom,) int8
+    geom_color,  # (ngeom, 3) uint8
+    stem_label,
+    obstacle_label,
+    out_points,  # (h*w, 3)
+    out_labels,  # (h*w,) int8
+    out_colors,  # (h*w, 3) uint8
+    out_depth,  # (h*w,)
+    out_pixels,  # (h*w, 2) int32
+    height,
+    width,
+):
+    """:func:`compact_cloud` of :func:`cast_rays`' output, with the z-depth ``dist * rays_c[:, 2]``
+    taken per pixel (the same product) instead of in a separate array, and the pixel's row and
+    column from the loop instead of an integer division per point.
+    """
+    count = 0
+    n = dist.shape[0]
+    use_noise = noise.shape[0] == n
+    use_keep = keep.shape[0] == n
+    for v in range(height):
+        for u in range(width):
+            i = v * width + u
+            g = geomid[i]
+            if g < 0 or not geom_ok[g]:
+                continue
+            rz = rays_c[i, 2]
+            z = dist[i] * rz
+            if not (z >= min_depth and z <= max_depth):
+                continue
+            if use_keep and not keep[i]:
+                continue
+            if use_noise:
+                # Stereo depth error grows with depth squared (fixed disparity error).
+                z = z + noise[i] * noise_scale * z * z
+            s = z / rz
+            x = rays_c[i, 0] * s
+            y = rays_c[i, 1] * s
+            zz = rz * s
+            for k in range(3):
+                out_points[count, k] = origin[k] + rotation[k, 0] * x + rotation[k, 1] * y + rotation[k, 2] * zz
+            label = geom_label[g]
+            # Beyond the detection range a stem point is just another obstacle (the paper).
+            if label == stem_label and s > stem_range:
+                label = obstacle_label
+            out_labels[count] = label
+            out_colors[count, 0] = geom_color[g, 0]
+            out_colors[count, 1] = geom_color[g, 1]
+            out_colors[count, 2] = geom_color[g, 2]
+            out_depth[count] = z
+            out_pixels[count, 0] = v
+            out_pixels[count, 1] = u
+            count += 1
     return count

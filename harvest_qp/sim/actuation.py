@@ -171,6 +171,12 @@ class SpeedjServo:
         vmax = self.config.max_velocity
         self.qd_cmd = np.clip(qd, -vmax, vmax)
 
+    def _command_unchecked(self, qdot: NDArray[np.float64]) -> None:
+        """:meth:`command` for a finite float64 (12,) array checked by the caller (the episode runner)."""
+        vmax = self.config.max_velocity
+        # np.clip's own result for finite values, without its Python wrapper.
+        self.qd_cmd = np.minimum(np.maximum(qdot, -vmax), vmax)
+
     def at_rest(self) -> bool:
         """True when the reference velocity is zero."""
         return not np.any(self.qd_ref)

@@ -309,7 +309,38 @@ class RayCastCamera(DepthCamera):
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
             raise InvalidInputError(f"pose must be a finite 4x4 transform, got shape {pose.shape}")
         dist, geomid = self.cast(data, pose)
-        return self._finish(pose, dist * self._ray_z, geomid, timestamp)
+        return self._finish_rays(pose, dist, geomid, timestamp)
+
+    def _finish_rays(
+        self, pose: NDArray[np.float64], dist: NDArray[np.float64], geom: NDArray[np.int32], timestamp: float
+    ) -> PointCloud:
+        """:meth:`_finish` of the ray lengths: ``_finish(pose, dist * ray_z, geom, timestamp)`` in one pass."""
+        cfg = self.config
+        n = dist.shape[0]
+        # Draw the random numbers for every pixel whatever the scene (as _finish does).
+        keep = self._rng.random(n) >= cfg.dropout if cfg.dropout > 0 else self._no_bool
+        noise = self._rng.standard_normal(n) if cfg.depth_noise > 0 else self._no_float
+        points = np.empty((n, 3))
+        labels = np.empty(n, np.int8)
+        rgb = np.empty((n, 3), np.uint8)
+        z = np.empty(n)
+        pixels = np.empty((n, 2), np.int32)
+        h, w = self._hw
+        count = _raycast.compact_rays(
+            dist, geom, self._rays_c, np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
+            cfg.min_depth, cfg.max_depth, cfg.stem_range, noise, cfg.depth_noise, keep, self._geom_ok,
+            self._labels, self._colors, STEM, OBSTACLE, points, labels, rgb, z, pixels, h, w,
+        )  # fmt: skip
+        return PointCloud(
+            points=points[:count],
+            labels=labels[:count],
+            colors=rgb[:count],
+            camera_pose=np.array(pose, dtype=float),
+            timestamp=float(timestamp),
+            depth=z[:count],
+            pixels=pixels[:count],
+            image_size=cfg.image_size,
+        )
 
 
 class OpenGLCamera(DepthCamera):

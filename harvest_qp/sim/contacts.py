@@ -18,6 +18,8 @@ the gripper), so they are neither contacts nor part of ``min_vine_distance``.
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 from numba import njit
@@ -81,21 +83,17 @@ class ContactMonitor:
             self.arm_geoms, self._arm_caps[0], self._arm_caps[1],
             self.vine_geoms, self._vine_caps[0], self._vine_caps[1],
         )
+        # The pair found by the last call: its distance now bounds this call's result.
+        self._hint = -1
 
     def contact_counts(self, data: mujoco.MjData) -> dict[str, int]:
         """Number of active contacts of each kind of :data:`CONTACT_KINDS` (penetrating or within margin)."""
-        counts = dict.fromkeys(CONTACT_KINDS, 0)
-        if data.ncon == 0:
-            return counts
-        g1 = self.kind[data.contact.geom1[: data.ncon]]
-        g2 = self.kind[data.contact.geom2[: data.ncon]]
-        lo, hi = np.minimum(g1, g2), np.maximum(g1, g2)
-        arm = lo == _ARM
-        counts["arm_arm"] = int(np.sum(arm & (hi == _ARM)))
-        counts["arm_stand"] = int(np.sum(arm & (hi == _STAND)))
-        counts["arm_vine"] = int(np.sum(arm & (hi == _VINE)))
-        counts["arm_floor"] = int(np.sum(arm & (hi == _FLOOR)))
-        return counts
+        ncon = data.ncon
+        if ncon == 0:
+            return dict.fromkeys(CONTACT_KINDS, 0)
+        contact = data.contact
+        arm_arm, arm_vine, arm_stand, arm_floor = _count_kinds(self.kind, contact.geom1, contact.geom2, ncon)
+        return {"arm_arm": arm_arm, "arm_vine": arm_vine, "arm_stand": arm_stand, "arm_floor": arm_floor}
 
     def min_vine_distance(self, data: mujoco.MjData) -> tuple[float, int, int]:
         """Smallest signed distance [m] between an arm geom and a vine geom, and that pair.
@@ -116,8 +114,9 @@ class ContactMonitor:
         nv = self.vine_geoms.size
         best, k, n_candidates = _capsule_bounds(
             data.geom_xpos, data.geom_xmat, self._static, self._radius_sum, self._exact_pairs,
-            self._bounded_pairs, self.max_distance, self._lower, self._candidates,
+            self._bounded_pairs, self.max_distance, self._lower, self._candidates, self._hint,
         )  # fmt: skip
+        self._hint = k
         pair = (-1, -1) if k < 0 else (int(self.arm_geoms[k // nv]), int(self.vine_geoms[k % nv]))
         lower = self._lower
         for i in self._candidates[:n_candidates]:
@@ -131,15 +130,28 @@ class ContactMonitor:
         return float(best), pair[0], pair[1]
 
 
+#: Safety margin [m] of the bounding-sphere test in :func:`_capsule_bounds`: far above the
+#: round-off of the distances (~1e-15 m), so a pair it skips is certainly farther than the best.
+_PRUNE_MARGIN = 1e-9
+
+
 @njit(cache=True)
-def _capsule_bounds(xpos, xmat, static, radius_sum, exact_pairs, bounded_pairs, max_distance, lower, candidates):
+def _capsule_bounds(
+    xpos, xmat, static, radius_sum, exact_pairs, bounded_pairs, max_distance, lower, candidates, hint=-1,
+):  # fmt: skip
     """Enclosing-capsule distances of every arm-vine pair (pair k = arm k // nv, vine k % nv).
 
     ``static`` is ``(arm geoms, their capsule axes, half-lengths, vine geoms, axes,
     half-lengths)``. Returns the smallest distance over ``exact_pairs`` (the capsules are
     the geoms) if it is below ``max_distance`` (else ``max_distance``), its pair index (-1:
-    none), and the number of ``bounded_pairs`` whose lower bound (written to ``lower``) is
-    below it, their indices written to ``candidates`` nearest first.
+    none; the first such pair in ``exact_pairs`` order on a tie), and the number of
+    ``bounded_pairs`` whose lower bound (written to ``lower``) is below it, their indices
+    written to ``candidates`` nearest first (``lower`` is left unwritten for the others).
+
+    Broad phase: a pair whose capsules' bounding spheres are farther apart than the best
+    distance so far (or than the distance of the exact pair ``hint``, e.g. the last call's
+    answer, which bounds the minimum from above) by ``_PRUNE_MARGIN`` cannot be nearer, so
+    its segment distance is not computed: the result is the same as testing every pair.
     """
     arm, arm_axis, arm_half, vine, vine_axis, vine_half = static
     na, nv = arm.shape[0], vine.shape[0]
@@ -161,18 +173,34 @@ def _capsule_bounds(xpos, xmat, static, radius_sum, exact_pairs, bounded_pairs, 
             qv[i, c] = xpos[g, c] + off
     best = max_distance
     best_k = -1
+    # An upper bound of the answer: the distance of the hinted pair (an exact one) now.
+    upper = max_distance
+    if hint >= 0:
+        i, m = hint // nv, hint % nv
+        upper = min(upper, _pair_distance(pa, qa, i, pv, qv, m) - radius_sum[i, m])
     for j in range(exact_pairs.shape[0]):
         k = exact_pairs[j]
         i, m = k // nv, k % nv
+        reach = arm_half[i] + vine_half[m] + radius_sum[i, m]
+        dx = xpos[arm[i], 0] - xpos[vine[m], 0]
+        dy = xpos[arm[i], 1] - xpos[vine[m], 1]
+        dz = xpos[arm[i], 2] - xpos[vine[m], 2]
+        if math.sqrt(dx * dx + dy * dy + dz * dz) - reach >= min(best, upper) + _PRUNE_MARGIN:
+            continue
         d = _pair_distance(pa, qa, i, pv, qv, m) - radius_sum[i, m]
         if d < best:
             best, best_k = d, k
+    n = 0
     for j in range(bounded_pairs.shape[0]):
         k = bounded_pairs[j]
         i, m = k // nv, k % nv
+        reach = arm_half[i] + vine_half[m] + radius_sum[i, m]
+        dx = xpos[arm[i], 0] - xpos[vine[m], 0]
+        dy = xpos[arm[i], 1] - xpos[vine[m], 1]
+        dz = xpos[arm[i], 2] - xpos[vine[m], 2]
+        if math.sqrt(dx * dx + dy * dy + dz * dz) - reach >= best + _PRUNE_MARGIN:
+            continue
         lower[j] = _pair_distance(pa, qa, i, pv, qv, m) - radius_sum[i, m]
-    n = 0
-    for j in range(bounded_pairs.shape[0]):
         if lower[j] < best:
             candidates[n] = j
             n += 1
@@ -180,6 +208,25 @@ def _capsule_bounds(xpos, xmat, static, radius_sum, exact_pairs, bounded_pairs, 
         order = np.argsort(lower[candidates[:n]], kind="mergesort")
         candidates[:n] = candidates[:n][order]
     return best, best_k, n
+
+
+@njit(cache=True)
+def _count_kinds(kind, geom1, geom2, ncon):
+    """Contacts among the first ``ncon`` of each kind: (arm-arm, arm-vine, arm-stand, arm-floor)."""
+    arm_arm = arm_vine = arm_stand = arm_floor = 0
+    for c in range(ncon):
+        k1, k2 = kind[geom1[c]], kind[geom2[c]]
+        lo, hi = min(k1, k2), max(k1, k2)
+        if lo == _ARM:
+            if hi == _ARM:
+                arm_arm += 1
+            elif hi == _STAND:
+                arm_stand += 1
+            elif hi == _VINE:
+                arm_vine += 1
+            elif hi == _FLOOR:
+                arm_floor += 1
+    return arm_arm, arm_vine, arm_stand, arm_floor
 
 
 def _enclosing_capsules(model: mujoco.MjModel, geoms: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:

@@ -96,6 +96,7 @@ class WristForceSensor:
         self._last = np.zeros(3)
         self._history = np.zeros((config.tare_samples, 3))
         self._count = 0
+        self._adr = int(model.sensor_adr[self.sensor_id])
 
     def reset(self, *, seed: int | None = None) -> None:
         """Clear the tare offset and the filter; optionally reseed the noise."""
@@ -113,7 +114,14 @@ class WristForceSensor:
 
     def update(self, data: mujoco.MjData, dt: float) -> NDArray[np.float64]:
         """Take one sample (after a physics step of ``dt`` [s]) and return the reading [N, world]."""
-        f = self.raw(data)
+        self._sample(data, dt)
+        return self.reading()
+
+    def _sample(self, data: mujoco.MjData, dt: float) -> None:
+        """:meth:`update` without building the reading (the robot's step does not use it)."""
+        adr = self._adr
+        # site_force_world's arithmetic, with the sensor address looked up once.
+        f = data.site_xmat[self.site_id].reshape(3, 3) @ data.sensordata[adr : adr + 3] + self._tool_weight
         if self.config.noise_std > 0:
             f = f + self._rng.normal(0.0, self.config.noise_std, 3)
         tau = self.config.filter_time_constant
@@ -127,7 +135,6 @@ class WristForceSensor:
         self._last = f
         self._history[self._count % len(self._history)] = f
         self._count += 1
-        return self.reading()
 
     def reading(self) -> NDArray[np.float64]:
         """Latest sample minus the tare offset [N, world]."""

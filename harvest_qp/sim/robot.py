@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
 from harvest_qp.interface import N_JOINTS, ROBOT, PointCloud, RobotInterface
 from harvest_qp.robot import description as desc
-from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo
+from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo, _servo_step
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
 from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor, site_force_world
@@ -160,6 +160,9 @@ class SimRobot(RobotInterface):
         joint_ids = np.array([m.joint(n).id for n in names])
         self._qpos_ids = m.jnt_qposadr[joint_ids].copy()
         self._dof_ids = m.jnt_dofadr[joint_ids].copy()
+        # The arms' joints are consecutive in qpos and qvel: a slice copy is cheaper than fancy indexing.
+        self._qpos_slice = _as_slice(self._qpos_ids)
+        self._dof_slice = _as_slice(self._dof_ids)
         act_ids = np.array([m.actuator(n).id for n in scene.actuator_names])
         self._servo = SpeedjServo(m, act_ids, self._qpos_ids, actuation if actuation is not None else ActuationConfig())
         self._kp = m.actuator_gainprm[act_ids, 0].astype(float)
@@ -191,9 +194,12 @@ class SimRobot(RobotInterface):
         self._stem_force_adr = int(m.sensor_adr[ids["stem_force"]])
         self._stem_end_site = int(ids["stem_end_site"])
         self._stem_base = tuple(float(x) for x in scene.stem_base)
+        self._stem_base_array = np.array(self._stem_base)
         self._spring0 = m.qpos_spring.copy()
         self._stem_qpos = self._stem_spring_addresses()
         self._jacp = np.zeros((3, m.nv))
+        self._cluster = int(ids["cluster"])
+        self._grasp_tool = int(ids["grasp_tool"])
         self._grasp_dofs = self._dof_ids[6:].astype(np.int64)
         self._grasp_ctrl = np.ascontiguousarray(self._servo.ctrl_ids[6:], dtype=np.int64)
         self._grasp_kp = np.ascontiguousarray(self._kp[6:])
@@ -241,6 +247,8 @@ class SimRobot(RobotInterface):
         self._settled = False
         self._failed = False
         self._warnings = np.asarray(d.warning.number, dtype=np.int64).copy()
+        # The held cluster's weight [N, world] (model constants; read again at every reset).
+        self._payload_weight = m.body_mass[self._cluster] * np.asarray(m.opt.gravity)
         settle = int(round(self.settle_time / m.opt.timestep))
         mujoco.mj_step1(m, d)
         for _ in range(settle // 2):
@@ -281,10 +289,14 @@ class SimRobot(RobotInterface):
         return self._ticks * self.control_period
 
     def joint_positions(self) -> NDArray[np.float64]:
-        return self.data.qpos[self._qpos_ids].copy()
+        if self._qpos_slice is not None:
+            return self.data.qpos[self._qpos_slice].copy()
+        return self.data.qpos[self._qpos_ids]  # fancy indexing copies
 
     def joint_velocities(self) -> NDArray[np.float64]:
-        return self.data.qvel[self._dof_ids].copy()
+        if self._dof_slice is not None:
+            return self.data.qvel[self._dof_slice].copy()
+        return self.data.qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
         return self._force.reading()
@@ -301,6 +313,17 @@ class SimRobot(RobotInterface):
     def send_joint_velocities(self, qdot: ArrayLike) -> None:
         self._servo.command(qdot)
 
+    def _unchecked_sender(self):
+        """``send_joint_velocities`` without its checks, for a caller that has checked the command.
+
+        The episode runner checks every command (finite float64, shape (12,)) before sending
+        it; this skips the second check. None when a subclass overrides
+        ``send_joint_velocities`` (its override must run).
+        """
+        if type(self).send_joint_velocities is not SimRobot.send_joint_velocities:
+            return None
+        return self._servo._command_unchecked
+
     def step(self) -> None:
         if self._failed:
             raise SimulationError("the simulation diverged earlier; call reset() to start again")
@@ -309,8 +332,9 @@ class SimRobot(RobotInterface):
             self._check_tear()  # every physics step: the tension may not overshoot for a whole tick
         self._check_physics()
         self._ticks += 1
-        self._force.update(self.data, self.control_period)
-        self._maybe_capture()
+        self._force._sample(self.data, self.control_period)
+        if self._camera is not None and self._ticks >= self._next_frame_tick:
+            self._maybe_capture()
         if self._viewer is not None and self._ticks % self._viewer_every == 0:
             self._viewer.sync()
 
@@ -366,7 +390,10 @@ class SimRobot(RobotInterface):
 
     def stem_tension(self) -> float:
         """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""
-        return self._fast_tension()
+        d = self.data
+        return _stem_tension(
+            d.sensordata, d.site_xmat, d.site_xpos, self._stem_force_adr, self._stem_end_site, self._stem_base_array,
+        )  # fmt: skip
 
     def site_pose(self, name: str) -> NDArray[np.float64]:
         """World pose (4x4) of a site, e.g. ``"camera"``, ``"gripper"``, ``"cutter_tip"``."""
@@ -464,14 +491,20 @@ class SimRobot(RobotInterface):
 
     def _physics_step(self) -> None:
         m, d = self.model, self.data
-        self._servo.update(d, m.opt.timestep)
+        servo = self._servo
         if self.payload_compensation and self._holding:
             # Like a UR5e's payload setting: hold the cluster's weight in the joint torques.
-            # The weld keeps the cluster's centre of mass fixed on the tool.
-            c = self._ids["cluster"]
-            mujoco.mj_jac(m, d, self._jacp, None, d.xipos[c], self._ids["grasp_tool"])
-            weight = m.body_mass[c] * np.asarray(m.opt.gravity)
-            _add_payload_torque(self._jacp, self._grasp_dofs, weight, d.ctrl, self._grasp_ctrl, self._grasp_kp)
+            # The weld keeps the cluster's centre of mass fixed on the tool. The Jacobian only
+            # depends on the kinematics, so it is taken first and the servo law and the
+            # payload torque run in one numba call (the servo writes ctrl, the payload adds).
+            mujoco.mj_jac(m, d, self._jacp, None, d.xipos[self._cluster], self._grasp_tool)
+            _servo_step_with_payload(
+                servo.qd_ref, servo.qd_cmd, servo.acc_limit, m.opt.timestep, servo.q_ref, servo._q_lo, servo._q_hi,
+                d.qpos, servo.qpos_ids, servo.config.max_following_error, servo._ff, d.ctrl, servo.ctrl_ids,
+                self._jacp, self._grasp_dofs, self._payload_weight, self._grasp_ctrl, self._grasp_kp,
+            )  # fmt: skip
+        else:
+            servo.update(d, m.opt.timestep)
         # step2 integrates with the forces of the current state; step1 then computes the
         # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
@@ -481,7 +514,10 @@ class SimRobot(RobotInterface):
         """Tear the stem when its tension exceeds the break force: release its axial spring."""
         if self._torn:
             return
-        tension = self._fast_tension()
+        d = self.data
+        tension = _stem_tension(
+            d.sensordata, d.site_xmat, d.site_xpos, self._stem_force_adr, self._stem_end_site, self._stem_base_array,
+        )  # fmt: skip
         self._max_tension = max(self._max_tension, tension)
         if tension > self.scene.params.stem_break_force:
             m = self.model
@@ -510,8 +546,9 @@ class SimRobot(RobotInterface):
 
     def _check_physics(self) -> None:
         d = self.data
-        counts = np.asarray(d.warning.number, dtype=np.int64)
+        counts = d.warning.number
         if _diverged(counts, self._warnings, d.qvel):
+            counts = np.asarray(counts, dtype=np.int64)
             new = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts > self._warnings)]
             self._warnings = counts
             self._failed = True
@@ -557,6 +594,36 @@ class SimRobot(RobotInterface):
     def mujoco_warnings(self) -> dict[str, int]:
         """MuJoCo warning counts since the last reset."""
         return {mujoco.mjtWarning(i).name: int(w.number) for i, w in enumerate(self.data.warning)}
+
+
+def _as_slice(ids: NDArray[np.int64]) -> slice | None:
+    """``slice(a, a + n)`` when ``ids`` are the consecutive integers a, ..., a + n - 1, else None."""
+    ids = np.asarray(ids)
+    if ids.size and np.array_equal(ids, np.arange(ids[0], ids[0] + ids.size)):
+        return slice(int(ids[0]), int(ids[0]) + int(ids.size))
+    return None
+
+
+@njit(cache=True)
+def _servo_step_with_payload(
+    qd_ref, qd_cmd, acc_limit, dt, q_ref, q_lo, q_hi, qpos, qpos_ids, max_error, ff, ctrl, ctrl_ids,
+    jacp, dofs, weight, grasp_ctrl, kp,
+):  # fmt: skip
+    """:func:`~harvest_qp.sim.actuation._servo_step` then :func:`_add_payload_torque`, in one call."""
+    _servo_step(qd_ref, qd_cmd, acc_limit, dt, q_ref, q_lo, q_hi, qpos, qpos_ids, max_error, ff, ctrl, ctrl_ids)
+    _add_payload_torque(jacp, dofs, weight, ctrl, grasp_ctrl, kp)
+
+
+@njit(cache=True)
+def _stem_tension(sensordata, site_xmat, site_xpos, adr, site, base):
+    """:meth:`SimRobot._fast_tension` in numba: the same float operations in the same order."""
+    f0, f1, f2 = sensordata[adr], sensordata[adr + 1], sensordata[adr + 2]
+    fx = site_xmat[site, 0] * f0 + site_xmat[site, 1] * f1 + site_xmat[site, 2] * f2
+    fy = site_xmat[site, 3] * f0 + site_xmat[site, 4] * f1 + site_xmat[site, 5] * f2
+    fz = site_xmat[site, 6] * f0 + site_xmat[site, 7] * f1 + site_xmat[site, 8] * f2
+    px, py, pz = site_xpos[site, 0], site_xpos[site, 1], site_xpos[site, 2]
+    magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
+    return magnitude if fx * (base[0] - px) + fy * (base[1] - py) + fz * (base[2] - pz) >= 0 else -magnitude
 
 
 @njit(cache=True)
