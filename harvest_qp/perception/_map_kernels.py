@@ -388,10 +388,12 @@ def erase_regions(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_l
 
 
 @njit(cache=True)
-def rebuild_blocks(dirty_list, n_dirty, dirty, log_odds, block_cells, block_count):
-    """Refresh the list of occupied cells (log-odds > 0) of every dirty block, then clear the flags."""
+def rebuild_blocks(dirty_list, n_dirty, dirty, log_odds, block_cells, block_count, block_stamp, version):
+    """Refresh the list of occupied cells (log-odds > 0) of every dirty block, stamp it with
+    ``version`` (the map's version after this change), then clear the flags."""
     for j in range(n_dirty):
         b = dirty_list[j]
+        block_stamp[b] = version
         base = b << 9
         c = 0
         for local in range(BLOCK_CELLS):
@@ -578,3 +580,212 @@ def gather_cells(index, distance, max_cells, res, lo_key, nby, nbz, out_cells, o
         out_cells[i] = cells[i]
     cell_centres(out_cells[:n], res, lo_key, nby, nbz, out_centres)
     return n
+
+
+# --------------------------------------------------------------------------- per-tick feed
+# MapCollisionFeed queries the map every control tick (500 Hz) but the map changes only when
+# a camera frame is integrated (30 Hz) and the capsules move ~1 mm per tick. The feed keeps,
+# per capsule, the occupied cells within ``reach + slack`` of the capsule where it was when the
+# list was built (the candidates, in the full query's visiting order), and the blocks that
+# can hold such cells. While every capsule end point stays within ``slack`` of where it was,
+# no cell outside the list can come within ``reach`` (a segment's distance to a point moves
+# by at most the larger of its end points' displacements), so the query over the list
+# admits the same cells in the same order as the full query: the same result, bit for bit.
+# The list is rebuilt when a capsule moved farther, when the query distance changed, or when
+# one of its blocks changed occupancy since (the map stamps each rebuilt block with its
+# version).
+
+# Slots of the feed's integer state array.
+FEED_VALID = 0  # 1 when the candidate lists hold
+FEED_VERSION = 1  # map version the lists were checked against
+FEED_N_BLOCKS = 2  # blocks the lists depend on
+FEED_CHANGED = 3  # output: 1 when the fed cells differ from the last update's
+FEED_N_LAST = 4  # cells fed at the last update
+FEED_REBUILDS = 5  # lists rebuilt (diagnostics)
+FEED_STATE = 6
+
+
+@njit(cache=True)
+def _feed_candidates(
+    w0, w1, radii, max_distance, cell_radius, slack, res, lo_key, dims, nby, nbz, block_cells, block_count,
+    cand_start, cand_index, cand_xyz, rel_blocks,
+):
+    """Candidate cells of each capsule (see above) in the visiting order of :func:`closest_cells`.
+
+    Returns the number of dependent blocks written to ``rel_blocks``, or -1 when
+    ``cand_index`` or ``rel_blocks`` is too small (nothing usable is written then).
+    """
+    nbx = dims[0] >> BLOCK_SHIFT
+    block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
+    half = 0.5 * BLOCK * res
+    nb = (nbx, nby, nbz)
+    blo = np.empty(3, np.int64)
+    bhi = np.empty(3, np.int64)
+    cap_c = cand_index.shape[0]
+    cap_b = rel_blocks.shape[0]
+    n_cand = 0
+    n_rel = 0
+    for c in range(w0.shape[0]):
+        cand_start[c] = n_cand
+        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+        dd = dx * dx + dy * dy + dz * dz
+        reach = radii[c] + max_distance + cell_radius + slack
+        for a in range(3):
+            lo_c = min(w0[c, a], w1[c, a]) - reach
+            hi_c = max(w0[c, a], w1[c, a]) + reach
+            blo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
+            bhi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+        for bx in range(blo[0], bhi[0] + 1):
+            cx0 = (lo_key[0] + bx * BLOCK) * res
+            for by in range(blo[1], bhi[1] + 1):
+                cy0 = (lo_key[1] + by * BLOCK) * res
+                for bz in range(blo[2], bhi[2] + 1):
+                    b = (bx * nby + by) * nbz + bz
+                    cz0 = (lo_key[2] + bz * BLOCK) * res
+                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
+                    if db - block_half_diag > reach:
+                        continue
+                    if n_rel == cap_b:
+                        return -1
+                    rel_blocks[n_rel] = b
+                    n_rel += 1
+                    for j in range(block_count[b]):
+                        local = block_cells[b, j]
+                        # The same expressions as closest_cells: the same bits.
+                        px = cx0 + ((local >> 6) + 0.5) * res
+                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
+                        pz = cz0 + ((local & _MASK) + 0.5) * res
+                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
+                        if d > reach:
+                            continue
+                        if n_cand == cap_c:
+                            return -1
+                        cand_index[n_cand] = (b << 9) | local
+                        cand_xyz[n_cand, 0] = px
+                        cand_xyz[n_cand, 1] = py
+                        cand_xyz[n_cand, 2] = pz
+                        n_cand += 1
+    cand_start[w0.shape[0]] = n_cand
+    return n_rel
+
+
+@njit(cache=True)
+def feed_update(
+    w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
+    block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
+    cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
+    out_count, out_cells, out_centres,
+):
+    """One tick of ``MapCollisionFeed.update`` after the capsules' world end points ``w0``, ``w1``.
+
+    Returns -1 (nothing done) when an end point is not finite, -2 when the candidate
+    arrays are too small (grow them and call again), else the number of cells written to
+    ``out_cells`` / ``out_centres`` (the other slots of ``out_centres`` at ``park``), with
+    ``state[FEED_CHANGED]`` telling whether they differ from the previous call's.
+    Switched-off capsules (``active`` False) are moved to ``park`` first, in place.
+    The result equals :func:`closest_cells` then :func:`gather_cells` (see above).
+    """
+    n = w0.shape[0]
+    for c in range(n):
+        for a in range(3):
+            if not (np.isfinite(w0[c, a]) and np.isfinite(w1[c, a])):
+                return -1
+    for c in range(n):
+        if not active[c]:
+            for a in range(3):
+                w0[c, a] = park[a]
+                w1[c, a] = park[a]
+    valid = state[FEED_VALID] == 1 and cache_distance[0] == max_distance
+    if valid:
+        slack2 = slack * slack
+        for c in range(n):
+            e0 = (w0[c, 0] - cache_w0[c, 0]) ** 2 + (w0[c, 1] - cache_w0[c, 1]) ** 2 + (w0[c, 2] - cache_w0[c, 2]) ** 2
+            e1 = (w1[c, 0] - cache_w1[c, 0]) ** 2 + (w1[c, 1] - cache_w1[c, 1]) ** 2 + (w1[c, 2] - cache_w1[c, 2]) ** 2
+            if e0 > slack2 or e1 > slack2:
+                valid = False
+                break
+    if valid and state[FEED_VERSION] != map_version:
+        version = state[FEED_VERSION]
+        for j in range(state[FEED_N_BLOCKS]):
+            if block_stamp[rel_blocks[j]] > version:
+                valid = False
+                break
+        if valid:
+            state[FEED_VERSION] = map_version
+    if not valid:
+        state[FEED_VALID] = 0
+        # A hair more than slack, so that rounding never drops a cell the query would admit.
+        n_rel = _feed_candidates(
+            w0, w1, radii, max_distance, cell_radius, slack * (1.0 + 1e-9) + 1e-12, res, lo_key, dims,
+            nby, nbz, block_cells, block_count, cand_start, cand_index, cand_xyz, rel_blocks,
+        )  # fmt: skip
+        if n_rel < 0:
+            return -2
+        state[FEED_VALID] = 1
+        state[FEED_VERSION] = map_version
+        state[FEED_N_BLOCKS] = n_rel
+        state[FEED_REBUILDS] += 1
+        cache_distance[0] = max_distance
+        cache_w0[:, :] = w0
+        cache_w1[:, :] = w1
+    m_max = scratch_index.shape[0]
+    k_max = out_index.shape[1]
+    sep2 = min_separation * min_separation
+    for c in range(n):
+        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+        dd = dx * dx + dy * dy + dz * dz
+        worst = radii[c] + max_distance + cell_radius
+        count = 0
+        for i in range(cand_start[c], cand_start[c + 1]):
+            d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
+            if d > worst:
+                continue
+            pos = count if count < m_max else m_max - 1
+            while pos > 0 and scratch_distance[pos - 1] > d:
+                scratch_distance[pos] = scratch_distance[pos - 1]
+                scratch_index[pos] = scratch_index[pos - 1]
+                pos -= 1
+            scratch_distance[pos] = d
+            scratch_index[pos] = cand_index[i]
+            if count < m_max:
+                count += 1
+            if count == m_max:
+                worst = scratch_distance[m_max - 1]
+        kept = 0
+        for j in range(count):
+            if kept == k_max:
+                break
+            idx = scratch_index[j]
+            if sep2 > 0.0:
+                ix, iy, iz = index_to_cell(idx, nby, nbz)
+                far = True
+                for i in range(kept):
+                    jx, jy, jz = index_to_cell(out_index[c, i], nby, nbz)
+                    if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
+                        far = False
+                        break
+                if not far:
+                    continue
+            out_index[c, kept] = idx
+            out_distance[c, kept] = scratch_distance[j] - radii[c] - cell_radius
+            kept += 1
+        for j in range(kept, k_max):
+            out_index[c, j] = -1
+        out_count[c] = kept
+    n_last = state[FEED_N_LAST]
+    previous = out_cells[:n_last].copy()
+    for i in range(out_centres.shape[0]):
+        for a in range(3):
+            out_centres[i, a] = park[a]
+    m = gather_cells(out_index, out_distance, out_cells.shape[0], res, lo_key, nby, nbz, out_cells, out_centres)
+    changed = m != n_last
+    if not changed:
+        for i in range(m):
+            if out_cells[i] != previous[i]:
+                changed = True
+                break
+    state[FEED_CHANGED] = 1 if changed else 0
+    state[FEED_N_LAST] = m
+    return m

@@ -388,6 +388,11 @@ class ObstacleMap:
         self._n_dirty = np.zeros(1, dtype=np.int64)
         self._block_cells = np.zeros((nb, K.BLOCK_CELLS), dtype=np.int16)
         self._block_count = np.zeros(nb, dtype=np.int64)
+        # Occupancy version: +1 at every change of the occupied cells; each block is stamped with
+        # the version of its last change (MapCollisionFeed keeps its candidate cells until a block
+        # it depends on changes).
+        self._version = 0
+        self._block_stamp = np.zeros(nb, dtype=np.int64)
         self._frame = 0
         self.frames = 0
         #: Radius [m] of the sphere that covers a cell.
@@ -414,6 +419,8 @@ class ObstacleMap:
         self.log_odds[:] = 0.0
         self._stamp[:] = 0
         self._block_count[:] = 0
+        self._version += 1
+        self._block_stamp[:] = self._version
         self._dirty[:] = False
         self._n_dirty[0] = 0
         self._frame = 0
@@ -550,7 +557,11 @@ class ObstacleMap:
     def _finish_update(self) -> None:
         n = int(self._n_dirty[0])
         if n:
-            K.rebuild_blocks(self._dirty_list, n, self._dirty, self.log_odds, self._block_cells, self._block_count)
+            self._version += 1
+            K.rebuild_blocks(
+                self._dirty_list, n, self._dirty, self.log_odds, self._block_cells, self._block_count,
+                self._block_stamp, self._version,
+            )  # fmt: skip
             self._n_dirty[0] = 0
 
     @staticmethod
@@ -658,6 +669,10 @@ class MapCollisionFeed:
     """
 
     _PARK = np.array([0.0, 0.0, -1.0e3])  # where unused slots wait [m]
+    #: How far [m] a capsule end point may move before its candidate cells are gathered again
+    #: (they are, anyway, when the map's occupancy changes near them). Only a cost trade-off:
+    #: the cells fed are those of a full query whatever it is.
+    slack = 0.02
 
     def __init__(
         self,
@@ -719,10 +734,20 @@ class MapCollisionFeed:
         m = 8 * self.per_capsule if self.min_separation > 0 else self.per_capsule
         self._scratch_i = np.zeros(m, dtype=np.int64)
         self._scratch_d = np.zeros(m)
+        # Candidate cells kept between map changes (see _map_kernels.feed_update); grown on demand.
+        self._state = np.zeros(K.FEED_STATE, dtype=np.int64)
+        self._cache_w0 = np.zeros((n, 3))
+        self._cache_w1 = np.zeros((n, 3))
+        self._cache_distance = np.full(1, np.nan)
+        self._cand_start = np.zeros(n + 1, dtype=np.int64)
+        self._cand_index = np.zeros(4096, dtype=np.int64)
+        self._cand_xyz = np.zeros((4096, 3))
+        self._rel_blocks = np.zeros(4096, dtype=np.int64)
         self._names: dict[int, str] = {}
         self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
         self._centres = np.tile(self._PARK, (self.slots, 1))
         self._cells = np.zeros(self.slots, dtype=np.int64)
+        self._park = self._PARK.copy()
         limit.set_obstacle_spheres(self._centres, 0.0)
         self._first = len(limit.capsule_names) - self.slots
         self._in_place = self._layout_ok()
@@ -771,24 +796,35 @@ class MapCollisionFeed:
         """Refresh the limit's obstacle spheres from the map for joint positions ``q`` [rad]
         (default: the configuration's current ones); returns how many cells were fed."""
         w0, w1 = self.capsule_world(q)
-        if not (np.all(np.isfinite(w0)) and np.all(np.isfinite(w1))):
-            return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
-        if not self.active.all():  # switched-off capsules wait far below the world: no cell near them
-            w0[~self.active] = self._PARK
-            w1[~self.active] = self._PARK
-        self._index.fill(-1)
-        self.map._query(
-            w0, w1, self.radii, self.limit.influence_distance + self.margin, self.min_separation,
-            self._scratch_i, self._scratch_d, self._index, self._dist, self._count,
-        )  # fmt: skip
+        active = self.active
+        if not (isinstance(active, np.ndarray) and active.dtype == np.bool_ and active.shape == self.radii.shape):
+            active = np.asarray(active, dtype=bool)
+            if active.shape != self.radii.shape:
+                raise InvalidInputError(
+                    f"active must be {self.radii.shape[0]} booleans (one per capsule), got shape {active.shape}"
+                )
         m = self.map
-        self._centres[:] = self._PARK
-        n = K.gather_cells(
-            self._index, self._dist, self.slots, m.resolution, m.lo_key, m._nby, m._nbz, self._cells, self._centres
-        )
+        # One compiled call: finiteness, switched-off capsules parked far below the world, the
+        # closest cells (over the candidate cells kept since the last map change: the same
+        # result as ObstacleMap.closest_cells, see _map_kernels.feed_update), their union.
+        while True:
+            n = K.feed_update(
+                w0, w1, active, self._park, self.radii, self.limit.influence_distance + self.margin, m.cell_radius,
+                self.min_separation, self.slack, m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells,
+                m._block_count, m._block_stamp, m._version, self._state, self._cache_w0, self._cache_w1,
+                self._cache_distance, self._cand_start, self._cand_index, self._cand_xyz, self._rel_blocks,
+                self._scratch_i, self._scratch_d, self._index, self._dist, self._count, self._cells, self._centres,
+            )  # fmt: skip
+            if n != -2:
+                break
+            self._cand_index = np.zeros(2 * self._cand_index.shape[0], dtype=np.int64)
+            self._cand_xyz = np.zeros((self._cand_index.shape[0], 3))
+            self._rel_blocks = np.zeros(2 * self._rel_blocks.shape[0], dtype=np.int64)
+        if n < 0:
+            return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
+        if not self._state[K.FEED_CHANGED]:
+            return int(n)  # same cells: the limit already has them
         cells = self._cells[:n]
-        if n == self._last.shape[0] and np.array_equal(cells, self._last):
-            return n  # same cells: the limit already has them
         cells = cells.copy()
         radii = np.zeros(self.slots)
         radii[:n] = m.cell_radius

@@ -928,3 +928,50 @@ def test_float_labels_and_a_short_q_are_refused_not_reinterpreted():
     for bad in (np.zeros(6), np.zeros(13), "abc"):
         with pytest.raises(InvalidInputError, match="q must"):
             feed.update(bad)
+
+
+def test_feed_between_map_changes_gives_exactly_the_full_querys_cells():
+    """The feed keeps each capsule's candidate cells between map changes (a speed-up); every tick
+    its cells and distances must still be those of ``ObstacleMap.closest_cells`` (the full block
+    search, checked against brute force above) bit for bit, while the arm moves farther than the
+    kept lists' slack and a wall moving towards it changes the map every 10 ticks.
+    Catches a candidate list kept after the map changed near a capsule (a new or cleared cell
+    missed) or after a capsule moved past the slack."""
+    from harvest_qp.perception import _map_kernels as K
+
+    config, controller, limit, m, feed = _controller(True, ahead=0.09)
+    q0 = config.q.copy()
+    g = config.frame_position("gripper")
+    pose = look_at(g + [-0.25, 0.02, 0.15], g + [0.2, 0.0, 0.0])
+    rebuilds_before = int(feed._state[K.FEED_REBUILDS])
+    kept_ticks = 0
+    for tick in range(160):
+        # All joints of both arms swing (capsule ends move up to ~3 mm a tick); in the last 100
+        # ticks the map stays as it is, so only the motion can invalidate the kept lists.
+        q = q0 + 0.2 * np.sin(0.02 * tick + np.arange(q0.size))
+        if tick % 10 == 5 and tick < 60:  # the wall comes 3 mm closer each time, and tilts: cells appear and clear
+            x = g[0] + 0.09 - 0.0003 * tick
+            wall = ([x, g[1], g[2]], [0.02 * np.sin(0.1 * tick), 0.25, 0.0], [0.0, 0.0, 0.2], OBSTACLE)
+            m.update(cast(pose, [wall], size=(160, 220)))
+        rebuilds = int(feed._state[K.FEED_REBUILDS])
+        n = feed.update(q)
+        kept_ticks += int(feed._state[K.FEED_REBUILDS]) == rebuilds
+        w0, w1 = feed.capsule_world(q)
+        query = m.closest_cells(w0, w1, feed.radii, max_distance=limit.influence_distance + feed.margin,
+                                per_capsule=feed.per_capsule, min_separation=feed.min_separation)  # fmt: skip
+        assert np.array_equal(feed._count, query.counts), tick
+        valid = query.indices >= 0
+        assert np.array_equal(feed._index[valid], query.indices[valid]), tick
+        assert np.array_equal(feed._dist[valid], query.distances[valid]), tick  # bit for bit
+        best: dict[int, float] = {}
+        for c in range(len(w0)):
+            for j in range(query.counts[c]):
+                i = int(query.indices[c, j])
+                best[i] = min(best.get(i, np.inf), float(query.distances[c, j]))
+        expected = sorted(sorted(best, key=best.get)[: feed.slots])
+        assert n == len(expected) and feed.cells.tolist() == expected, tick
+        assert np.array_equal(limit.cap_p0[feed._first : feed._first + n], m.occupied_centres()[
+            np.searchsorted(m._occupied_indices(), feed.cells)]), tick  # fmt: skip
+    # The test must exercise both paths: lists kept, and rebuilt (map changes, motion).
+    assert kept_ticks > 100
+    assert int(feed._state[K.FEED_REBUILDS]) - rebuilds_before > 12
