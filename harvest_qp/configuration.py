@@ -114,6 +114,9 @@ class Configuration:
         # The q the kinematics were computed at, apart from ``self._q`` (which the ``q``
         # property hands out, so a caller could change it in place).
         self._q_kinematics = q.copy()
+        # Rows computed from these kinematics and shared between tasks (FrameTwistTask's
+        # frame-axis Jacobians, by frame index): stale once the kinematics change.
+        self._frame_rows: dict[int, np.ndarray] = {}
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
 

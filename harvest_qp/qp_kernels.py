@@ -25,11 +25,13 @@ def accumulate_task(H, f, J, w, v):
 
 
 @njit(cache=True)
-def accumulate_diagonal(H, f, w, v):
-    """``H += diag(w)`` and ``f -= w * v`` for a joint-space task (``J = I``)."""
+def accumulate_diagonal(H, f, w, v, floor):
+    """``H += diag(w)``, ``f -= w * v`` and ``floor += w`` for a joint-space task (``J = I``);
+    ``floor`` sums the diagonal weight joint-space tasks put on each joint."""
     for i in range(w.shape[0]):
         H[i, i] += w[i]
         f[i] -= w[i] * v[i]
+        floor[i] += w[i]
 
 
 @njit(cache=True)
@@ -48,6 +50,18 @@ def rotate_twist_rows(R, J, v, J_out, v_out):
                 for k in range(3):
                     acc += R[k, i] * J[o + k, c]
                 J_out[o + i, c] = acc
+
+
+@njit(cache=True)
+def rotate_twist(R, v, v_out):
+    """The ``v`` part of :func:`rotate_twist_rows` alone: ``blkdiag(R^T, R^T) v``."""
+    for b in range(2):
+        o = 3 * b
+        for i in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += R[k, i] * v[o + k]
+            v_out[o + i] = acc
 
 
 @njit(cache=True)

@@ -432,8 +432,7 @@ class Solver:
             floor = np.zeros(n)  # weight joint-space tasks already put on each joint
             for task, J, v in entries:
                 if J is None:  # joint-space task: J = I
-                    accumulate_diagonal(H, f, task.weight, v)
-                    floor += task.weight
+                    accumulate_diagonal(H, f, task.weight, v, floor)
                 else:
                     accumulate_task(H, f, J, task.weight, v)
             # Top the diagonal up to the regularization only where it is missing, so a
