@@ -300,7 +300,7 @@ class Solver:
                 np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
             )
         else:
-            A, b = np.zeros((0, n)), np.zeros(0)
+            A, b = self._no_equalities  # empty, so shared between steps
         k = len(box_limits)
         lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
         retries: list[str] = []
@@ -355,6 +355,7 @@ class Solver:
             self._box_rows = [(limit, self._lowers[i], self._uppers[i]) for i, limit in enumerate(self._box_list)]
             self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
             self._row_limits = [limit for limit in limits if not limit.has_box]
+            self._no_equalities = (np.zeros((0, n)), np.zeros(0))
         return self._box_list
 
     # ------------------------------------------------------------------ backends
