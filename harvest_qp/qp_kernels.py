@@ -389,3 +389,29 @@ def orthonormal_rows_qr(A, c, tol, rows_out, rhs_out):
             acc -= M[j, i] * rhs_out[j]
         rhs_out[i] = acc / M[i, i]
     return rank
+
+
+@njit(cache=True)
+def builtin_boxes(q, q_min, q_max, gain, dt, braking, max_velocity, previous, max_acceleration, lowers, uppers,
+                  lower, upper, conflict):
+    """The boxes of the built-in joint limits and their intersection, in one call.
+
+    Rows of ``lowers`` / ``uppers``: 0 ``JointVelocityLimit`` (``-+max_velocity``), 1
+    ``JointPositionLimit`` (:func:`position_limit_bounds`), 2 ``JointAccelerationLimit``
+    (:func:`acceleration_bounds`); then :func:`intersect_boxes` into ``lower`` / ``upper``.
+    The same arithmetic as the limits' own ``fill_box`` and the solver's intersection.
+    Returns the number of conflicting joints, or -1 (nothing written) when a size does
+    not fit ``q`` (the caller then takes the checked path).
+    """
+    n = q.shape[0]
+    if (q_min.shape[0] != n or q_max.shape[0] != n or max_velocity.shape[0] != n or previous.shape[0] != n
+            or max_acceleration.shape[0] != n or (braking.shape[0] != 0 and braking.shape[0] != n)
+            or lowers.shape[0] < 3 or lowers.shape[1] != n or uppers.shape[0] < 3 or uppers.shape[1] != n
+            or lower.shape[0] != n or upper.shape[0] != n or conflict.shape[0] != n):
+        return -1
+    for i in range(n):
+        lowers[0, i] = -max_velocity[i]
+        uppers[0, i] = max_velocity[i]
+    position_limit_bounds(q, q_min, q_max, gain, dt, braking, lowers[1], uppers[1])
+    acceleration_bounds(previous, max_acceleration, dt, lowers[2], uppers[2])
+    return intersect_boxes(lowers[:3], uppers[:3], lower, upper, conflict)

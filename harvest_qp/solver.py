@@ -49,10 +49,14 @@ import numpy as np
 from harvest_qp.backends import ACCEPTABLE_VIOLATION, Backend, backend_name_problem, make_backend
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
+from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
+from harvest_qp.limits.joint_position_limit import JointPositionLimit
+from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
 from harvest_qp.limits.limit import Limit
 from harvest_qp.qp_kernels import (
     accumulate_diagonal,
     accumulate_task,
+    builtin_boxes,
     clip_inplace,
     intersect_boxes,
     max_scaled_violation,
@@ -267,8 +271,10 @@ class Solver:
         """:meth:`solve` with ``dt`` and ``previous_qdot`` already validated (the controller's path)."""
         n = configuration.nv
         box_limits = self._box_limits(limits, n)
-        for limit, lower_row, upper_row in self._box_rows:
-            limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+        boxes = self._builtin_boxes(configuration, dt, previous_qdot) if self._builtin_trio else None
+        if boxes is None:
+            for limit, lower_row, upper_row in self._box_rows:
+                limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
         row_limits: list[tuple[Limit, np.ndarray]] = []  # (limit, its h): which rows may be relaxed
         G_rows, h_rows = [], []
         for limit in self._row_limits:
@@ -302,7 +308,10 @@ class Solver:
         else:
             A, b = self._no_equalities  # empty, so shared between steps
         k = len(box_limits)
-        lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
+        if boxes is None:
+            lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
+        else:
+            lower, upper, conflicts = boxes
         retries: list[str] = []
         try:
             return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=CONFIRMING_REPORTS)
@@ -356,7 +365,37 @@ class Solver:
             self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
             self._row_limits = [limit for limit in limits if not limit.has_box]
             self._no_equalities = (np.zeros((0, n)), np.zeros(0))
+            self._builtin_trio = tuple(map(type, self._box_list)) == (
+                JointVelocityLimit, JointPositionLimit, JointAccelerationLimit
+            )
         return self._box_list
+
+    def _builtin_boxes(self, configuration, dt: float, previous_qdot: np.ndarray | None):
+        """``(lower, upper, conflicts)`` of the built-in velocity, position and acceleration limits
+        in one compiled call (:func:`builtin_boxes`: their own arithmetic), the buffers' rows filled
+        as their ``fill_box`` fills them; None when a limit was not yet checked against this
+        model or a size does not fit (then each limit's ``fill_box`` runs, with its checks).
+        """
+        velocity, position, acceleration = self._box_list
+        model = configuration.model
+        if velocity._model is not model or position._model is not model or acceleration._model is not model:
+            return None
+        n = configuration.nv
+        lower, upper = np.empty(n), np.empty(n)
+        conflict = np.empty(n, dtype=np.int64)
+        count = builtin_boxes(
+            configuration.q, position.lower, position.upper, position.gain, dt, position._braking,
+            velocity.max_velocity, acceleration._zeros if previous_qdot is None else previous_qdot,
+            acceleration.max_acceleration, self._lowers, self._uppers, lower, upper, conflict,
+        )
+        if count < 0:
+            return None
+        conflicts = []
+        if count:
+            conflicts = [
+                BoxConflict(int(j), type(self._box_list[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)
+            ]
+        return lower, upper, conflicts
 
     # ------------------------------------------------------------------ backends
     def _solve_qp(self, level: int, problem: QPProblem, retries: list[str], confirm: int | None = None) -> np.ndarray:
@@ -428,9 +467,10 @@ class Solver:
         levels = sorted(by_level) or [1]
         for level in levels:
             entries = by_level.get(level, [])
-            H = np.zeros((n, n))
-            f = np.zeros(n)
-            floor = np.zeros(n)  # weight joint-space tasks already put on each joint
+            # H, f and the floor (weight joint-space tasks already put on each joint) as rows of
+            # one fresh block: one allocation instead of three (H and f stay contiguous).
+            block = np.zeros((n + 2, n))
+            H, f, floor = block[:n], block[n], block[n + 1]
             for task, J, v in entries:
                 if J is None:  # joint-space task: J = I
                     accumulate_diagonal(H, f, task.weight, v, floor)

@@ -252,3 +252,44 @@ def test_local_twist_rows_shared_between_tasks_follow_the_kinematics(rng):
             rows, v = task.compute_rows(config, 0.002)
             np.testing.assert_allclose(rows, T @ J, atol=1e-14)
             np.testing.assert_allclose(v, T @ (task.gain * task.reference), atol=1e-14)
+
+
+def test_builtin_boxes_in_one_call_equal_each_limits_own_fill(rng):
+    """Oracle: the limits' own ``fill_box`` and the solver's intersection (taken when a limit is
+    a subclass). Same box, same conflicts, same command, bit for bit, also where the position
+    box and the acceleration box do not overlap (conflicts) and on the first step (no previous).
+    Bug caught: the fused kernel intersecting in another order or reading the wrong previous command."""
+    from harvest_qp import Solver
+    from harvest_qp.limits import JointAccelerationLimit, JointPositionLimit, JointVelocityLimit
+
+    class Velocity(JointVelocityLimit):  # a subclass: the solver must take the checked path
+        pass
+
+    config = Configuration.dual_ur5e(HOME_Q)
+    camera = FrameTwistTask("camera")
+    camera.set_reference([0.2, -0.1, 0.1, 0.3, 0.0, 0.1])
+    tasks = [camera, DampingTask(12, weight=1e-3)]
+
+    def limits(velocity_type):
+        return [JointPositionLimit(config, max_acceleration=5.0), velocity_type(config, max_velocity=1.5),
+                JointAccelerationLimit(config, max_acceleration=5.0)]
+
+    fused_limits, checked_limits = limits(JointVelocityLimit), limits(Velocity)
+    fused, checked = Solver(), Solver()
+    seen_conflict = False
+    for k in range(6):
+        q = np.clip(HOME_Q + rng.normal(0, 0.3, 12), config.lower_limits, config.upper_limits)
+        if k % 2:
+            q[3] = config.upper_limits[3] - 1e-4  # at the position limit: its box conflicts with the acceleration box
+        previous = None if k == 0 else rng.normal(0, 1.0, 12)
+        config.update(q)
+        a = fused.solve(config, tasks, fused_limits, previous_qdot=previous)
+        b = checked.solve(config, tasks, checked_limits, previous_qdot=previous)
+        assert fused._builtin_trio and not checked._builtin_trio
+        assert np.array_equal(a.lower, b.lower) and np.array_equal(a.upper, b.upper)
+        assert [(c.joint, c.limit) for c in a.conflicts] == [(c.joint, c.limit.replace("Velocity", "JointVelocityLimit")
+                                                             if c.limit == "Velocity" else c.limit) for c in b.conflicts]
+        assert np.array_equal(a.qdot, b.qdot)
+        assert np.array_equal(fused._lowers, checked._lowers) and np.array_equal(fused._uppers, checked._uppers)
+        seen_conflict |= bool(a.conflicts)
+    assert seen_conflict
