@@ -415,3 +415,51 @@ def builtin_boxes(q, q_min, q_max, gain, dt, braking, max_velocity, previous, ma
     position_limit_bounds(q, q_min, q_max, gain, dt, braking, lowers[1], uppers[1])
     acceleration_bounds(previous, max_acceleration, dt, lowers[2], uppers[2])
     return intersect_boxes(lowers[:3], uppers[:3], lower, upper, conflict)
+
+
+#: Stands for ``J = I`` (a joint-space task) in the fused level kernels (a task has >= 1 row).
+IDENTITY_ROWS = np.zeros((0, 0))
+
+
+@njit(cache=True)
+def _add_task(H, f, floor, J, w, v):
+    if J.shape[0] == 0:
+        accumulate_diagonal(H, f, w, v, floor)
+    else:
+        accumulate_task(H, f, J, w, v)
+
+
+# One call per level for 1..4 tasks: the per-task kernels in task order, then the diagonal
+# top-up (the same operations as calling them one by one, in one dispatch).
+@njit(cache=True)
+def assemble_level_1(H, f, floor, reg, J0, w0, v0):
+    """``H``, ``f`` of one level from 1 task (``J`` = :data:`IDENTITY_ROWS` for ``I``), then the top-up."""
+    _add_task(H, f, floor, J0, w0, v0)
+    top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def assemble_level_2(H, f, floor, reg, J0, w0, v0, J1, w1, v1):
+    """:func:`assemble_level_1` for 2 tasks."""
+    _add_task(H, f, floor, J0, w0, v0)
+    _add_task(H, f, floor, J1, w1, v1)
+    top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def assemble_level_3(H, f, floor, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2):
+    """:func:`assemble_level_1` for 3 tasks."""
+    _add_task(H, f, floor, J0, w0, v0)
+    _add_task(H, f, floor, J1, w1, v1)
+    _add_task(H, f, floor, J2, w2, v2)
+    top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def assemble_level_4(H, f, floor, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, J3, w3, v3):
+    """:func:`assemble_level_1` for 4 tasks."""
+    _add_task(H, f, floor, J0, w0, v0)
+    _add_task(H, f, floor, J1, w1, v1)
+    _add_task(H, f, floor, J2, w2, v2)
+    _add_task(H, f, floor, J3, w3, v3)
+    top_up_diagonal(H, floor, reg)

@@ -54,8 +54,13 @@ from harvest_qp.limits.joint_position_limit import JointPositionLimit
 from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
 from harvest_qp.limits.limit import Limit
 from harvest_qp.qp_kernels import (
+    IDENTITY_ROWS,
     accumulate_diagonal,
     accumulate_task,
+    assemble_level_1,
+    assemble_level_2,
+    assemble_level_3,
+    assemble_level_4,
     builtin_boxes,
     clip_inplace,
     intersect_boxes,
@@ -471,15 +476,30 @@ class Solver:
             # one fresh block: one allocation instead of three (H and f stay contiguous).
             block = np.zeros((n + 2, n))
             H, f, floor = block[:n], block[n], block[n + 1]
-            for task, J, v in entries:
-                if J is None:  # joint-space task: J = I
-                    accumulate_diagonal(H, f, task.weight, v, floor)
-                else:
-                    accumulate_task(H, f, J, task.weight, v)
             # Top the diagonal up to the regularization only where it is missing, so a
             # damped problem stays exactly the damped least-squares problem.
             reg = self.regularization if entries else max(self.regularization, 1e-12)
-            top_up_diagonal(H, floor, reg)
+            count = len(entries)
+            if 0 < count <= 4:
+                # One compiled call for the level: each task's kernel in order, then the top-up.
+                args = []
+                for task, J, v in entries:
+                    args += (IDENTITY_ROWS if J is None else J, task.weight, v)
+                if count == 2:
+                    assemble_level_2(H, f, floor, reg, *args)
+                elif count == 3:
+                    assemble_level_3(H, f, floor, reg, *args)
+                elif count == 1:
+                    assemble_level_1(H, f, floor, reg, *args)
+                else:
+                    assemble_level_4(H, f, floor, reg, *args)
+            else:
+                for task, J, v in entries:
+                    if J is None:  # joint-space task: J = I
+                        accumulate_diagonal(H, f, task.weight, v, floor)
+                    else:
+                        accumulate_task(H, f, J, task.weight, v)
+                top_up_diagonal(H, floor, reg)
             problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
             solution.problems.append(problem)
             x = self._solve_qp(level, problem, retries, confirm)
