@@ -463,3 +463,60 @@ def assemble_level_4(H, f, floor, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, J3, w
     _add_task(H, f, floor, J2, w2, v2)
     _add_task(H, f, floor, J3, w3, v3)
     top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def _weighted_into(J, w, out, start):
+    if J.shape[0] == 0:  # IDENTITY_ROWS: a joint-space task
+        return weighted_identity_rows(w, out, start)
+    return weighted_rows(J, w, out, start)
+
+
+@njit(cache=True)
+def _equalities_from_stack(stack, m, x, tol):
+    """Orthonormal rows and right-hand side of ``stack[:m] x' = stack[:m] x`` (:func:`orthonormal_rows_qr`)."""
+    n = stack.shape[1]
+    c = np.empty(m)
+    for i in range(m):
+        acc = 0.0
+        for j in range(n):
+            acc += stack[i, j] * x[j]
+        c[i] = acc
+    k = min(m, n)
+    rows = np.empty((k, n))
+    rhs = np.empty(k)
+    rank = orthonormal_rows_qr(stack[:m], c, tol, rows, rhs)
+    return rows[:rank], rhs[:rank]
+
+
+# The equalities that hold a level's optimum for the levels below, in one call for a level of
+# 1..4 tasks: ``A`` stacked over each task's rows ``sqrt(w_r) J_r`` (w_r > 0), the stack times
+# the level's solution ``x`` as right-hand side, then the orthonormal rows of that system.
+@njit(cache=True)
+def level_equalities_1(A, x, tol, stack, J0, w0):
+    """``(rows, rhs)`` for a level of 1 task (``J`` = :data:`IDENTITY_ROWS` for ``I``); ``stack`` is scratch."""
+    r = A.shape[0]
+    stack[:r] = A
+    r = _weighted_into(J0, w0, stack, r)
+    return _equalities_from_stack(stack, r, x, tol)
+
+
+@njit(cache=True)
+def level_equalities_2(A, x, tol, stack, J0, w0, J1, w1):
+    """:func:`level_equalities_1` for 2 tasks."""
+    r = A.shape[0]
+    stack[:r] = A
+    r = _weighted_into(J0, w0, stack, r)
+    r = _weighted_into(J1, w1, stack, r)
+    return _equalities_from_stack(stack, r, x, tol)
+
+
+@njit(cache=True)
+def level_equalities_3(A, x, tol, stack, J0, w0, J1, w1, J2, w2):
+    """:func:`level_equalities_1` for 3 tasks."""
+    r = A.shape[0]
+    stack[:r] = A
+    r = _weighted_into(J0, w0, stack, r)
+    r = _weighted_into(J1, w1, stack, r)
+    r = _weighted_into(J2, w2, stack, r)
+    return _equalities_from_stack(stack, r, x, tol)

@@ -64,6 +64,9 @@ from harvest_qp.qp_kernels import (
     builtin_boxes,
     clip_inplace,
     intersect_boxes,
+    level_equalities_1,
+    level_equalities_2,
+    level_equalities_3,
     max_scaled_violation,
     max_violation,
     orthonormal_rows_qr,
@@ -507,8 +510,7 @@ class Solver:
             x = clip_inplace(x, lower, upper)
             if level != levels[-1] and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
-                A_lvl = self._level_rows(A, entries, n)
-                A, b = _orthonormal_rows(A_lvl, A_lvl @ x)
+                A, b = self._level_equalities(A, entries, n, x)
         solution.qdot = x
         return solution
 
@@ -532,6 +534,27 @@ class Solver:
             else:
                 row = weighted_rows(J, task.weight, buffer, row)
         return buffer[:row]
+
+    def _level_equalities(self, A: np.ndarray, entries, n: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Orthonormal equality rows (and right-hand side) that hold this level's optimum ``x``:
+        ``A`` and the level's weighted task rows, as ``_orthonormal_rows(rows, rows @ x)``, in one
+        compiled call for 1-3 tasks (:func:`level_equalities_2` etc.)."""
+        count = len(entries)
+        if count > 3 or A.dtype != np.float64:
+            A_lvl = self._level_rows(A, entries, n)
+            return _orthonormal_rows(A_lvl, A_lvl @ x)
+        m = A.shape[0] + sum(task.weight.shape[0] if J is None else J.shape[0] for task, J, _ in entries)
+        stack = self._rows_buffer
+        if stack.shape[0] < m or stack.shape[1] != n:
+            stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
+        args = []
+        for task, J, _ in entries:
+            args += (IDENTITY_ROWS if J is None else J, task.weight)
+        if count == 2:
+            return level_equalities_2(A, x, 1e-9, stack, *args)
+        if count == 1:
+            return level_equalities_1(A, x, 1e-9, stack, *args)
+        return level_equalities_3(A, x, 1e-9, stack, *args)
 
     # ------------------------------------------------------------------ relaxation
     def _least_relaxation(self, n, box_limits, lower, upper, A, b, G, h, separating, retries, tolerance=0.0):

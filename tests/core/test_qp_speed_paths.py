@@ -337,3 +337,33 @@ def test_fused_level_assembly_equals_the_per_task_kernels(rng, count):
     H = H + np.diag(np.maximum(reg - floor, 0.0))
     np.testing.assert_allclose(H_a, H, atol=1e-12)
     np.testing.assert_allclose(f_a, f, atol=1e-12)
+
+
+@pytest.mark.parametrize("count", [1, 2, 3])
+def test_level_equalities_in_one_call_equal_the_stacked_rows_path(rng, count):
+    """Oracle: the general path (numpy stacking ``(sqrt(w)[:, None] * J)[w > 0]`` over ``A``,
+    ``rows @ x`` by BLAS, then ``_orthonormal_rows``). Same orthonormal rows bit for bit (same
+    stack), right-hand side to round-off (the product is summed in another order), and the
+    level's solution satisfies them. Bug caught: a task's rows left out of the stack or the
+    previous levels' rows ``A`` dropped (a lower level could then undo a higher one)."""
+    from harvest_qp import Solver, qp_kernels as K
+
+    n = 12
+    A = np.linalg.qr(rng.normal(size=(n, 3)))[0].T  # earlier levels' orthonormal rows
+    tasks = []
+    for k in range(count):
+        task = DampingTask(n) if k % 2 else FrameTwistTask("camera")
+        task.weight = rng.uniform(0.1, 1.0, task.dim)
+        J = None if k % 2 else np.asfortranarray(rng.normal(size=(6, n)))
+        tasks.append((task, J, None))
+    x = rng.normal(size=n)
+    solver = Solver()
+    rows, rhs = solver._level_equalities(A, tasks, n, x)
+    stack = np.vstack([A, *[(np.sqrt(t.weight)[:, None] * (np.eye(n) if J is None else J))[t.weight > 0]
+                            for t, J, _ in tasks]])
+    rows_ref, rhs_ref = _orthonormal_rows(stack, stack @ x)
+    assert np.array_equal(rows, rows_ref)
+    np.testing.assert_allclose(rhs, rhs_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(rows @ x, rhs, atol=1e-12)
+    assert rows.shape[0] == min(stack.shape[0], n) == np.linalg.matrix_rank(stack)
+    assert K.IDENTITY_ROWS.shape == (0, 0)
