@@ -225,20 +225,6 @@ def top_up_diagonal(H, floor, value):
 
 
 @njit(cache=True)
-def same_bits(a, b):
-    """True when the float64 vectors ``a`` and ``b`` have the same length and bit patterns
-    (unlike ``==``, ``0.0`` and ``-0.0`` differ: they can give different kinematics bits)."""
-    if a.shape[0] != b.shape[0]:
-        return False
-    ia = a.view(np.int64)
-    ib = b.view(np.int64)
-    for i in range(ia.shape[0]):
-        if ia[i] != ib[i]:
-            return False
-    return True
-
-
-@njit(cache=True)
 def weighted_rows(J, w, out, start):
     """Rows ``sqrt(w_r) J_r`` of the rows with ``w_r > 0``, written from row ``start`` of ``out``.
 

@@ -122,7 +122,8 @@ class FrameTwistTask(Task):
                 return shared, self._v_local
             J = _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA)
             rotate_twist_rows(R, J, v, self._J_local, self._v_local)
-            # A copy is shared: this task's buffer is rewritten at its next call.
+            # A copy is shared: this task's buffer is rewritten at its next call (which may
+            # be on another configuration of the same model).
             if rows is not None:
                 rows[frame_id] = self._J_local.copy()
             return self._J_local, self._v_local

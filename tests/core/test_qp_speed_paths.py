@@ -16,7 +16,6 @@ from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.qp_kernels import (
     load_daqp_rows,
     orthonormal_rows_qr,
-    same_bits,
     weighted_identity_rows,
     weighted_rows,
 )
@@ -121,13 +120,26 @@ def test_load_daqp_rows_writes_what_the_slice_assignments_wrote(rng):
             assert np.array_equal(fast, slow)
 
 
-def test_same_bits_tells_zero_from_minus_zero():
-    """Oracle: the bit patterns. Bug caught: ``==`` semantics (0.0 == -0.0) skipping a needed update."""
-    a = np.array([0.0, 1.0])
-    assert same_bits(a, a.copy())
-    assert not same_bits(a, np.array([-0.0, 1.0]))
-    assert not same_bits(a, np.array([0.0, 1.0 + 1e-16 * 2]))
-    assert not same_bits(a, np.zeros(3))
+def test_kinematics_update_is_skipped_only_for_the_same_bits(monkeypatch):
+    """Oracle: the bit patterns of q. The same q skips pinocchio; -0.0 for 0.0 or one ulp more
+    does not. Bug caught: ``==`` semantics (0.0 == -0.0) skipping an update that changes bits."""
+    config = Configuration.dual_ur5e()
+    q = np.array(HOME_Q, dtype=float)
+    q[0] = 0.0
+    config.update(q)
+    computed = []
+    real = config._set_q
+    monkeypatch.setattr(config, "_set_q", lambda value: (computed.append(value.copy()), real(value)))
+    config._update_if_changed(q.copy())
+    assert computed == []
+    minus = q.copy()
+    minus[0] = -0.0
+    config._update_if_changed(minus)
+    assert len(computed) == 1
+    ulp = minus.copy()
+    ulp[5] = np.nextafter(ulp[5], np.inf)
+    config._update_if_changed(ulp)
+    assert len(computed) == 2
 
 
 def test_skipped_kinematics_update_equals_a_fresh_one(rng):
