@@ -158,7 +158,9 @@ class EpisodeProblems:
         self.controller = controller
         self.tasks = (controller.camera_task, controller.gripper_task, controller.roll_task)
         self.collision = controller.collision
-        self.first = self.collision.cap_p0.shape[0] - controller.map_feed.slots
+        # The obstacle map's cells are the limit's last capsules (none without the map).
+        slots = controller.map_feed.slots if controller.map_feed is not None else 0
+        self.first = self.collision.cap_p0.shape[0] - slots
         self.ticks: list[EpisodeTick] = []
         step = qp.step
         count = [0]

@@ -17,7 +17,6 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.exceptions import InvalidInputError, ModelError, UnknownFrameError
-from harvest_qp.qp_kernels import same_bits
 from harvest_qp.validation import as_scalar, as_vector, describe
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
@@ -111,9 +110,12 @@ class Configuration:
     def _set_q(self, q: np.ndarray) -> None:
         """:meth:`update` for a ``q`` already checked by :func:`as_vector` (a private copy)."""
         self._q = q
-        # The q the kinematics were computed at, apart from ``self._q`` (which the ``q``
-        # property hands out, so a caller could change it in place).
-        self._q_kinematics = q.copy()
+        # The bytes of the q the kinematics were computed at, apart from ``self._q`` (which
+        # the ``q`` property hands out, so a caller could change it in place).
+        self._q_kinematics = q.tobytes()
+        # Rows computed from these kinematics and shared between tasks (FrameTwistTask's
+        # frame-axis Jacobians, by frame index): stale once the kinematics change.
+        self._frame_rows: dict[int, np.ndarray] = {}
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
 
@@ -125,7 +127,7 @@ class Configuration:
         are already those of ``q`` and are kept (a controller tick updates the same
         configuration twice: once for its reference laws, once in the QP step).
         """
-        if same_bits(q, self._q_kinematics):
+        if q.tobytes() == self._q_kinematics:  # bit patterns: 0.0 and -0.0 differ
             self._q = q
             return
         self._set_q(q)

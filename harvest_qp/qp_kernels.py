@@ -25,11 +25,13 @@ def accumulate_task(H, f, J, w, v):
 
 
 @njit(cache=True)
-def accumulate_diagonal(H, f, w, v):
-    """``H += diag(w)`` and ``f -= w * v`` for a joint-space task (``J = I``)."""
+def accumulate_diagonal(H, f, w, v, floor):
+    """``H += diag(w)``, ``f -= w * v`` and ``floor += w`` for a joint-space task (``J = I``);
+    ``floor`` sums the diagonal weight joint-space tasks put on each joint."""
     for i in range(w.shape[0]):
         H[i, i] += w[i]
         f[i] -= w[i] * v[i]
+        floor[i] += w[i]
 
 
 @njit(cache=True)
@@ -48,6 +50,18 @@ def rotate_twist_rows(R, J, v, J_out, v_out):
                 for k in range(3):
                     acc += R[k, i] * J[o + k, c]
                 J_out[o + i, c] = acc
+
+
+@njit(cache=True)
+def rotate_twist(R, v, v_out):
+    """The ``v`` part of :func:`rotate_twist_rows` alone: ``blkdiag(R^T, R^T) v``."""
+    for b in range(2):
+        o = 3 * b
+        for i in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += R[k, i] * v[o + k]
+            v_out[o + i] = acc
 
 
 @njit(cache=True)
@@ -211,20 +225,6 @@ def top_up_diagonal(H, floor, value):
 
 
 @njit(cache=True)
-def same_bits(a, b):
-    """True when the float64 vectors ``a`` and ``b`` have the same length and bit patterns
-    (unlike ``==``, ``0.0`` and ``-0.0`` differ: they can give different kinematics bits)."""
-    if a.shape[0] != b.shape[0]:
-        return False
-    ia = a.view(np.int64)
-    ib = b.view(np.int64)
-    for i in range(ia.shape[0]):
-        if ia[i] != ib[i]:
-            return False
-    return True
-
-
-@njit(cache=True)
 def weighted_rows(J, w, out, start):
     """Rows ``sqrt(w_r) J_r`` of the rows with ``w_r > 0``, written from row ``start`` of ``out``.
 
@@ -375,3 +375,134 @@ def orthonormal_rows_qr(A, c, tol, rows_out, rhs_out):
             acc -= M[j, i] * rhs_out[j]
         rhs_out[i] = acc / M[i, i]
     return rank
+
+
+@njit(cache=True)
+def builtin_boxes(q, q_min, q_max, gain, dt, braking, max_velocity, previous, max_acceleration, lowers, uppers,
+                  lower, upper, conflict):
+    """The boxes of the built-in joint limits and their intersection, in one call.
+
+    Rows of ``lowers`` / ``uppers``: 0 ``JointVelocityLimit`` (``-+max_velocity``), 1
+    ``JointPositionLimit`` (:func:`position_limit_bounds`), 2 ``JointAccelerationLimit``
+    (:func:`acceleration_bounds`); then :func:`intersect_boxes` into ``lower`` / ``upper``.
+    The same arithmetic as the limits' own ``fill_box`` and the solver's intersection.
+    Returns the number of conflicting joints, or -1 (nothing written) when a size does
+    not fit ``q`` (the caller then takes the checked path).
+    """
+    n = q.shape[0]
+    if (q_min.shape[0] != n or q_max.shape[0] != n or max_velocity.shape[0] != n or previous.shape[0] != n
+            or max_acceleration.shape[0] != n or (braking.shape[0] != 0 and braking.shape[0] != n)
+            or lowers.shape[0] < 3 or lowers.shape[1] != n or uppers.shape[0] < 3 or uppers.shape[1] != n
+            or lower.shape[0] != n or upper.shape[0] != n or conflict.shape[0] != n):
+        return -1
+    for i in range(n):
+        lowers[0, i] = -max_velocity[i]
+        uppers[0, i] = max_velocity[i]
+    position_limit_bounds(q, q_min, q_max, gain, dt, braking, lowers[1], uppers[1])
+    acceleration_bounds(previous, max_acceleration, dt, lowers[2], uppers[2])
+    return intersect_boxes(lowers[:3], uppers[:3], lower, upper, conflict)
+
+
+#: Stands for ``J = I`` (a joint-space task) in the fused level kernels (a task has >= 1 row).
+IDENTITY_ROWS = np.zeros((0, 0))
+
+
+@njit(cache=True)
+def _add_task(H, f, floor, J, w, v):
+    if J.shape[0] == 0:
+        accumulate_diagonal(H, f, w, v, floor)
+    else:
+        accumulate_task(H, f, J, w, v)
+
+
+# One call per level for 1..4 tasks: the per-task kernels in task order, then the diagonal
+# top-up (the same operations as calling them one by one, in one dispatch).
+@njit(cache=True)
+def assemble_level_1(H, f, floor, reg, J0, w0, v0):
+    """``H``, ``f`` of one level from 1 task (``J`` = :data:`IDENTITY_ROWS` for ``I``), then the top-up."""
+    _add_task(H, f, floor, J0, w0, v0)
+    top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def assemble_level_2(H, f, floor, reg, J0, w0, v0, J1, w1, v1):
+    """:func:`assemble_level_1` for 2 tasks."""
+    _add_task(H, f, floor, J0, w0, v0)
+    _add_task(H, f, floor, J1, w1, v1)
+    top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def assemble_level_3(H, f, floor, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2):
+    """:func:`assemble_level_1` for 3 tasks."""
+    _add_task(H, f, floor, J0, w0, v0)
+    _add_task(H, f, floor, J1, w1, v1)
+    _add_task(H, f, floor, J2, w2, v2)
+    top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def assemble_level_4(H, f, floor, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, J3, w3, v3):
+    """:func:`assemble_level_1` for 4 tasks."""
+    _add_task(H, f, floor, J0, w0, v0)
+    _add_task(H, f, floor, J1, w1, v1)
+    _add_task(H, f, floor, J2, w2, v2)
+    _add_task(H, f, floor, J3, w3, v3)
+    top_up_diagonal(H, floor, reg)
+
+
+@njit(cache=True)
+def _weighted_into(J, w, out, start):
+    if J.shape[0] == 0:  # IDENTITY_ROWS: a joint-space task
+        return weighted_identity_rows(w, out, start)
+    return weighted_rows(J, w, out, start)
+
+
+@njit(cache=True)
+def _equalities_from_stack(stack, m, x, tol):
+    """Orthonormal rows and right-hand side of ``stack[:m] x' = stack[:m] x`` (:func:`orthonormal_rows_qr`)."""
+    n = stack.shape[1]
+    c = np.empty(m)
+    for i in range(m):
+        acc = 0.0
+        for j in range(n):
+            acc += stack[i, j] * x[j]
+        c[i] = acc
+    k = min(m, n)
+    rows = np.empty((k, n))
+    rhs = np.empty(k)
+    rank = orthonormal_rows_qr(stack[:m], c, tol, rows, rhs)
+    return rows[:rank], rhs[:rank]
+
+
+# The equalities that hold a level's optimum for the levels below, in one call for a level of
+# 1..4 tasks: ``A`` stacked over each task's rows ``sqrt(w_r) J_r`` (w_r > 0), the stack times
+# the level's solution ``x`` as right-hand side, then the orthonormal rows of that system.
+@njit(cache=True)
+def level_equalities_1(A, x, tol, stack, J0, w0):
+    """``(rows, rhs)`` for a level of 1 task (``J`` = :data:`IDENTITY_ROWS` for ``I``); ``stack`` is scratch."""
+    r = A.shape[0]
+    stack[:r] = A
+    r = _weighted_into(J0, w0, stack, r)
+    return _equalities_from_stack(stack, r, x, tol)
+
+
+@njit(cache=True)
+def level_equalities_2(A, x, tol, stack, J0, w0, J1, w1):
+    """:func:`level_equalities_1` for 2 tasks."""
+    r = A.shape[0]
+    stack[:r] = A
+    r = _weighted_into(J0, w0, stack, r)
+    r = _weighted_into(J1, w1, stack, r)
+    return _equalities_from_stack(stack, r, x, tol)
+
+
+@njit(cache=True)
+def level_equalities_3(A, x, tol, stack, J0, w0, J1, w1, J2, w2):
+    """:func:`level_equalities_1` for 3 tasks."""
+    r = A.shape[0]
+    stack[:r] = A
+    r = _weighted_into(J0, w0, stack, r)
+    r = _weighted_into(J1, w1, stack, r)
+    r = _weighted_into(J2, w2, stack, r)
+    return _equalities_from_stack(stack, r, x, tol)

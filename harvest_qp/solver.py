@@ -49,12 +49,24 @@ import numpy as np
 from harvest_qp.backends import ACCEPTABLE_VIOLATION, Backend, backend_name_problem, make_backend
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
+from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
+from harvest_qp.limits.joint_position_limit import JointPositionLimit
+from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
 from harvest_qp.limits.limit import Limit
 from harvest_qp.qp_kernels import (
+    IDENTITY_ROWS,
     accumulate_diagonal,
     accumulate_task,
+    assemble_level_1,
+    assemble_level_2,
+    assemble_level_3,
+    assemble_level_4,
+    builtin_boxes,
     clip_inplace,
     intersect_boxes,
+    level_equalities_1,
+    level_equalities_2,
+    level_equalities_3,
     max_scaled_violation,
     max_violation,
     orthonormal_rows_qr,
@@ -177,10 +189,11 @@ def _orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[
 
     A Householder QR of ``A^T`` with column pivoting (:func:`orthonormal_rows_qr`), rank from
     its pivots ``|R_kk| > tol max(1, |R_00|)``. Deviation from the earlier SVD basis (same
-    span, another orthonormal basis of it): the SVD cost ~20 us of the ~140 us QP step replayed
-    alone and more inside the episode, the compiled QR ~2 us; the paper episode's log then
-    differs from the SVD run by round-off only (joint positions <= 4e-12 rad over 20 s, see
-    the README's QP-speed notes).
+    span, another orthonormal basis of it): the SVD of the paper episode's 11 x 12 level-1 rows
+    cost ~20 us hot and 35-60 us of the replayed episode step, the compiled QR ~2 us; the
+    episode's log then differs from the SVD run by round-off only (joint positions <= 2e-11 rad
+    over 20 s; with :func:`level_equalities_2` <= 2e-12 rad). The solver's hot path calls it
+    through the ``level_equalities_*`` kernels.
     """
     if A.shape[0] == 0:
         return A, b
@@ -267,8 +280,10 @@ class Solver:
         """:meth:`solve` with ``dt`` and ``previous_qdot`` already validated (the controller's path)."""
         n = configuration.nv
         box_limits = self._box_limits(limits, n)
-        for limit, lower_row, upper_row in self._box_rows:
-            limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+        boxes = self._builtin_boxes(configuration, dt, previous_qdot) if self._builtin_trio else None
+        if boxes is None:
+            for limit, lower_row, upper_row in self._box_rows:
+                limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
         row_limits: list[tuple[Limit, np.ndarray]] = []  # (limit, its h): which rows may be relaxed
         G_rows, h_rows = [], []
         for limit in self._row_limits:
@@ -300,9 +315,12 @@ class Solver:
                 np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
             )
         else:
-            A, b = np.zeros((0, n)), np.zeros(0)
+            A, b = self._no_equalities  # empty, so shared between steps
         k = len(box_limits)
-        lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
+        if boxes is None:
+            lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
+        else:
+            lower, upper, conflicts = boxes
         retries: list[str] = []
         try:
             return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=CONFIRMING_REPORTS)
@@ -355,7 +373,38 @@ class Solver:
             self._box_rows = [(limit, self._lowers[i], self._uppers[i]) for i, limit in enumerate(self._box_list)]
             self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
             self._row_limits = [limit for limit in limits if not limit.has_box]
+            self._no_equalities = (np.zeros((0, n)), np.zeros(0))
+            self._builtin_trio = tuple(map(type, self._box_list)) == (
+                JointVelocityLimit, JointPositionLimit, JointAccelerationLimit
+            )
         return self._box_list
+
+    def _builtin_boxes(self, configuration, dt: float, previous_qdot: np.ndarray | None):
+        """``(lower, upper, conflicts)`` of the built-in velocity, position and acceleration limits
+        in one compiled call (:func:`builtin_boxes`: their own arithmetic), the buffers' rows filled
+        as their ``fill_box`` fills them; None when a limit was not yet checked against this
+        model or a size does not fit (then each limit's ``fill_box`` runs, with its checks).
+        """
+        velocity, position, acceleration = self._box_list
+        model = configuration.model
+        if velocity._model is not model or position._model is not model or acceleration._model is not model:
+            return None
+        n = configuration.nv
+        lower, upper = np.empty(n), np.empty(n)
+        conflict = np.empty(n, dtype=np.int64)
+        count = builtin_boxes(
+            configuration.q, position.lower, position.upper, position.gain, dt, position._braking,
+            velocity.max_velocity, acceleration._zeros if previous_qdot is None else previous_qdot,
+            acceleration.max_acceleration, self._lowers, self._uppers, lower, upper, conflict,
+        )
+        if count < 0:
+            return None
+        conflicts = []
+        if count:
+            conflicts = [
+                BoxConflict(int(j), type(self._box_list[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)
+            ]
+        return lower, upper, conflicts
 
     # ------------------------------------------------------------------ backends
     def _solve_qp(self, level: int, problem: QPProblem, retries: list[str], confirm: int | None = None) -> np.ndarray:
@@ -427,19 +476,34 @@ class Solver:
         levels = sorted(by_level) or [1]
         for level in levels:
             entries = by_level.get(level, [])
-            H = np.zeros((n, n))
-            f = np.zeros(n)
-            floor = np.zeros(n)  # weight joint-space tasks already put on each joint
-            for task, J, v in entries:
-                if J is None:  # joint-space task: J = I
-                    accumulate_diagonal(H, f, task.weight, v)
-                    floor += task.weight
-                else:
-                    accumulate_task(H, f, J, task.weight, v)
+            # H, f and the floor (weight joint-space tasks already put on each joint) as rows of
+            # one fresh block: one allocation instead of three (H and f stay contiguous).
+            block = np.zeros((n + 2, n))
+            H, f, floor = block[:n], block[n], block[n + 1]
             # Top the diagonal up to the regularization only where it is missing, so a
             # damped problem stays exactly the damped least-squares problem.
             reg = self.regularization if entries else max(self.regularization, 1e-12)
-            top_up_diagonal(H, floor, reg)
+            count = len(entries)
+            if 0 < count <= 4:
+                # One compiled call for the level: each task's kernel in order, then the top-up.
+                args = []
+                for task, J, v in entries:
+                    args += (IDENTITY_ROWS if J is None else J, task.weight, v)
+                if count == 2:
+                    assemble_level_2(H, f, floor, reg, *args)
+                elif count == 3:
+                    assemble_level_3(H, f, floor, reg, *args)
+                elif count == 1:
+                    assemble_level_1(H, f, floor, reg, *args)
+                else:
+                    assemble_level_4(H, f, floor, reg, *args)
+            else:
+                for task, J, v in entries:
+                    if J is None:  # joint-space task: J = I
+                        accumulate_diagonal(H, f, task.weight, v, floor)
+                    else:
+                        accumulate_task(H, f, J, task.weight, v)
+                top_up_diagonal(H, floor, reg)
             problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
             solution.problems.append(problem)
             x = self._solve_qp(level, problem, retries, confirm)
@@ -447,8 +511,7 @@ class Solver:
             x = clip_inplace(x, lower, upper)
             if level != levels[-1] and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
-                A_lvl = self._level_rows(A, entries, n)
-                A, b = _orthonormal_rows(A_lvl, A_lvl @ x)
+                A, b = self._level_equalities(A, entries, n, x)
         solution.qdot = x
         return solution
 
@@ -472,6 +535,27 @@ class Solver:
             else:
                 row = weighted_rows(J, task.weight, buffer, row)
         return buffer[:row]
+
+    def _level_equalities(self, A: np.ndarray, entries, n: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Orthonormal equality rows (and right-hand side) that hold this level's optimum ``x``:
+        ``A`` and the level's weighted task rows, as ``_orthonormal_rows(rows, rows @ x)``, in one
+        compiled call for 1-3 tasks (:func:`level_equalities_2` etc.)."""
+        count = len(entries)
+        if count > 3 or A.dtype != np.float64:
+            A_lvl = self._level_rows(A, entries, n)
+            return _orthonormal_rows(A_lvl, A_lvl @ x)
+        m = A.shape[0] + sum(task.weight.shape[0] if J is None else J.shape[0] for task, J, _ in entries)
+        stack = self._rows_buffer
+        if stack.shape[0] < m or stack.shape[1] != n:
+            stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
+        args = []
+        for task, J, _ in entries:
+            args += (IDENTITY_ROWS if J is None else J, task.weight)
+        if count == 2:
+            return level_equalities_2(A, x, 1e-9, stack, *args)
+        if count == 1:
+            return level_equalities_1(A, x, 1e-9, stack, *args)
+        return level_equalities_3(A, x, 1e-9, stack, *args)
 
     # ------------------------------------------------------------------ relaxation
     def _least_relaxation(self, n, box_limits, lower, upper, A, b, G, h, separating, retries, tolerance=0.0):

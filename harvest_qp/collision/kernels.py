@@ -135,16 +135,20 @@ def pair_distances(pair_a, pair_b, cap_radius, w0, w1, influence, out_d, out_s, 
     Pairs whose bounding spheres are farther apart than ``influence`` get
     ``out_d = inf`` without the exact segment test (the broadphase).
     """
+    # Bounding-sphere radius of each capsule, once per capsule instead of twice per pair
+    # (the same expression, so the same bits).
+    bound = np.empty(cap_radius.shape[0])
+    for c in range(cap_radius.shape[0]):
+        dx, dy, dz = w1[c, 0] - w0[c, 0], w1[c, 1] - w0[c, 1], w1[c, 2] - w0[c, 2]
+        bound[c] = 0.5 * np.sqrt(dx * dx + dy * dy + dz * dz) + cap_radius[c]
     for k in range(pair_a.shape[0]):
         a = pair_a[k]
         b = pair_b[k]
-        dax, day, daz = w1[a, 0] - w0[a, 0], w1[a, 1] - w0[a, 1], w1[a, 2] - w0[a, 2]
-        dbx, dby, dbz = w1[b, 0] - w0[b, 0], w1[b, 1] - w0[b, 1], w1[b, 2] - w0[b, 2]
         cx = 0.5 * (w0[a, 0] + w1[a, 0] - w0[b, 0] - w1[b, 0])
         cy = 0.5 * (w0[a, 1] + w1[a, 1] - w0[b, 1] - w1[b, 1])
         cz = 0.5 * (w0[a, 2] + w1[a, 2] - w0[b, 2] - w1[b, 2])
-        ra = 0.5 * np.sqrt(dax * dax + day * day + daz * daz) + cap_radius[a]
-        rb = 0.5 * np.sqrt(dbx * dbx + dby * dby + dbz * dbz) + cap_radius[b]
+        ra = bound[a]
+        rb = bound[b]
         if np.sqrt(cx * cx + cy * cy + cz * cz) - ra - rb > influence:
             out_d[k] = np.inf
             continue

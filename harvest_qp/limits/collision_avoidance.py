@@ -331,6 +331,7 @@ class CollisionAvoidance(Limit):
         self._row_s = np.zeros(rows)
         self._row_t = np.zeros(rows)
         self._row_d = np.zeros(rows)
+        self._limit_rows = LimitRows(G=self._G, h=self._h)  # the same buffers every step
         self.active_pairs = self._selected[:0]
         self.num_rows = 0
         self._update_approach_pairs()
@@ -375,7 +376,7 @@ class CollisionAvoidance(Limit):
             # "No further approach" for approach-only capsules against obstacle spheres:
             # a negative bound (inside d_s) would push the capsule away.
             kernels.clamp_approach_rows(self._h, self._approach_pair, self._row_pair, n_rows)
-        return LimitRows(G=self._G, h=self._h)
+        return self._limit_rows
 
     def active_pair_distances(self) -> list[tuple[str, str, float]]:
         """Pairs that were rows of the last :meth:`compute`: both capsule names and distance [m]."""

@@ -5,13 +5,16 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.qp_kernels import rotate_twist_rows
+from harvest_qp.qp_kernels import rotate_twist, rotate_twist_rows
 from harvest_qp.tasks.task import Task
 from harvest_qp.validation import as_choice, as_name, as_vector
 
 WEIGHT_FRAMES = ("world", "local")
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_frame_jacobian = pin.getFrameJacobian
 
 
 class FrameTwistTask(Task):
@@ -100,12 +103,29 @@ class FrameTwistTask(Task):
         return J.copy(), v.copy()
 
     def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Like :meth:`compute`, into buffers reused at the next call (the solver's fast path)."""
-        self._ensure_bound(configuration)
-        J = configuration.frame_jacobian_by_id(self._frame_id)
+        """Like :meth:`compute`, into buffers reused at the next call (the solver's fast path).
+
+        Local-axes rows of one frame are computed once per kinematics update and shared by
+        every local task on that frame (the paper episode's camera and roll tasks).
+        """
+        if self._model is None or getattr(configuration, "model", None) is not self._model:
+            self._ensure_bound(configuration)
+        frame_id = self._frame_id
         v = self._reference if self._gain == 1.0 else self._gain * self._reference
         if self._local:
             # Rotate rows into the frame's axes so that weights act on local axes.
-            rotate_twist_rows(configuration.data.oMf[self._frame_id].rotation, J, v, self._J_local, self._v_local)
+            R = configuration.data.oMf[frame_id].rotation
+            rows = getattr(configuration, "_frame_rows", None)
+            shared = None if rows is None else rows.get(frame_id)
+            if shared is not None and shared.shape == self._J_local.shape:
+                rotate_twist(R, v, self._v_local)
+                return shared, self._v_local
+            J = _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA)
+            rotate_twist_rows(R, J, v, self._J_local, self._v_local)
+            # A copy is shared: this task's buffer is rewritten at its next call (which may
+            # be on another configuration of the same model).
+            if rows is not None:
+                rows[frame_id] = self._J_local.copy()
             return self._J_local, self._v_local
-        return J, v
+        # The frame index was checked against this model when the task was bound.
+        return _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA), v

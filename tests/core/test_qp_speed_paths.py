@@ -16,7 +16,6 @@ from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.qp_kernels import (
     load_daqp_rows,
     orthonormal_rows_qr,
-    same_bits,
     weighted_identity_rows,
     weighted_rows,
 )
@@ -121,13 +120,26 @@ def test_load_daqp_rows_writes_what_the_slice_assignments_wrote(rng):
             assert np.array_equal(fast, slow)
 
 
-def test_same_bits_tells_zero_from_minus_zero():
-    """Oracle: the bit patterns. Bug caught: ``==`` semantics (0.0 == -0.0) skipping a needed update."""
-    a = np.array([0.0, 1.0])
-    assert same_bits(a, a.copy())
-    assert not same_bits(a, np.array([-0.0, 1.0]))
-    assert not same_bits(a, np.array([0.0, 1.0 + 1e-16 * 2]))
-    assert not same_bits(a, np.zeros(3))
+def test_kinematics_update_is_skipped_only_for_the_same_bits(monkeypatch):
+    """Oracle: the bit patterns of q. The same q skips pinocchio; -0.0 for 0.0 or one ulp more
+    does not. Bug caught: ``==`` semantics (0.0 == -0.0) skipping an update that changes bits."""
+    config = Configuration.dual_ur5e()
+    q = np.array(HOME_Q, dtype=float)
+    q[0] = 0.0
+    config.update(q)
+    computed = []
+    real = config._set_q
+    monkeypatch.setattr(config, "_set_q", lambda value: (computed.append(value.copy()), real(value)))
+    config._update_if_changed(q.copy())
+    assert computed == []
+    minus = q.copy()
+    minus[0] = -0.0
+    config._update_if_changed(minus)
+    assert len(computed) == 1
+    ulp = minus.copy()
+    ulp[5] = np.nextafter(ulp[5], np.inf)
+    config._update_if_changed(ulp)
+    assert len(computed) == 2
 
 
 def test_skipped_kinematics_update_equals_a_fresh_one(rng):
@@ -230,3 +242,140 @@ def test_daqp_backend_fast_check_rejects_what_checked_rejects(rng):
     good = np.array([0.2 + 1e-9, 0.0, 0.0])
     backend._model = Answer(good)
     assert np.array_equal(backend.solve(problem), good)
+
+
+def test_local_twist_rows_shared_between_tasks_follow_the_kinematics(rng):
+    """Oracle: ``blkdiag(R^T, R^T)`` times pinocchio's world-aligned Jacobian, by numpy. Two
+    local tasks on one frame (the second reuses the first's rows), before and after the
+    configuration moves, and with the second task's own reference and gain.
+    Bug caught: rows kept across a kinematics update (the second task would see the old pose)."""
+    config = Configuration.dual_ur5e(HOME_Q)
+    camera = FrameTwistTask("camera", weight_frame="local")
+    roll = FrameTwistTask("camera", weight=[0, 0, 0, 0, 0, 1.0], weight_frame="local", gain=0.5)
+    for q in (HOME_Q, HOME_Q + rng.normal(0, 0.2, 12)):
+        config.update(q)
+        camera.set_reference(rng.normal(size=6))
+        roll.set_reference(rng.normal(size=6))
+        J = pin.getFrameJacobian(config.model, config.data, config.frame_id("camera"),
+                                 pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        R = config.frame_rotation("camera")
+        T = np.kron(np.eye(2), R.T)
+        for task in (camera, roll):
+            rows, v = task.compute_rows(config, 0.002)
+            np.testing.assert_allclose(rows, T @ J, atol=1e-14)
+            np.testing.assert_allclose(v, T @ (task.gain * task.reference), atol=1e-14)
+
+
+def test_builtin_boxes_in_one_call_equal_each_limits_own_fill(rng):
+    """Oracle: the limits' own ``fill_box`` and the solver's intersection (taken when a limit is
+    a subclass). Same box, same conflicts, same command, bit for bit, also where the position
+    box and the acceleration box do not overlap (conflicts) and on the first step (no previous).
+    Bug caught: the fused kernel intersecting in another order or reading the wrong previous command."""
+    from harvest_qp import Solver
+    from harvest_qp.limits import JointAccelerationLimit, JointPositionLimit, JointVelocityLimit
+
+    class Velocity(JointVelocityLimit):  # a subclass: the solver must take the checked path
+        pass
+
+    config = Configuration.dual_ur5e(HOME_Q)
+    camera = FrameTwistTask("camera")
+    camera.set_reference([0.2, -0.1, 0.1, 0.3, 0.0, 0.1])
+    tasks = [camera, DampingTask(12, weight=1e-3)]
+
+    def limits(velocity_type):
+        return [JointPositionLimit(config, max_acceleration=5.0), velocity_type(config, max_velocity=1.5),
+                JointAccelerationLimit(config, max_acceleration=5.0)]
+
+    fused_limits, checked_limits = limits(JointVelocityLimit), limits(Velocity)
+    fused, checked = Solver(), Solver()
+    seen_conflict = False
+    for k in range(6):
+        q = np.clip(HOME_Q + rng.normal(0, 0.3, 12), config.lower_limits, config.upper_limits)
+        if k % 2:
+            q[3] = config.upper_limits[3] - 1e-4  # at the position limit: its box conflicts with the acceleration box
+        previous = None if k == 0 else rng.normal(0, 1.0, 12)
+        config.update(q)
+        a = fused.solve(config, tasks, fused_limits, previous_qdot=previous)
+        b = checked.solve(config, tasks, checked_limits, previous_qdot=previous)
+        assert fused._builtin_trio and not checked._builtin_trio
+        assert np.array_equal(a.lower, b.lower) and np.array_equal(a.upper, b.upper)
+        assert [(c.joint, c.limit) for c in a.conflicts] == [(c.joint, c.limit.replace("Velocity", "JointVelocityLimit")
+                                                             if c.limit == "Velocity" else c.limit) for c in b.conflicts]
+        assert np.array_equal(a.qdot, b.qdot)
+        assert np.array_equal(fused._lowers, checked._lowers) and np.array_equal(fused._uppers, checked._uppers)
+        seen_conflict |= bool(a.conflicts)
+    assert seen_conflict
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 4])
+def test_fused_level_assembly_equals_the_per_task_kernels(rng, count):
+    """Oracles: the per-task kernels called one by one (bit for bit) and numpy's
+    ``sum J^T W J`` / ``-sum J^T W v`` plus the diagonal top-up (to round-off).
+    Bug caught: a task skipped, the identity marker read as a 0-row Jacobian (task lost),
+    or the top-up before the joint-space tasks' floor is complete."""
+    from harvest_qp import qp_kernels as K
+
+    n = 12
+    entries = []
+    for k in range(count):
+        if k % 2:
+            entries.append((None, rng.uniform(0, 1e-3, n), rng.normal(size=n)))
+        else:
+            w = rng.uniform(0, 2, 6)
+            w[rng.integers(6)] = 0.0
+            entries.append((np.asfortranarray(rng.normal(size=(6, n))), w, rng.normal(size=6)))
+    reg = 5e-4
+
+    def fresh():
+        block = np.zeros((n + 2, n))
+        return block, block[:n], block[n], block[n + 1]
+
+    block_a, H_a, f_a, floor_a = fresh()
+    args = []
+    for J, w, v in entries:
+        args += (K.IDENTITY_ROWS if J is None else J, w, v)
+    getattr(K, f"assemble_level_{count}")(H_a, f_a, floor_a, reg, *args)
+    block_b, H_b, f_b, floor_b = fresh()
+    for J, w, v in entries:
+        if J is None:
+            K.accumulate_diagonal(H_b, f_b, w, v, floor_b)
+        else:
+            K.accumulate_task(H_b, f_b, J, w, v)
+    K.top_up_diagonal(H_b, floor_b, reg)
+    assert np.array_equal(block_a, block_b)
+    H = sum(np.diag(w) if J is None else J.T @ np.diag(w) @ J for J, w, _ in entries)
+    f = -sum(w * v if J is None else J.T @ (w * v) for J, w, v in entries)
+    floor = sum((w for J, w, _ in entries if J is None), np.zeros(n))
+    H = H + np.diag(np.maximum(reg - floor, 0.0))
+    np.testing.assert_allclose(H_a, H, atol=1e-12)
+    np.testing.assert_allclose(f_a, f, atol=1e-12)
+
+
+@pytest.mark.parametrize("count", [1, 2, 3])
+def test_level_equalities_in_one_call_equal_the_stacked_rows_path(rng, count):
+    """Oracle: the general path (numpy stacking ``(sqrt(w)[:, None] * J)[w > 0]`` over ``A``,
+    ``rows @ x`` by BLAS, then ``_orthonormal_rows``). Same orthonormal rows bit for bit (same
+    stack), right-hand side to round-off (the product is summed in another order), and the
+    level's solution satisfies them. Bug caught: a task's rows left out of the stack or the
+    previous levels' rows ``A`` dropped (a lower level could then undo a higher one)."""
+    from harvest_qp import Solver, qp_kernels as K
+
+    n = 12
+    A = np.linalg.qr(rng.normal(size=(n, 3)))[0].T  # earlier levels' orthonormal rows
+    tasks = []
+    for k in range(count):
+        task = DampingTask(n) if k % 2 else FrameTwistTask("camera")
+        task.weight = rng.uniform(0.1, 1.0, task.dim)
+        J = None if k % 2 else np.asfortranarray(rng.normal(size=(6, n)))
+        tasks.append((task, J, None))
+    x = rng.normal(size=n)
+    solver = Solver()
+    rows, rhs = solver._level_equalities(A, tasks, n, x)
+    stack = np.vstack([A, *[(np.sqrt(t.weight)[:, None] * (np.eye(n) if J is None else J))[t.weight > 0]
+                            for t, J, _ in tasks]])
+    rows_ref, rhs_ref = _orthonormal_rows(stack, stack @ x)
+    assert np.array_equal(rows, rows_ref)
+    np.testing.assert_allclose(rhs, rhs_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(rows @ x, rhs, atol=1e-12)
+    assert rows.shape[0] == min(stack.shape[0], n) == np.linalg.matrix_rank(stack)
+    assert K.IDENTITY_ROWS.shape == (0, 0)
