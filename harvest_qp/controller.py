@@ -159,13 +159,24 @@ class TaskController:
 
     def step(self, q: np.ndarray) -> ControlStep:
         """Joint velocities [rad/s] for the measured joint positions ``q`` [rad]. Never raises."""
+        return self._step(q, reuse_kinematics=False)
+
+    def _step(self, q: np.ndarray, *, reuse_kinematics: bool) -> ControlStep:
+        """:meth:`step`; with ``reuse_kinematics`` the caller has just updated the configuration.
+
+        The paper episode's controller updates the shared configuration to this very ``q``
+        for its reference laws and then asks for the QP step: with ``reuse_kinematics`` the
+        kinematics are recomputed only when ``q``'s bytes differ from that update's. The
+        public :meth:`step` always recomputes (a caller may have moved ``configuration.data``
+        with pinocchio in between).
+        """
         measured = False
         try:
-            # Checked here (the public entry point), then the kinematics are recomputed only
-            # when q differs from the configuration's last update (the episode's loop has
-            # already updated it to this very q for its reference laws).
             q = as_vector(q, self.configuration.model.nq, "Configuration q")
-            self.configuration._update_if_changed(q)
+            if reuse_kinematics:
+                self.configuration._update_if_changed(q)
+            else:
+                self.configuration._set_q(q)
             measured = True
             # previous_qdot is this controller's own finite output: skip re-validating it.
             solution = self.solver._solve(self.configuration, self.tasks, self.limits, self.dt, self.previous_qdot)

@@ -203,6 +203,24 @@ def _orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[
     return rows[:rank], rhs[:rank]
 
 
+def _least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal equality rows for hard tasks ``A x = b`` that need not be consistent.
+
+    The SVD basis of ``A``'s row space with ``b`` projected on its range: two hard tasks that
+    ask for different things get the least-squares compromise (independent of their order),
+    and a non-finite entry raises (numpy's SVD does not converge), so the step falls back to
+    a safe stop. :func:`_orthonormal_rows`'s pivoted QR is only for the consistent rows a
+    priority level hands on (``rows @ x``): it satisfies the first pivot rows exactly and
+    skips a NaN row. Hard tasks are rare (none in the paper episode), so the SVD costs nothing
+    there.
+    """
+    if A.shape[0] == 0:
+        return A, b
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    rank = int(np.sum(s > tol * max(1.0, s[0])))
+    return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
+
+
 class Solver:
     """Reusable QP solver: keeps the backend's workspace between control steps.
 
@@ -311,7 +329,7 @@ class Solver:
         hard = by_level.pop(HARD, None)
         if hard:
             hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in hard]
-            A, b = _orthonormal_rows(
+            A, b = _least_squares_rows(
                 np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
             )
         else:

@@ -379,3 +379,29 @@ def test_level_equalities_in_one_call_equal_the_stacked_rows_path(rng, count):
     np.testing.assert_allclose(rows @ x, rhs, atol=1e-12)
     assert rows.shape[0] == min(stack.shape[0], n) == np.linalg.matrix_rank(stack)
     assert K.IDENTITY_ROWS.shape == (0, 0)
+
+
+def test_public_step_recomputes_after_a_direct_pinocchio_write():
+    """``TaskController.step(q)`` after ``pin.forwardKinematics`` moved ``configuration.data``
+    elsewhere gives the command of a fresh controller at ``q``; only the loop's private
+    ``_step(..., reuse_kinematics=True)`` may skip the update.
+
+    Catches: the public step skipping the kinematics when q's bytes equal the last update's
+    (stale placements and Jacobians after a user's own pinocchio call; found by an audit)."""
+    q = np.array(HOME_Q, float)
+    other = q + 0.3
+
+    def controller():
+        c = Configuration.dual_ur5e(q)
+        task = FrameTwistTask("gripper")
+        task.set_reference(np.array([0.05, 0.0, 0.02, 0.0, 0.0, 0.1]))
+        return c, TaskController(c, [task, DampingTask(12)], dt=0.002)
+
+    c_fresh, fresh = controller()
+    expected = fresh.step(q).qdot
+    c, tc = controller()
+    tc.configuration._set_q(q)
+    pin.forwardKinematics(c.model, c.data, other)
+    pin.computeJointJacobians(c.model, c.data, other)
+    pin.updateFramePlacements(c.model, c.data)
+    np.testing.assert_array_equal(tc.step(q).qdot, expected)
