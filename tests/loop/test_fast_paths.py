@@ -19,7 +19,7 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
-from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
+from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _LazyRows, _rows, _wrap_half_turn
 from harvest_qp.loop.settings import check_settings
 
 def _bits(values) -> list[int]:
@@ -160,6 +160,23 @@ def test_rows_equal_boolean_indexing():
         assert got.dtype == p.dtype and got.shape == (int(m.sum()), 3)
         np.testing.assert_array_equal(got, p[m])
     assert _rows(points, np.zeros(1001, bool)).shape == (0, 3)
+
+
+def test_lazy_rows_equal_boolean_indexing_then_stride():
+    """``_LazyRows(points, mask)[::k]`` == ``points[mask][::k]`` before and after all rows were
+    gathered, and ``.shape`` counts the selected rows. Catches: the stride applied to the
+    cloud instead of to the selected rows, a cached subset returned for a later full request."""
+    rng = np.random.default_rng(18)
+    points = rng.normal(size=(2003, 3))
+    mask = rng.random(2003) < 0.6
+    for source in (points, points[::2]):
+        m = mask[: len(source)]
+        rows = _LazyRows(source, m)
+        assert rows.shape == (int(m.sum()), 3) and len(rows) == int(m.sum())
+        for k in (5, 3, 1, 7, 1):
+            np.testing.assert_array_equal(rows[::k], source[m][::k])
+    with pytest.raises(TypeError):
+        _LazyRows(points, mask)[3]
 
 
 def test_active_pairs_equal_the_limits_own_listing(controller):
