@@ -117,23 +117,19 @@ class SwitchSnapshot:
 class _Frame:
     """Perception of one frame during the approach.
 
-    ``non_stem`` and ``obstacles`` (``(n, 3)`` [m]) are gathered from the cloud on first use:
-    only the frame at the switch needs them (~0.5 ms each per 848x480 frame otherwise).
+    ``obstacles`` (``(n, 3)`` [m]) are gathered from the cloud on first use: only the frame at
+    the switch needs them (~0.3 ms per 848x480 frame otherwise).
     """
 
     def __init__(self, time: float, camera_position: np.ndarray, camera_pose: np.ndarray, stem: np.ndarray,
-                 non_stem: _LazyRows, obstacles: _LazyRows, fit: Any = None) -> None:
+                 non_stem: np.ndarray, obstacles: _LazyRows, fit: Any = None) -> None:
         self.time = time
         self.camera_position = camera_position
         self.camera_pose = camera_pose
         self.stem = stem
-        self._non_stem = non_stem
+        self.non_stem = non_stem
         self._obstacles = obstacles
         self.fit = fit
-
-    @property
-    def non_stem(self) -> np.ndarray:
-        return self._non_stem[::1]
 
     @property
     def obstacles(self) -> np.ndarray:
@@ -220,46 +216,31 @@ _ROW = np.dtype((np.void, 24))
 
 
 class _LazyRows:
-    """The rows of ``points`` [m] where ``mask`` is true, gathered only as far as they are used.
+    """The rows of ``points`` [m] where ``mask`` is true, gathered (``_rows``) on first use.
 
-    Supports what the reference laws do with their obstacle points: ``.shape`` and ``[::k]``
-    (``k`` >= 1). ``[::1]`` gathers all rows once (``_rows``) and keeps them; ``[::k]``
-    before that gathers only every k-th selected row (the unveiling law thins the non-stem
-    points to <= 45,000, the next-best-view memory to <= 10,000: at 848x480 most of the
-    ~190k non-stem rows were copied for nothing). The values are those of ``points[mask][::k]``.
+    Supports ``.shape`` and slicing (``rows[::1]``: all of them). The frame's obstacle rows
+    are only needed at the switch: gathering them on every 848x480 approach frame cost ~0.3 ms.
+    (Gathering only a law's every k-th row through np.flatnonzero cost as much as all rows.)
     """
 
-    __slots__ = ("_points", "_mask", "_count", "_index", "_all")
+    __slots__ = ("_points", "_mask", "_all")
 
     def __init__(self, points: np.ndarray, mask: np.ndarray) -> None:
         self._points = points
         self._mask = mask
-        self._count = int(np.count_nonzero(mask))
-        self._index: np.ndarray | None = None
         self._all: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
-        return (self._count, 3)
+        return self[::1].shape
 
     def __len__(self) -> int:
-        return self._count
+        return len(self[::1])
 
-    def __getitem__(self, key: slice) -> np.ndarray:
-        if not isinstance(key, slice) or key.start is not None or key.stop is not None or (key.step or 1) < 1:
-            raise TypeError(f"_LazyRows supports [::k] with k >= 1 only, got {key!r}")
-        step = key.step or 1
-        if self._all is None and step == 1:
+    def __getitem__(self, key) -> np.ndarray:
+        if self._all is None:
             self._all = _rows(self._points, self._mask)
-        if self._all is not None:
-            return self._all[::step]
-        if self._index is None:
-            self._index = np.flatnonzero(self._mask)
-        index = self._index[::step]
-        points = self._points
-        if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 and points.flags.c_contiguous:
-            return points.view(_ROW).reshape(-1)[index].view(np.float64).reshape(-1, 3)
-        return points[index]
+        return self._all[key]
 
 
 def _rows(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -514,7 +495,7 @@ class HarvestController:
         points = cloud.points
         is_stem = labels == STEM
         stem = _rows(points, is_stem)
-        non_stem = _LazyRows(points, ~is_stem)  # gathered as far as used (thinned by the laws)
+        non_stem = _rows(points, ~is_stem)
         approach = st.phase == Phase.APPROACH
         spheres = self.collision is not None and s["obstacles"]["enabled"]
         obstacles = _LazyRows(points, labels == OBSTACLE) if approach or spheres else None
@@ -533,7 +514,7 @@ class HarvestController:
                 self.unveiling._observe_points(p_c, stem, non_stem, predicted_stem_points=predicted,
                                                roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
             else:  # the checked call raises the package's error naming the bad points
-                self.unveiling.observe(p_c, stem, non_stem[::1], predicted_stem_points=predicted,
+                self.unveiling.observe(p_c, stem, non_stem, predicted_stem_points=predicted,
                                        roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
         if spheres:
             self._update_obstacle_spheres(obstacles[::1], T_g)

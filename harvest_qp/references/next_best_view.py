@@ -273,7 +273,7 @@ class NextBestView:
         # A depth frame has far more points than 1 cm voxels need (~1.4 mm apart at 0.35 m and
         # 283x160): a stride keeps at most _MAX_MEMORY_INPUT of them, whatever the resolution.
         stride = -(-obstacles.shape[0] // _MAX_MEMORY_INPUT)
-        sample = obstacles[:: max(stride, 1)]  # (the loop passes lazily gathered rows: only [::k])
+        sample = obstacles[::stride] if stride > 1 else obstacles
         gap = sample - centre
         self.memory.add(sample[np.einsum("ij,ij->i", gap, gap) < self.memory_radius**2], time)
         offset = camera - centre

@@ -491,8 +491,7 @@ class Unveiling:
     ) -> None:
         """:meth:`observe` on ``stem`` and ``obstacles`` already known to be finite float64
         ``(n, 3)`` arrays (the control loop checks its whole cloud once); the few small
-        arguments are still checked. ``obstacles`` is only used through ``.shape[0]`` and
-        ``[::k]``: the loop passes rows that are gathered as far as they are used."""
+        arguments are still checked."""
         camera = as_position(camera_position, "camera_position")
         predicted = None if predicted_stem_points is None else as_points(predicted_stem_points, "predicted_stem_points")
         self._time = self._time + self.frame_period if timestamp is None else float(timestamp)
@@ -516,10 +515,8 @@ class Unveiling:
         # it while the cost stays about that of a 283x160 frame (see max_stem_points).
         if self.max_stem_points is not None and stem.shape[0] > self.max_stem_points:
             stem = stem[:: -(-stem.shape[0] // self.max_stem_points)]
-        stride = 1
         if self.max_obstacle_points is not None and obstacles.shape[0] > self.max_obstacle_points:
-            stride = -(-obstacles.shape[0] // self.max_obstacle_points)
-        obstacles = obstacles[::stride]  # always sliced: the loop passes lazily gathered rows
+            obstacles = obstacles[:: -(-obstacles.shape[0] // self.max_obstacle_points)]
         pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=self.d_a, d_o=self.d_o)
         self.mode = "paper"
         # The pair weights once, for the count and the law (bounded_unveiling_velocity with its
