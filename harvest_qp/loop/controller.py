@@ -72,7 +72,6 @@ from harvest_qp.references import (
     predicted_stem_points,
 )
 from harvest_qp.references._checks import as_position
-from harvest_qp.references.coordination import _switch_ready
 from harvest_qp.runner import Command, Observation
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 
@@ -771,24 +770,38 @@ class HarvestController:
         camera dithers about a fixed view (measured +-0.06 rad/s on seed 1) and never met
         0.025 rad/s in 35 s, while its mean motion was nil.
 
-        Every call records the pose; with ``measure`` false (no stem base yet: the switch
-        rule is not evaluated) the speeds are not computed and (inf, inf) is returned.
+        Records the pose (:meth:`_record_camera`); (inf, inf) until the window is full or
+        without ``measure``. :meth:`step` records every tick and computes only the speeds
+        the switch test reaches (:meth:`_linear_speed`, :meth:`_angular_speed`).
         """
+        start = self._record_camera(t, T_c)
+        if not measure or start is None:
+            return float("inf"), float("inf")
+        return self._linear_speed(T_c, start), self._angular_speed(T_c, start)
+
+    def _record_camera(self, t: float, T_c: np.ndarray) -> tuple | None:
+        """Add this tick's camera pose to the window; its first entry (t0, T0, z0) once the
+        window spans ``switch.window``, else None."""
         history = self.state.camera_history
         # T_c is this tick's own new array (never modified): kept whole, p_c read from it later.
         history.append((t, T_c, T_c[:3, 2].copy()))
         window = self.settings["switch"]["window"]
         while len(history) > 1 and history[1][0] <= t - window + 1e-12:
             history.popleft()
-        t0, T0, z0 = history[0]
-        if not measure or t - t0 < window - 1e-9:
-            return float("inf"), float("inf")
-        span = t - t0
+        start = history[0]
+        return None if t - start[0] < window - 1e-9 else (t, *start)
+
+    @staticmethod
+    def _linear_speed(T_c: np.ndarray, start: tuple) -> float:
+        t, t0, T0, _ = start
         moved = T_c[:3, 3] - T0[:3, 3]
-        linear = math.sqrt(float(moved.dot(moved))) / span  # = np.linalg.norm, bit for bit
+        return math.sqrt(float(moved.dot(moved))) / (t - t0)  # = np.linalg.norm, bit for bit
+
+    @staticmethod
+    def _angular_speed(T_c: np.ndarray, start: tuple) -> float:
+        t, t0, _, z0 = start
         # np.arccos, not math.acos: the two differ in the last bit on ~10 % of arguments.
-        angular = float(np.arccos(min(max(float(z0.dot(T_c[:3, 2])), -1.0), 1.0))) / span
-        return linear, angular
+        return float(np.arccos(min(max(float(z0.dot(T_c[:3, 2])), -1.0), 1.0))) / (t - t0)
 
     def _camera_twist(self, T_c: np.ndarray, dt: float) -> list[float]:
         """V_cr + keep-out + V_cu of this tick as 6 Python floats [m/s; rad/s] (advances the
@@ -895,14 +908,19 @@ class HarvestController:
             if st.p_sb is None and t > s["safety"]["no_stem_timeout"]:
                 self._abort(t, f"no stem base found within {s['safety']['no_stem_timeout']} s")
             else:
-                linear_speed, angular_speed = self._camera_speeds(t, T_c, measure=st.p_sb is not None)
+                start = self._record_camera(t, T_c)
                 self._switch_gripper_pose = T_g
-                if st.p_sb is not None:
+                if st.p_sb is not None and start is not None:
+                    # switch_ready's test (subsec:biman_coord; a window not yet full is never
+                    # ready), each speed computed only if the test gets to it.
                     sw = s["switch"]
                     offset = self.reaching.roi_centre - T_c[:3, 3]
-                    distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
-                    if _switch_ready(distance, s["reaching"]["radius"], linear_speed, angular_speed,
-                                     sw["distance_factor"], sw["max_linear_speed"], sw["max_angular_speed"]):
+                    distance = math.sqrt(float(offset.dot(offset)))  # = np.linalg.norm, bit for bit
+                    if (
+                        distance <= sw["distance_factor"] * s["reaching"]["radius"]
+                        and self._linear_speed(T_c, start) < sw["max_linear_speed"]
+                        and self._angular_speed(T_c, start) < sw["max_angular_speed"]
+                    ):
                         self._try_switch(t, obs)
         elif phase == Phase.BIMANUAL or phase == Phase.PRECUT:
             if t - st.last_stem_time > s["safety"]["stem_lost_timeout"]:
