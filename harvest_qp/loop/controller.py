@@ -883,9 +883,9 @@ class HarvestController:
 
     def step(self, obs: Observation) -> Command:
         # Speed (this runs every 2 ms tick): the reference laws are called through their
-        # unchecked private paths (the arguments are the loop's own, already well-formed), and
-        # the 3-vector arithmetic avoids np.cross / np.linalg.norm; every numpy dot product and
-        # transcendental call of the checked version is kept, so the results are bit-identical.
+        # unchecked private paths (the arguments are the loop's own, already well-formed) and
+        # the 3-vector arithmetic runs on Python floats; every numpy dot product and numpy
+        # transcendental of the checked version is kept, so the results are bit-identical.
         st, s = self.state, self.settings
         t = float(obs.time)
         config = self.configuration
