@@ -1078,11 +1078,13 @@ class HarvestController:
             return []
         names = lim.capsule_names
         distances = getattr(lim, "_dist", None)
-        # One fancy index and tolist() per column instead of numpy scalar indexing per pair.
+        # One fancy index and tolist() per column instead of numpy scalar indexing per pair,
+        # and the tuples built by zip (tolist() already gives Python floats).
         first = lim.pair_a[active].tolist()
         second = lim.pair_b[active].tolist()
         gaps = distances[active].tolist() if distances is not None else [float("nan")] * len(first)
-        return [(names[a], names[b], float(d)) for a, b, d in zip(first, second, gaps)]
+        lookup = names.__getitem__
+        return list(zip(map(lookup, first), map(lookup, second), gaps))
 
     # ------------------------------------------------------------------ summary
 

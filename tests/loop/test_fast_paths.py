@@ -205,6 +205,7 @@ def test_active_pairs_equal_the_limits_own_listing(controller):
     c.qp.reset(q)
     c.qp.step(q)
     pairs = c._active_pairs()
+    assert len(pairs) > 0
     assert pairs == c.collision.active_pair_distances()
     assert all(isinstance(d, float) for _, _, d in pairs)
 
