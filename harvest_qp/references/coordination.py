@@ -96,21 +96,4 @@ def switch_ready(
     distance_factor = as_positive_scalar(distance_factor, "distance_factor")
     max_linear = as_positive_scalar(max_linear, "max_linear")
     max_angular = as_positive_scalar(max_angular, "max_angular")
-    return _switch_ready(distance, radius, linear_speed, angular_speed, distance_factor, max_linear, max_angular)
-
-
-def _switch_ready(
-    distance: float,
-    radius: float,
-    linear_speed: float,
-    angular_speed: float,
-    distance_factor: float,
-    max_linear: float,
-    max_angular: float,
-) -> bool:
-    """:func:`switch_ready` without the argument checks (the control loop, on its checked settings).
-
-    A speed of ``inf`` (the loop's "window not full yet") is simply not below the threshold
-    here, where :func:`switch_ready` rejects it as not finite.
-    """
     return distance <= distance_factor * radius and linear_speed < max_linear and angular_speed < max_angular

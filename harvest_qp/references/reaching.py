@@ -142,8 +142,8 @@ class ReachingCentering:
         set.  Element-wise arithmetic runs on Python floats (the same IEEE operations in the
         same order as the numpy expressions of :meth:`update`, so the same bits) and the dot
         products stay numpy's (a Python sum of products differs from BLAS's ddot in the last
-        bit): the result equals :meth:`update`'s bit for bit (tests/references/
-        test_unchecked_paths.py) at about a third of the cost.
+        bit): the result equals :meth:`update`'s bit for bit
+        (``tests/references/test_unchecked_paths.py``) at about a third of the cost.
         """
         if self.roi_time_constant == 0.0:
             self.roi_centre = self._roi_target.copy()

@@ -19,13 +19,13 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
-from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
+from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _LazyRows, _rows, _wrap_half_turn
 from harvest_qp.loop.settings import check_settings
+
 
 def _bits(values) -> list[int]:
     """The IEEE bit patterns (so that -0.0 differs from 0.0, and NaN equals itself)."""
     return np.asarray(values, dtype=np.float64).reshape(-1).view(np.int64).tolist()
-
 
 
 @pytest.fixture(scope="module")
@@ -47,9 +47,9 @@ def _random_pose(rng: np.random.Generator, scale: float = 0.5) -> np.ndarray:
 def test_camera_twist_equals_the_checked_laws(controller):
     """V_cr + keep-out + V_cu on floats == ``reaching.update + _keep_out + unveiling.update`` (numpy).
 
-    A third of the poses lie inside the keep-out distance (0.85 r from p_r) so that its
-    branch runs. Catches: the keep-out distance not equal to |p_r - p_c| of V_cr, a missing
-    ``+ 0.0`` (V_cr + zeros), the filters' arithmetic reordered."""
+    A third of the poses lie inside the keep-out distance (0.9 r from p_r) so that its
+    branch runs. Catches: the keep-out distance not equal to |p_r - p_c| of V_cr, the
+    filters' arithmetic reordered."""
     c = controller
     rng = np.random.default_rng(11)
     r = c.settings["reaching"]
@@ -71,6 +71,29 @@ def test_camera_twist_equals_the_checked_laws(controller):
         assert _bits(got) == _bits(expected)
         assert c.reaching.distance == float(np.linalg.norm(c.reaching.roi_centre - pose[:3, 3]))
     assert inside > 100
+
+
+def test_camera_twist_without_unveiling_keeps_the_sign_of_zero(controller):
+    """With V_cu off, V_cr + zeros(6) + zeros(6) as before: inside the ROI (between the keep-out
+    distance 0.9 r and V_cr's 0.95 r) V_cr's linear part is 0 * e_pc, -0.0 where e_pc < 0,
+    which the old sum turned into 0.0. Catches: the ``+ 0.0`` left out (-0.0 handed on)."""
+    c = controller
+    rng = np.random.default_rng(19)
+    c.settings["unveiling"]["enabled"] = False
+    try:
+        r = c.settings["reaching"]
+        for _ in range(50):
+            centre = 0.3 * rng.normal(size=3)
+            c.reaching.reset(centre)
+            pose = _random_pose(rng)
+            pose[:3, 3] = centre - 0.925 * r["radius"] * pose[:3, 2]  # p_r ahead, at 0.925 r
+            reaching = copy.deepcopy(c.reaching)
+            got = c._camera_twist(pose, 0.002)
+            expected = reaching.update(pose, 0.002) + c._keep_out(pose) + np.zeros(6)
+            assert not np.any(expected[:3])
+            assert _bits(got) == _bits(expected)
+    finally:
+        c.settings["unveiling"]["enabled"] = True
 
 
 def test_hold_twist_equals_the_numpy_formula(controller):
@@ -162,6 +185,19 @@ def test_rows_equal_boolean_indexing():
     assert _rows(points, np.zeros(1001, bool)).shape == (0, 3)
 
 
+def test_lazy_rows_equal_boolean_indexing():
+    """``_LazyRows(points, mask)`` gathers ``points[mask]`` once, on first use. Catches: rows
+    gathered with a stale or inverted mask."""
+    rng = np.random.default_rng(18)
+    points = rng.normal(size=(2003, 3))
+    mask = rng.random(2003) < 0.6
+    rows = _LazyRows(points, mask)
+    assert rows._all is None
+    assert rows.shape == (int(mask.sum()), 3) and len(rows) == int(mask.sum())
+    for k in (5, 1):
+        np.testing.assert_array_equal(rows[::k], points[mask][::k])
+
+
 def test_active_pairs_equal_the_limits_own_listing(controller):
     """Catches: distances or names taken from the wrong index column."""
     c = controller
@@ -169,6 +205,7 @@ def test_active_pairs_equal_the_limits_own_listing(controller):
     c.qp.reset(q)
     c.qp.step(q)
     pairs = c._active_pairs()
+    assert len(pairs) > 0
     assert pairs == c.collision.active_pair_distances()
     assert all(isinstance(d, float) for _, _, d in pairs)
 

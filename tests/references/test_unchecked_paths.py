@@ -20,6 +20,7 @@ import pytest
 from harvest_qp.references import GraspFeedForward, ReachingCentering, StemStretching, Unveiling
 from harvest_qp.references._checks import cross3, cross_rows
 
+
 def _bits(values) -> list[int]:
     """The IEEE bit patterns (so that -0.0 differs from 0.0, and NaN equals itself)."""
     return np.asarray(values, dtype=np.float64).reshape(-1).view(np.int64).tolist()
