@@ -489,7 +489,7 @@ class ObstacleMap:
         if self.erase_excluded and regions.shape[0]:
             region_erased = K.erase_regions(
                 regions, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
-                self._dirty, self._dirty_list, self._n_dirty,
+                self._dirty, self._dirty_list, self._n_dirty, self._block_cells, self._block_count,
             )  # fmt: skip
         if len(cloud) == 0 and (self.no_return_range is None or tuple(cloud.image_size) not in self._pinhole):
             self._finish_update()
@@ -527,7 +527,7 @@ class ObstacleMap:
                 if self._returned.shape != (h, w):
                     self._returned = np.zeros((h, w), dtype=np.bool_)
         K.integrate_frame(
-            points, labels, pixels, origin, rotation, regions,
+            points, labels, pixels, np.array((max(int(h), 0), max(int(w), 0)), dtype=np.int64), origin, rotation, regions,
             stride, phase // stride, phase % stride, near_skip, self.min_range, self.max_range, no_return,
             nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
             self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
@@ -543,7 +543,7 @@ class ObstacleMap:
         arr = _as_regions(regions)
         n = K.erase_regions(
             arr, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
-            self._dirty, self._dirty_list, self._n_dirty,
+            self._dirty, self._dirty_list, self._n_dirty, self._block_cells, self._block_count,
         )  # fmt: skip
         self._finish_update()
         return int(n)

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.perception import _unveiling_kernels as _kernels
 from harvest_qp.perception._validation import as_finite_points, as_point
 from harvest_qp.validation import as_positive_scalar
 
@@ -162,10 +163,34 @@ def _candidate_obstacles(
     """Obstacles that may lie within ``reach`` of some ray segment (step 1).
 
     Returns their indices and offsets p_o - p_c [m].  Conservative: only obstacles further
-    than ``reach`` from every segment are dropped.
+    than ``reach`` from every segment are dropped.  One compiled pass over the cloud
+    (:func:`._unveiling_kernels.candidate_obstacles`); :func:`_candidate_obstacles_numpy` is
+    the same test in numpy.
     """
     cone = _Cone.around(ray_directions)
     if cone is None:  # rays spread over a hemisphere or more: nothing to cull by direction
+        return np.arange(obstacles.shape[0]), obstacles - camera
+    longest_ray = np.sqrt(np.einsum("ij,ij->i", rays, rays).max())
+    index = np.empty(obstacles.shape[0], dtype=np.intp)
+    offsets = np.empty((obstacles.shape[0], 3))
+    n = _kernels.candidate_obstacles(
+        np.ascontiguousarray(obstacles), camera, cone.axis, float(camera @ cone.axis),
+        float((rays @ cone.axis).max() + reach), cone.cos_half_angle, cone.sin_half_angle, reach,
+        float((longest_ray + reach) ** 2), index, offsets,
+    )  # fmt: skip
+    return index[:n], offsets[:n]
+
+
+def _candidate_obstacles_numpy(
+    rays: NDArray[np.float64],
+    ray_directions: NDArray[np.float64],
+    obstacles: NDArray[np.float64],
+    camera: NDArray[np.float64],
+    reach: float,
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """:func:`_candidate_obstacles` in numpy (the oracle of the compiled cull in the tests)."""
+    cone = _Cone.around(ray_directions)
+    if cone is None:
         return np.arange(obstacles.shape[0]), obstacles - camera
     # Depth along the axis first: one matrix-vector product over the whole cloud, without
     # copying it, drops the background behind the stem and everything behind the camera.
