@@ -284,9 +284,25 @@ def integrate_frame(
     eps = 1e-9 * res
     lo_in = (lo[0] + eps, lo[1] + eps, lo[2] + eps)
     hi_in = (hi[0] - eps, hi[1] - eps, hi[2] - eps)
-    valid = np.zeros(n, dtype=np.bool_)
     min2, max2 = min_range * min_range, max_range * max_range
     boxes = _region_boxes(regions)
+    # Pixel grid membership from per-row and per-column tables (an integer modulo per point
+    # was a fifth of the update at 848x480); pixels outside the image take the modulo path.
+    h_img, w_img = min(image_size[0], 1 << 16), min(image_size[1], 1 << 16)
+    row_class = _grid_classes(h_img, phase_row, stride)
+    col_class = _grid_classes(w_img, phase_col, stride)
+    # One pass over the cloud: it inserts the obstacle points and lists the valid stem points
+    # (pass 2) and the valid points on the clearing grid (pass 3, with 2 for the coarser grid),
+    # in cloud order, so the later passes do not read the whole cloud again.
+    stem_list = np.empty(n, np.int64)
+    ray_list = np.empty(n, np.int64)
+    ray_class = np.empty(n, np.int8)
+    n_stem = 0
+    n_ray = 0
+    # Cell key of the last obstacle point that reached the stamp test (stamped this frame
+    # either way): a point in the same cell would find it stamped, so it is skipped before
+    # the key is computed (neighbouring pixels mostly fall in one cell).
+    fx0 = fy0 = fz0 = np.nan
     for i in range(n):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         lab = labels[i]
@@ -297,18 +313,37 @@ def integrate_frame(
         if r2 > max2 or r2 < min2:
             counters[N_OUT_OF_RANGE] += 1
             continue
-        valid[i] = True
+        r, c = pixels[i, 0], pixels[i, 1]
+        if 0 <= r < h_img and 0 <= c < w_img:
+            rc, cc = row_class[r], col_class[c]
+        else:
+            dr, dc = r - phase_row, c - phase_col
+            rc = 0 if stride > 1 and dr % stride != 0 else (2 if dr % (2 * stride) == 0 else 1)
+            cc = 0 if stride > 1 and dc % stride != 0 else (2 if dc % (2 * stride) == 0 else 1)
+        if rc != 0 and cc != 0:
+            ray_list[n_ray] = i
+            ray_class[n_ray] = 2 if rc == 2 and cc == 2 else 1
+            n_ray += 1
         if lab != OBSTACLE:
+            if lab == STEM:
+                stem_list[n_stem] = i
+                n_stem += 1
             continue
         if _point_in_boxed_regions(px, py, pz, regions, boxes):
             counters[N_EXCLUDED] += 1
             continue
-        ix = int(np.floor(px * inv)) - lo_key[0]
-        iy = int(np.floor(py * inv)) - lo_key[1]
-        iz = int(np.floor(pz * inv)) - lo_key[2]
+        vx, vy, vz = px * inv, py * inv, pz * inv
+        # floor(v) == f exactly when f <= v < f + 1 (NaN at the start: never).
+        if fx0 <= vx and vx < fx0 + 1.0 and fy0 <= vy and vy < fy0 + 1.0 and fz0 <= vz and vz < fz0 + 1.0:
+            continue
+        fx, fy, fz = np.floor(vx), np.floor(vy), np.floor(vz)
+        ix = int(fx) - lo_key[0]
+        iy = int(fy) - lo_key[1]
+        iz = int(fz) - lo_key[2]
         if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
             counters[N_OUTSIDE] += 1
             continue
+        fx0, fy0, fz0 = fx, fy, fz
         idx = cell_index(ix, iy, iz, nby, nbz)
         if stamp[idx] == frame:
             continue
@@ -324,9 +359,8 @@ def integrate_frame(
     # The stem is what the arms must reach: an occupied cell a stem point falls in is
     # forgotten (unless an obstacle point hit it in this frame), so a stem seen earlier as
     # an obstacle (beyond the camera's stem range) leaves the map once it is recognised.
-    for i in range(n):
-        if not valid[i] or labels[i] != STEM:
-            continue
+    for j in range(n_stem):
+        i = stem_list[j]
         ix = int(np.floor(points[i, 0] * inv)) - lo_key[0]
         iy = int(np.floor(points[i, 1] * inv)) - lo_key[1]
         iz = int(np.floor(points[i, 2] * inv)) - lo_key[2]
@@ -340,27 +374,12 @@ def integrate_frame(
             log_odds[idx] = 0.0
             counters[N_STEM_ERASED] += 1
             _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
-    # Pixel grid membership from per-row and per-column tables (integer modulo per point
-    # was a fifth of the update at 848x480); pixels outside the image take the modulo path.
-    h_img, w_img = min(image_size[0], 1 << 16), min(image_size[1], 1 << 16)
-    row_class = _grid_classes(h_img, phase_row, stride)
-    col_class = _grid_classes(w_img, phase_col, stride)
-    for i in range(n):
-        if not valid[i]:
-            continue
-        r, c = pixels[i, 0], pixels[i, 1]
-        if 0 <= r < h_img and 0 <= c < w_img:
-            rc, cc = row_class[r], col_class[c]
-        else:
-            dr, dc = r - phase_row, c - phase_col
-            rc = 0 if stride > 1 and dr % stride != 0 else (2 if dr % (2 * stride) == 0 else 1)
-            cc = 0 if stride > 1 and dc % stride != 0 else (2 if dc % (2 * stride) == 0 else 1)
-        if rc == 0 or cc == 0:
-            continue
+    for j in range(n_ray):
+        i = ray_list[j]
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         sx, sy, sz = ox, oy, oz
         t0, t1 = _clip_to_box(ox, oy, oz, px, py, pz, lo_in, hi_in)
-        if near_skip > 0.0 and (rc != 2 or cc != 2):
+        if near_skip > 0.0 and ray_class[j] != 2:
             # Within near_skip of the camera the rays of the twice coarser grid are close
             # enough to cross every cell: the others start there (half the ray steps).
             rng = np.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2)
