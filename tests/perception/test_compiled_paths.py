@@ -170,3 +170,67 @@ def test_pixels_outside_the_image_clear_as_inside_it():
     (a, sa), (b, sb) = maps
     assert sa == sb and sa[-1].rays > 0
     assert np.array_equal(a.log_odds, b.log_odds)
+
+
+# --------------------------------------------------------------------------- stem model
+
+
+def _stem_like_clouds(seed):
+    """Stem-like point sets (bent lines with noise), random blobs, and coarse ones with ties."""
+    rng = np.random.default_rng(seed)
+    clouds = []
+    for _ in range(40):
+        n = int(rng.integers(3, 400))
+        t = rng.uniform(0.0, 0.06, n)
+        line = np.column_stack([0.02 * t, 0.3 * t * t, t]) + rng.normal(scale=0.002, size=(n, 3))
+        clouds.append(line + rng.normal(size=3))
+        clouds.append(rng.normal(size=(n, 3)) * rng.uniform(1e-3, 1.0, 3))
+        clouds.append(np.round(rng.normal(size=(n, 3)), 1))  # duplicated points and equal distances
+    for k in range(2, 12):  # symmetric about the centre: the middle points are equally far from both codes
+        x = np.arange(-k, k + 1, dtype=float)
+        clouds.append(np.column_stack([x, np.zeros_like(x), np.abs(x) % 2]))
+    return clouds
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_compiled_kmeans_gives_scipys_kmeans2_labels(seed):
+    """fit_stem's compiled 2-means gives the labels of scipy's kmeans2 (minit="matrix",
+    missing="raise") from the same start, and an empty cluster where scipy raises. Catches
+    ties going to the last code instead of the first, or means summed in another order."""
+    from scipy.cluster.vq import ClusterError, kmeans2
+
+    from harvest_qp.perception import _stem_kernels
+    from harvest_qp.perception.stem import _principal_axes
+
+    empty = 0
+    for points in _stem_like_clouds(seed):
+        eigenvalues, axes = _principal_axes(points)
+        centre, offset = points.mean(axis=0), np.sqrt(eigenvalues[0]) * axes[:, 0]
+        initial = np.stack((centre - offset, centre + offset))
+        labels = np.empty(points.shape[0], dtype=np.int32)
+        ok = _stem_kernels.kmeans_labels(np.ascontiguousarray(points), initial, 10, labels)
+        try:
+            _, expected = kmeans2(points, initial, iter=10, minit="matrix", missing="raise", check_finite=False)
+        except ClusterError:
+            assert not ok
+            empty += 1
+            continue
+        assert ok and np.array_equal(labels, expected)
+    assert empty < 40
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_compiled_nearest_neighbours_give_ckdtrees_distances(seed):
+    """The point spacing's compiled nearest-neighbour sweep gives cKDTree's distances bit for bit.
+    Catches a sweep that stops too early (a closer point farther along x missed)."""
+    from scipy.spatial import cKDTree
+
+    from harvest_qp.perception import _stem_kernels
+    from harvest_qp.perception.stem import _distinct_rows
+
+    for points in _stem_like_clouds(seed):
+        distinct = _distinct_rows(points)
+        if distinct.shape[0] < 2:
+            continue
+        expected = cKDTree(distinct).query(distinct, k=2)[0][:, 1]
+        assert np.array_equal(_stem_kernels.nearest_neighbour_distances(np.ascontiguousarray(distinct)), expected)
