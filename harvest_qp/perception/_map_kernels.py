@@ -286,6 +286,12 @@ def integrate_frame(
     hi_in = (hi[0] - eps, hi[1] - eps, hi[2] - eps)
     min2, max2 = min_range * min_range, max_range * max_range
     boxes = _region_boxes(regions)
+    # The box around all of them, in locals: most points are outside it (one test, not one per region).
+    ulx = uly = ulz = np.inf
+    uhx = uhy = uhz = -np.inf
+    for k in range(boxes.shape[0]):
+        ulx, uly, ulz = min(ulx, boxes[k, 0]), min(uly, boxes[k, 1]), min(ulz, boxes[k, 2])
+        uhx, uhy, uhz = max(uhx, boxes[k, 3]), max(uhy, boxes[k, 4]), max(uhz, boxes[k, 5])
     # Pixel grid membership from per-row and per-column tables (an integer modulo per point
     # was a fifth of the update at 848x480); pixels outside the image take the modulo path.
     h_img, w_img = min(image_size[0], 1 << 16), min(image_size[1], 1 << 16)
@@ -315,7 +321,8 @@ def integrate_frame(
             continue
         r, c = pixels[i, 0], pixels[i, 1]
         if 0 <= r < h_img and 0 <= c < w_img:
-            rc, cc = row_class[r], col_class[c]
+            rc = row_class[r]
+            cc = col_class[c] if rc != 0 else 0
         else:
             dr, dc = r - phase_row, c - phase_col
             rc = 0 if stride > 1 and dr % stride != 0 else (2 if dr % (2 * stride) == 0 else 1)
@@ -329,7 +336,10 @@ def integrate_frame(
                 stem_list[n_stem] = i
                 n_stem += 1
             continue
-        if _point_in_boxed_regions(px, py, pz, regions, boxes):
+        if (
+            ulx <= px and px <= uhx and uly <= py and py <= uhy and ulz <= pz and pz <= uhz
+            and _point_in_boxed_regions(px, py, pz, regions, boxes)
+        ):  # fmt: skip
             counters[N_EXCLUDED] += 1
             continue
         vx, vy, vz = px * inv, py * inv, pz * inv
