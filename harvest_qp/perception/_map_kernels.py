@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from harvest_qp.collision import kernels as _collision
+
 BLOCK_SHIFT = 3
 BLOCK = 1 << BLOCK_SHIFT  # cells per block edge
 BLOCK_CELLS = BLOCK**3
@@ -920,3 +922,25 @@ def feed_update(
     state[FEED_CHANGED] = 1 if changed else 0
     state[FEED_N_LAST] = m
     return m
+
+
+@njit(cache=True)
+def feed_tick(
+    q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p, cap_joint, cap_a, cap_b,
+    w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
+    block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
+    cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
+    out_count, out_cells, out_centres,
+):
+    """:func:`feed_update` after the capsules' world end points at joint positions ``q``: the
+    collision package's forward kinematics and capsule placement (the same kernels
+    ``MapCollisionFeed.capsule_world`` calls), in the same compiled call (one dispatch per tick
+    instead of three)."""
+    _collision.forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
+    _collision.capsule_world(cap_joint, cap_a, cap_b, joint_R, joint_p, w0, w1)
+    return feed_update(
+        w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
+        block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
+        cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
+        out_count, out_cells, out_centres,
+    )
