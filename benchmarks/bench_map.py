@@ -10,6 +10,10 @@ camera twist, posture, damping, joint limits, ``CollisionAvoidance.dual_ur5e``) 
 loop on the kinematic model, without the map and with it (``MapCollisionFeed.update()``
 then ``step``), in interleaved rounds (the host's speed drifts), median of round medians.
 
+The feed alone (``MapCollisionFeed.update`` at a fixed pose: between map changes it reuses
+its candidate cells) and the full query (``ObstacleMap._query``, the block search) are
+timed on this thread's CPU time (``_cpu_us`` keys) and on the wall clock.
+
 Usage: ``python benchmarks/bench_map.py [--frames 12] [--ticks 400] [--rounds 5]``.
 The last line printed is one JSON object with the medians (update [ms], query and ticks [us]).
 """
@@ -171,20 +175,22 @@ def main(argv: list[str] | None = None) -> int:
     w0, w1 = feed.capsule_world()
     for _ in range(200):
         m.closest_cells(w0, w1, feed.radii, max_distance=0.11, per_capsule=4, min_separation=0.03)
-    times = []
-    for _ in range(2000):
-        t0 = time.perf_counter()
-        feed.update()
-        times.append(time.perf_counter() - t0)
-    out["feed_update_us"] = round(1e6 * float(np.median(times)), 1)
-    times = []
-    for _ in range(2000):
-        t0 = time.perf_counter()
-        m._query(w0, w1, feed.radii, 0.11, 0.03, feed._scratch_i, feed._scratch_d, feed._index, feed._dist,
-                 feed._count)  # fmt: skip
-        times.append(time.perf_counter() - t0)
-    out["query_us_15_capsules"] = round(1e6 * float(np.median(times)), 1)
-    print(f"query, 15 capsules: {out['query_us_15_capsules']} us; MapCollisionFeed.update: {out['feed_update_us']} us"
+    def timed(call, n=2000):
+        wall, cpu = [], []
+        for _ in range(n):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            call()
+            cpu.append(time.thread_time() - c0)
+            wall.append(time.perf_counter() - t0)
+        return round(1e6 * float(np.median(wall)), 1), round(1e6 * float(np.median(cpu)), 1)
+
+    out["feed_update_us"], out["feed_update_cpu_us"] = timed(feed.update)
+    out["query_us_15_capsules"], out["query_cpu_us_15_capsules"] = timed(
+        lambda: m._query(w0, w1, feed.radii, 0.11, 0.03, feed._scratch_i, feed._scratch_d, feed._index, feed._dist,
+                         feed._count)  # fmt: skip
+    )
+    print(f"query, 15 capsules: {out['query_us_15_capsules']} us ({out['query_cpu_us_15_capsules']} us CPU); "
+          f"MapCollisionFeed.update: {out['feed_update_us']} us ({out['feed_update_cpu_us']} us CPU)"
           f" ({m.num_occupied} occupied cells)")
     ticks, extra = time_ticks({"without_map": Tick(None), "with_map": with_map}, args.ticks, args.rounds)
     out["tick_us_without_map"] = round(ticks["without_map"], 1)

@@ -489,7 +489,7 @@ class ObstacleMap:
         if self.erase_excluded and regions.shape[0]:
             region_erased = K.erase_regions(
                 regions, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
-                self._dirty, self._dirty_list, self._n_dirty,
+                self._dirty, self._dirty_list, self._n_dirty, self._block_cells, self._block_count,
             )  # fmt: skip
         if len(cloud) == 0 and (self.no_return_range is None or tuple(cloud.image_size) not in self._pinhole):
             self._finish_update()
@@ -527,7 +527,7 @@ class ObstacleMap:
                 if self._returned.shape != (h, w):
                     self._returned = np.zeros((h, w), dtype=np.bool_)
         K.integrate_frame(
-            points, labels, pixels, origin, rotation, regions,
+            points, labels, pixels, np.array((max(int(h), 0), max(int(w), 0)), dtype=np.int64), origin, rotation, regions,
             stride, phase // stride, phase % stride, near_skip, self.min_range, self.max_range, no_return,
             nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
             self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
@@ -543,7 +543,7 @@ class ObstacleMap:
         arr = _as_regions(regions)
         n = K.erase_regions(
             arr, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
-            self._dirty, self._dirty_list, self._n_dirty,
+            self._dirty, self._dirty_list, self._n_dirty, self._block_cells, self._block_count,
         )  # fmt: skip
         self._finish_update()
         return int(n)
@@ -743,6 +743,7 @@ class MapCollisionFeed:
         self._cand_index = np.zeros(4096, dtype=np.int64)
         self._cand_xyz = np.zeros((4096, 3))
         self._rel_blocks = np.zeros(4096, dtype=np.int64)
+        self._tick_args: tuple | None = None  # the arrays of the compiled tick, gathered once
         self._names: dict[int, str] = {}
         self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
         self._centres = np.tile(self._PARK, (self.slots, 1))
@@ -773,8 +774,8 @@ class MapCollisionFeed:
         except (AttributeError, TypeError):
             return False
 
-    def capsule_world(self, q: ArrayLike | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """World end points ``(p0, p1)`` [m] of the queried capsules at ``q`` [rad] (default: the configuration's)."""
+    def _checked_q(self, q: ArrayLike | None) -> NDArray[np.float64]:
+        """``q`` [rad] as the compiled kinematics need it (default: the configuration's)."""
         if q is None:
             q = self.configuration.q
         else:
@@ -787,6 +788,11 @@ class MapCollisionFeed:
                 raise InvalidInputError(
                     f"q must have shape ({self.configuration.nv},) (the model's joints), got shape {q.shape}"
                 )
+        return q
+
+    def capsule_world(self, q: ArrayLike | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World end points ``(p0, p1)`` [m] of the queried capsules at ``q`` [rad] (default: the configuration's)."""
+        q = self._checked_q(q)
         tree = self._tree
         tree.update(q)
         self._capsule_world(self._joints, self._a_local, self._b_local, tree.joint_R, tree.joint_p, self._w0, self._w1)
@@ -795,7 +801,7 @@ class MapCollisionFeed:
     def update(self, q: ArrayLike | None = None) -> int:
         """Refresh the limit's obstacle spheres from the map for joint positions ``q`` [rad]
         (default: the configuration's current ones); returns how many cells were fed."""
-        w0, w1 = self.capsule_world(q)
+        q = self._checked_q(q)
         active = self.active
         if not (isinstance(active, np.ndarray) and active.dtype == np.bool_ and active.shape == self.radii.shape):
             active = np.asarray(active, dtype=bool)
@@ -804,22 +810,34 @@ class MapCollisionFeed:
                     f"active must be {self.radii.shape[0]} booleans (one per capsule), got shape {active.shape}"
                 )
         m = self.map
-        # One compiled call: finiteness, switched-off capsules parked far below the world, the
-        # closest cells (over the candidate cells kept since the last map change: the same
-        # result as ObstacleMap.closest_cells, see _map_kernels.feed_update), their union.
+        # One compiled call: the capsules at q (capsule_world's kernels), finiteness,
+        # switched-off capsules parked far below the world, the closest cells (over the
+        # candidate cells kept since the last map change: the same result as
+        # ObstacleMap.closest_cells, see _map_kernels.feed_update), their union.
         while True:
-            n = K.feed_update(
-                w0, w1, active, self._park, self.radii, self.limit.influence_distance + self.margin, m.cell_radius,
-                self.min_separation, self.slack, m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells,
-                m._block_count, m._block_stamp, m._version, self._state, self._cache_w0, self._cache_w1,
-                self._cache_distance, self._cand_start, self._cand_index, self._cand_xyz, self._rel_blocks,
-                self._scratch_i, self._scratch_d, self._index, self._dist, self._count, self._cells, self._centres,
+            if self._tick_args is None:
+                tree = self._tree
+                self._tick_args = (
+                    (tree.parent, tree.idx_v, tree.joint_type, tree.axis, tree.place_R, tree.place_p, tree.joint_R,
+                     tree.joint_p, self._joints, self._a_local, self._b_local, self._w0, self._w1),
+                    (self._park, self.radii),
+                    (m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells, m._block_count,
+                     m._block_stamp),
+                    (self._state, self._cache_w0, self._cache_w1, self._cache_distance, self._cand_start,
+                     self._cand_index, self._cand_xyz, self._rel_blocks, self._scratch_i, self._scratch_d, self._index,
+                     self._dist, self._count, self._cells, self._centres),
+                )  # fmt: skip
+            a, b, c, d = self._tick_args
+            n = K.feed_tick(
+                q, *a, active, *b, self.limit.influence_distance + self.margin, m.cell_radius, self.min_separation,
+                self.slack, *c, m._version, *d,
             )  # fmt: skip
             if n != -2:
                 break
             self._cand_index = np.zeros(2 * self._cand_index.shape[0], dtype=np.int64)
             self._cand_xyz = np.zeros((self._cand_index.shape[0], 3))
             self._rel_blocks = np.zeros(2 * self._rel_blocks.shape[0], dtype=np.int64)
+            self._tick_args = None
         if n < 0:
             return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
         if not self._state[K.FEED_CHANGED]:

@@ -44,10 +44,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.cluster.vq import ClusterError, kmeans2
-from scipy.spatial import cKDTree
-
 from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.perception import _stem_kernels
 from harvest_qp.perception._validation import as_finite_points, as_point, positive_int
 from harvest_qp.validation import as_positive_scalar
 
@@ -210,8 +208,9 @@ def _point_spacing(points: NDArray[np.float64]) -> float:
     distinct = _distinct_rows(points)  # duplicated points are not a finer sampling
     if distinct.shape[0] < 2:
         return 0.0
-    distances, _ = cKDTree(distinct).query(distinct, k=2)
-    return float(np.median(distances[:, 1]))
+    # The distances cKDTree(distinct).query(distinct, k=2) gives, bit for bit, without its
+    # build and call overhead (0.2 ms -> 0.02 ms on 100 points; see _stem_kernels).
+    return float(np.median(_stem_kernels.nearest_neighbour_distances(np.ascontiguousarray(distinct))))
 
 
 def _estimate_radius(
@@ -405,11 +404,10 @@ def fit_stem(
     centre = points.mean(axis=0)
     offset = np.sqrt(eigenvalues[0]) * axes[:, 0]
     initial = np.stack((centre - offset, centre + offset))
-    try:
-        _, labels = kmeans2(
-            points, initial, iter=kmeans_iterations, minit="matrix", missing="raise", check_finite=False
-        )
-    except ClusterError:
+    # The labels of scipy's kmeans2(points, initial, iter=kmeans_iterations, minit="matrix",
+    # missing="raise"), bit for bit, compiled (0.16 -> 0.03 ms; see _stem_kernels).
+    labels = np.empty(n_points, dtype=np.int32)
+    if not _stem_kernels.kmeans_labels(np.ascontiguousarray(points), initial, kmeans_iterations, labels):
         return _invalid(points, "k-means left a cluster empty")
     first = labels == 0
     sizes = (int(np.count_nonzero(first)), n_points - int(np.count_nonzero(first)))

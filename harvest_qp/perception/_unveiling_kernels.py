@@ -1,0 +1,185 @@
+"""Compiled (numba) kernel of :func:`harvest_qp.perception.unveiling.ray_obstacle_pairs`: the obstacle cull.
+
+The cull is the same test as the vectorised ``_candidate_obstacles_numpy`` (kept as its
+oracle), in one pass over the cloud without its numpy temporaries (measured on the paper
+episode at 848x480: 38,000 obstacle points, 1.8 ms -> ~0.2 ms per frame). Its dot products
+are summed in a fixed order, so their last bits may differ from numpy's BLAS; the cull is
+conservative by a relative slack of 1e-9 (``ray_obstacle_pairs``), so a point whose
+decision such a difference could flip lies farther than the reach from every ray and is
+never a pair either way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
+
+
+@njit(cache=True)
+def candidate_obstacles(
+    obstacles, camera, axis, camera_along_axis, max_depth, cos_half_angle, sin_half_angle, reach, max_squared_range,
+    out_index, out_offsets,
+):
+    """Obstacles that may lie within ``reach`` [m] of a ray of the cone (apex ``camera``, unit
+    ``axis``, half-angle by its cos / sin) whose depth along the axis is within
+    ``(-reach, max_depth)`` and whose squared range from the camera is below
+    ``max_squared_range``; their indices (ascending) and offsets ``p_o - p_c`` [m] are
+    written to ``out_index`` / ``out_offsets``; returns how many.
+    """
+    n = 0
+    reach2 = reach * reach
+    sin_reach = sin_half_angle * reach
+    for i in range(obstacles.shape[0]):
+        x, y, z = obstacles[i, 0], obstacles[i, 1], obstacles[i, 2]
+        depth = x * axis[0] + y * axis[1] + z * axis[2] - camera_along_axis
+        if not (depth > -reach and depth < max_depth):
+            continue
+        ox, oy, oz = x - camera[0], y - camera[1], z - camera[2]
+        squared = ox * ox + oy * oy + oz * oz
+        if not squared < max_squared_range:
+            continue
+        # Within reach of the camera end of every ray, or inside the widened cone.
+        if not squared < reach2:
+            slant = np.sqrt(max(squared - reach2, 0.0))
+            if not depth > cos_half_angle * slant - sin_reach:
+                continue
+        out_index[n] = i
+        out_offsets[n, 0] = ox
+        out_offsets[n, 1] = oy
+        out_offsets[n, 2] = oz
+        n += 1
+    return n
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a * b + c rounded once (LLVM's fma: the FMA instruction where the CPU has one)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        double = ir.DoubleType()
+        function = builder.module.declare_intrinsic("llvm.fma", [double], ir.FunctionType(double, [double] * 3))
+        return builder.call(function, args)
+
+    return sig, codegen
+
+
+@njit(cache=True)
+def _bundle_near(b, directions, order, starts, offsets, slant, near_camera, slack_reach, near):
+    """The obstacles (indices into ``offsets``) that may lie within ``slack_reach`` of a ray of
+    bundle ``b``'s cone (``_Cone.around`` and ``may_reach``), into ``near``; returns how many."""
+    lo, hi = starts[b], starts[b + 1]
+    ax = ay = az = 0.0
+    for p in range(lo, hi):
+        i = order[p]
+        ax += directions[i, 0]
+        ay += directions[i, 1]
+        az += directions[i, 2]
+    norm = np.sqrt(ax * ax + ay * ay + az * az)
+    every = norm == 0.0
+    cos_half = sin_half = 0.0
+    if not every:
+        ax, ay, az = ax / norm, ay / norm, az / norm
+        smallest = np.inf
+        for p in range(lo, hi):
+            i = order[p]
+            smallest = min(smallest, directions[i, 0] * ax + directions[i, 1] * ay + directions[i, 2] * az)
+        cos_half = min(1.0, smallest) - 1e-12
+        every = cos_half <= 0.0
+        if not every:
+            sin_half = np.sqrt(1.0 - cos_half * cos_half)
+    n_near = 0
+    for k in range(offsets.shape[0]):
+        if (
+            every or near_camera[k]
+            or offsets[k, 0] * ax + offsets[k, 1] * ay + offsets[k, 2] * az > cos_half * slant[k] - sin_half * slack_reach
+        ):  # fmt: skip
+            near[n_near] = k
+            n_near += 1
+    return n_near
+
+
+@njit(cache=True, inline="always")
+def _pair_test(r0, r1, r2, ray_squared, offsets, k, squared_offsets, squared_reach):
+    """eq:nearest's segment parameter s and t = clip(s, 0, 1) for ray p_cs = (r0, r1, r2) and
+    obstacle k, and whether the squared distance is below ``squared_reach``."""
+    dot = _fma(r2, offsets[k, 2], _fma(r1, offsets[k, 1], r0 * offsets[k, 0]))
+    s = dot / ray_squared
+    t = s
+    if t < 0.0:
+        t = 0.0
+    if t > 1.0:
+        t = 1.0
+    return s, t, squared_offsets[k] + t * (t * ray_squared - 2.0 * dot) < squared_reach
+
+
+@njit(cache=True)
+def bundle_pairs(
+    rays, squared_lengths, directions, order, starts, offsets, squared_offsets, slant, near_camera, slack_reach,
+    squared_reach,
+):
+    """Steps 2-3 of ``ray_obstacle_pairs`` for the ray bundles ``order[starts[b]:starts[b + 1]]``.
+
+    The same arithmetic as the numpy blocks, in the same order, so the same bits where numpy's
+    BLAS rounds p_cs . p_co as fma(x2, y2, fma(x1, y1, x0 y0)) (OpenBLAS's Haswell-class dgemm
+    kernels; elsewhere within an ulp): s = dot / |p_cs|^2, t = clip(s, 0, 1), the squared
+    distance |p_co|^2 + t (t |p_cs|^2 - 2 dot) < ``squared_reach``, then p_hat - p_o = t p_cs -
+    p_co and its norm summed as numpy's einsum sums it. The bundle cones only cull (by
+    ``slack_reach``), so their rounding does not matter. Two passes (count, then fill): growing
+    the output arrays inside the loop made it 25x slower (measured).
+
+    Returns ``(ray, obstacle, s, distance, away)``: the pairs in numpy's order (bundle by
+    bundle, ray by ray, obstacle by obstacle), ``obstacle`` indexing ``offsets``, ``away`` ``(3, P)``.
+    """
+    n_c = offsets.shape[0]
+    n_bundles = starts.shape[0] - 1
+    near = np.empty(n_c, np.int64)
+    total = 0
+    for b in range(n_bundles):
+        n_near = _bundle_near(b, directions, order, starts, offsets, slant, near_camera, slack_reach, near)
+        for p in range(starts[b], starts[b + 1]):
+            i = order[p]
+            r0, r1, r2, ray_squared = rays[i, 0], rays[i, 1], rays[i, 2], squared_lengths[i]
+            for q in range(n_near):
+                if _pair_test(r0, r1, r2, ray_squared, offsets, near[q], squared_offsets, squared_reach)[2]:
+                    total += 1
+    out_ray = np.empty(total, np.int64)
+    out_obstacle = np.empty(total, np.int64)
+    out_s = np.empty(total)
+    out_distance = np.empty(total)
+    out_away = np.empty((3, total))
+    n_out = 0
+    for b in range(n_bundles):
+        n_near = _bundle_near(b, directions, order, starts, offsets, slant, near_camera, slack_reach, near)
+        first = n_out
+        for p in range(starts[b], starts[b + 1]):
+            i = order[p]
+            r0, r1, r2, ray_squared = rays[i, 0], rays[i, 1], rays[i, 2], squared_lengths[i]
+            for q in range(n_near):
+                k = near[q]
+                s, t, inside = _pair_test(r0, r1, r2, ray_squared, offsets, k, squared_offsets, squared_reach)
+                if inside:
+                    out_ray[n_out] = i
+                    out_obstacle[n_out] = k
+                    out_s[n_out] = s
+                    out_distance[n_out] = t  # t for now, the distance below
+                    n_out += 1
+        single = n_out - first == 1  # numpy's einsum sums a single column as (x0^2 + x2^2) + x1^2
+        for m in range(first, n_out):
+            i, k, t = out_ray[m], out_obstacle[m], out_distance[m]
+            g0 = t * rays[i, 0] - offsets[k, 0]
+            g1 = t * rays[i, 1] - offsets[k, 1]
+            g2 = t * rays[i, 2] - offsets[k, 2]
+            if single:
+                squared = (g0 * g0 + g2 * g2) + g1 * g1
+            else:
+                squared = g0 * g0 + g1 * g1 + g2 * g2
+            distance = np.sqrt(squared)
+            inverse = 1.0 / distance if distance > 0.0 else 0.0
+            out_distance[m] = distance
+            out_away[0, m] = g0 * inverse
+            out_away[1, m] = g1 * inverse
+            out_away[2, m] = g2 * inverse
+    return out_ray, out_obstacle, out_s, out_distance, out_away
