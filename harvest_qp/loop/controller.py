@@ -60,7 +60,7 @@ from harvest_qp.baseline import PseudoInverseMapper
 from harvest_qp.config import _build_limit
 from harvest_qp.configuration import Configuration
 from harvest_qp.controller import TaskController
-from harvest_qp.exceptions import ConfigError, HarvestQPError
+from harvest_qp.exceptions import ConfigError, HarvestQPError, InvalidInputError
 from harvest_qp.interface import OBSTACLE, STEM, PointCloud, RobotInterface
 from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
@@ -888,6 +888,10 @@ class HarvestController:
         # transcendental of the checked version is kept, so the results are bit-identical.
         st, s = self.state, self.settings
         t = float(obs.time)
+        if not math.isfinite(t):
+            # Checked here: the camera-speed window and every timer compare against t, and a
+            # NaN would stay in the window and stop it sliding (an audit of the fast paths).
+            raise InvalidInputError(f"HarvestController.step: observation time must be finite [s], got {obs.time!r}")
         config = self.configuration
         config.update(obs.q)
         oMf = config.data.oMf
@@ -983,13 +987,13 @@ class HarvestController:
                 values["map_cells"] = float(self.map_feed.update(obs.q))
             backup_solver = self.qp_backup
             previous = self.qp.previous_qdot.copy() if backup_solver is not None else None
-            result = self.qp.step(obs.q)
+            result = self.qp._step(obs.q, reuse_kinematics=True)
             if not result.ok and backup_solver is not None:
                 # Stopgap until the QP core retries itself (issue 10 section 1): daqp answers
                 # slightly outside the constraints (2e-7..1e-6) and the core brakes; the same
                 # problem is re-solved by the backup backend from the same previous command.
                 backup_solver.previous_qdot = previous
-                backup = backup_solver.step(obs.q)
+                backup = backup_solver._step(obs.q, reuse_kinematics=True)
                 if backup.ok:
                     st.backup_solves += 1
                     result = backup

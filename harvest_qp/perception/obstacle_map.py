@@ -696,7 +696,7 @@ class MapCollisionFeed:
             raise InvalidInputError(f"limit must be a CollisionAvoidance, got {type(limit).__name__}")
         per_capsule = _positive_int(per_capsule, "per_capsule")
         self.limit = limit
-        self.map = obstacle_map
+        self._map = obstacle_map
         self.configuration = configuration
         self.per_capsule = int(per_capsule)
         self.margin = as_positive_scalar(margin, "margin", allow_zero=True)
@@ -724,7 +724,8 @@ class MapCollisionFeed:
         self._joints = np.array(joints, dtype=np.int64)
         self._a_local = np.array(a_local)
         self._b_local = np.array(b_local)
-        self.radii = np.array([r for *_, r in items], dtype=float)
+        self._radii = np.array([r for *_, r in items], dtype=float)
+        self._radii.flags.writeable = False
         n = len(items)
         self._w0 = np.zeros((n, 3))
         self._w1 = np.zeros((n, 3))
@@ -797,6 +798,41 @@ class MapCollisionFeed:
         tree.update(q)
         self._capsule_world(self._joints, self._a_local, self._b_local, tree.joint_R, tree.joint_p, self._w0, self._w1)
         return self._w0, self._w1
+
+    # The compiled tick keeps candidate cells built from the map and the radii: replacing
+    # either must drop them (an audit found a reassigned map or radii changed in place fed
+    # stale cells), so both are properties and the radii array is read-only.
+    @property
+    def map(self) -> ObstacleMap:
+        """The obstacle map queried; assigning another one drops the kept candidate cells."""
+        return self._map
+
+    @map.setter
+    def map(self, obstacle_map: ObstacleMap) -> None:
+        if not isinstance(obstacle_map, ObstacleMap):
+            raise InvalidInputError(f"map must be an ObstacleMap, got {type(obstacle_map).__name__}")
+        self._map = obstacle_map
+        self._forget_candidates()
+
+    @property
+    def radii(self) -> np.ndarray:
+        """``(n_capsules,)`` capsule radii [m] (read-only; assign a new array to change them)."""
+        return self._radii
+
+    @radii.setter
+    def radii(self, value: ArrayLike) -> None:
+        radii = np.array(value, dtype=float)
+        if radii.shape != self._radii.shape or not np.all(np.isfinite(radii)) or np.any(radii < 0):
+            raise InvalidInputError(
+                f"radii must be {self._radii.shape[0]} finite values >= 0 [m] (one per capsule), got {value!r}"
+            )
+        radii.flags.writeable = False
+        self._radii = radii
+        self._forget_candidates()
+
+    def _forget_candidates(self) -> None:
+        self._tick_args = None
+        self._state[K.FEED_VALID] = 0
 
     def update(self, q: ArrayLike | None = None) -> int:
         """Refresh the limit's obstacle spheres from the map for joint positions ``q`` [rad]

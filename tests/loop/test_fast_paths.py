@@ -239,3 +239,17 @@ def test_first_in_each_voxel_equals_the_row_unique(spread):
     keys = np.floor(points / 0.01).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
     np.testing.assert_array_equal(_first_in_each_voxel(points, 0.01), np.sort(first))
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_non_finite_observation_time_raises_naming_it(bad):
+    """Catches: a NaN robot clock accepted by the fast path (it stayed in the camera-speed
+    window for good, so the switch rule averaged over seconds instead of 0.5 s; an audit)."""
+    from harvest_qp.robot.description import HOME_Q
+    from harvest_qp.runner import Observation
+
+    c = HarvestController(check_settings({}))
+    obs = Observation(time=bad, q=np.array(HOME_Q, float), qdot=np.zeros(12), force=np.zeros(3),
+                      cloud=None, new_cloud=False)
+    with pytest.raises(InvalidInputError, match="observation time"):
+        c.step(obs)

@@ -975,3 +975,32 @@ def test_feed_between_map_changes_gives_exactly_the_full_querys_cells():
     # The test must exercise both paths: lists kept, and rebuilt (map changes, motion).
     assert kept_ticks > 100
     assert int(feed._state[K.FEED_REBUILDS]) - rebuilds_before > 12
+
+
+def test_feed_drops_its_kept_cells_when_the_map_or_the_radii_are_replaced():
+    """Oracle: the uncached ``ObstacleMap.closest_cells`` on the new map / with the new radii.
+
+    Catches: candidate cells kept across ``feed.map = other`` (cells of the old map fed from
+    an empty one) or across new radii (3 pairs fed where 6 are in reach), as an audit of the
+    cached feed found; in-place changes of the radii are refused (read-only array)."""
+    config, _controller_, limit, m, feed = _controller(True, ahead=0.07)
+    q = config.q.copy()
+
+    def uncached(feed):
+        w0, w1 = (a.copy() for a in feed.capsule_world(q))
+        query = feed.map.closest_cells(w0, w1, feed.radii, max_distance=feed.limit.influence_distance + feed.margin,
+                                       per_capsule=feed.per_capsule, min_separation=feed.min_separation)
+        return int(query.counts.sum())
+
+    assert feed.update(q) > 0 and int(feed._count.sum()) == uncached(feed)
+    with pytest.raises(ValueError, match="read-only"):
+        feed.radii *= 3.0
+    feed.radii = 3.0 * feed.radii
+    feed.update(q)
+    assert int(feed._count.sum()) == uncached(feed) > 0
+    with pytest.raises(InvalidInputError, match="radii"):
+        feed.radii = np.ones(3)
+    feed.map = ObstacleMap()  # empty, at the same version count as a fresh map
+    assert feed.update(q) == 0 and uncached(feed) == 0
+    with pytest.raises(InvalidInputError, match="ObstacleMap"):
+        feed.map = "not a map"
