@@ -205,6 +205,12 @@ class SimRobot(RobotInterface):
         self._grasp_kp = np.ascontiguousarray(self._kp[6:])
         self._viewer = None
         self._viewer_every = 16
+        # Live views into MjData's buffers (allocated once with the MjData, never moved):
+        # building them anew costs ~0.1-1 us per access, several times per tick.
+        d = self.data
+        self._warning_counts = d.warning.number
+        self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
+        self._cluster_xipos = d.xipos[self._cluster]
         self.reset()
 
     # ------------------------------------------------------------------ setup
@@ -497,7 +503,7 @@ class SimRobot(RobotInterface):
             # The weld keeps the cluster's centre of mass fixed on the tool. The Jacobian only
             # depends on the kinematics, so it is taken first and the servo law and the
             # payload torque run in one numba call (the servo writes ctrl, the payload adds).
-            mujoco.mj_jac(m, d, self._jacp, None, d.xipos[self._cluster], self._grasp_tool)
+            mujoco.mj_jac(m, d, self._jacp, None, self._cluster_xipos, self._grasp_tool)
             _servo_step_with_payload(
                 servo.qd_ref, servo.qd_cmd, servo.acc_limit, m.opt.timestep, servo.q_ref, servo._q_lo, servo._q_hi,
                 d.qpos, servo.qpos_ids, servo.config.max_following_error, servo._ff, d.ctrl, servo.ctrl_ids,
@@ -514,9 +520,9 @@ class SimRobot(RobotInterface):
         """Tear the stem when its tension exceeds the break force: release its axial spring."""
         if self._torn:
             return
-        d = self.data
         tension = _stem_tension(
-            d.sensordata, d.site_xmat, d.site_xpos, self._stem_force_adr, self._stem_end_site, self._stem_base_array,
+            self._sensordata, self._site_xmat, self._site_xpos, self._stem_force_adr, self._stem_end_site,
+            self._stem_base_array,
         )  # fmt: skip
         self._max_tension = max(self._max_tension, tension)
         if tension > self.scene.params.stem_break_force:
@@ -546,7 +552,7 @@ class SimRobot(RobotInterface):
 
     def _check_physics(self) -> None:
         d = self.data
-        counts = d.warning.number
+        counts = self._warning_counts
         if _diverged(counts, self._warnings, d.qvel):
             counts = np.asarray(counts, dtype=np.int64)
             new = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts > self._warnings)]
