@@ -9,8 +9,7 @@ footprint on each row), with the same filters as ``mj_multiRay`` (transparent ge
 ``bodyexclude``, static geoms when ``flg_static`` is 0, geoms farther than ``cutoff``).
 Spheres, ellipsoids and capsules are intersected a row span at a time in vectorised loops
 (the same operations per pixel as the scalar code: its results bit for bit, see
-tests/sim/test_sim_fastpaths.py). :func:`capture_rays` casts and compacts the image band
-by band of rows, with the rays computed per band, so the whole frame is one kernel call.
+tests/sim/test_sim_fastpaths.py).
 It handles planes, spheres, capsules, ellipsoids, cylinders and boxes; a model with
 other geom types (meshes, height fields, SDFs) must use ``mj_multiRay``.
 """
@@ -680,6 +679,13 @@ def _draw(
                 # The span's distances first, in a branch-free loop the compiler vectorises
                 # (the scalar code's operations on every pixel; SIMD square roots and
                 # divisions round exactly as scalar ones), then the nearest-hit merge.
+                # Pixels at the span's ends already hit nearer than this geom can be are skipped
+                # by the merge anyway: leave them out of the distances too.
+                row = (v - row0) * width
+                while ua <= ub and dist[row + ua] >= 0.0 and dist[row + ua] < bound:
+                    ua += 1
+                while ub >= ua and dist[row + ub] >= 0.0 and dist[row + ub] < bound:
+                    ub -= 1
                 if ua > ub:
                     continue
                 _span_distances(
@@ -856,116 +862,4 @@ def compact_rays(
             out_pixels[count, 0] = v
             out_pixels[count, 1] = u
             count += 1
-    return count
-
-
-@njit(cache=True, error_model="numpy")
-def _band_rays(v_lo, v_hi, height, width, focal, rays_x, rays_y, rays_z):
-    """Unit rays of image rows v_lo..v_hi, as :meth:`CameraConfig.pixel_rays` computes them:
-    ((u + 0.5 - w / 2) / f, (v + 0.5 - h / 2) / f, 1) over its norm sqrt((x^2 + y^2) + 1)."""
-    half_w = width / 2
-    half_h = height / 2
-    for v in range(v_lo, v_hi + 1):
-        y = ((v + 0.5) - half_h) / focal
-        base = (v - v_lo) * width
-        for u in range(width):
-            x = ((u + 0.5) - half_w) / focal
-            norm = math.sqrt(x * x + y * y + 1.0 * 1.0)
-            rays_x[base + u] = x / norm
-            rays_y[base + u] = y / norm
-            rays_z[base + u] = 1.0 / norm
-
-
-@njit(cache=True)
-def rays_match(rays_c, height, width, focal):
-    """True when :func:`_band_rays` gives ``rays_c`` bit for bit (then :func:`capture_rays` may
-    compute the rays instead of reading them)."""
-    n = height * width
-    if rays_c.shape[0] != n:
-        return False
-    rx = np.empty(n)
-    ry = np.empty(n)
-    rz = np.empty(n)
-    _band_rays(0, height - 1, height, width, focal, rx, ry, rz)
-    for i in range(n):
-        if rx[i] != rays_c[i, 0] or ry[i] != rays_c[i, 1] or rz[i] != rays_c[i, 2]:
-            return False
-    return True
-
-
-#: Image rows :func:`capture_rays` casts and compacts together: their rays, distances and
-#: ids (~36 bytes a pixel) stay in the core's cache from the first geom to the last point.
-BAND_ROWS = 16
-
-
-@njit(cache=True)
-def capture_rays(
-    height, width, focal, origin, rotation, geom_type, geom_size, geom_xpos, geom_xmat, geom_rbound, geom_mask, cutoff,
-    min_depth, max_depth, stem_range, noise, noise_scale, keep, geom_ok, geom_label, geom_color, stem_label,
-    obstacle_label, out_points, out_labels, out_colors, out_depth, out_pixels, band_rows,
-):  # fmt: skip
-    """:func:`cast_rays` then :func:`compact_rays`, band by band of ``band_rows`` rows, with the
-    rays computed per band (:func:`_band_rays`; only where :func:`rays_match` holds) and the
-    distances and ids in band-sized buffers: the same points in the same order, without
-    streaming the image's rays, distances and ids through memory twice (the caster was
-    bound by memory traffic at 848x480, ~36 bytes a pixel and pass). Returns the point count.
-    """
-    order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum = _setup(
-        height, width, focal, origin, rotation, geom_type, geom_size, geom_xpos, geom_xmat, geom_rbound, geom_mask,
-        cutoff,
-    )  # fmt: skip
-    m = band_rows * width
-    rx = np.empty(m)
-    ry = np.empty(m)
-    rz = np.empty(m)
-    dist = np.empty(m)
-    geomid = np.empty(m, np.int32)
-    tbuf = np.empty(width)
-    n = height * width
-    use_noise = noise.shape[0] == n
-    use_keep = keep.shape[0] == n
-    count = 0
-    for v_lo in range(0, height, band_rows):
-        v_hi = min(height, v_lo + band_rows) - 1
-        _band_rays(v_lo, v_hi, height, width, focal, rx, ry, rz)
-        for i in range((v_hi - v_lo + 1) * width):
-            dist[i] = -1.0
-            geomid[i] = -1
-        _draw(
-            v_lo, v_hi, v_lo, order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum, height, width, focal,
-            geom_type, geom_size, cutoff, rx, ry, rz, dist, geomid, tbuf,
-        )  # fmt: skip
-        # compact_rays on the band (the same operations; noise and dropout indexed by image pixel).
-        for v in range(v_lo, v_hi + 1):
-            for u in range(width):
-                j = (v - v_lo) * width + u
-                i = v * width + u
-                g = geomid[j]
-                if g < 0 or not geom_ok[g]:
-                    continue
-                ray_z = rz[j]
-                z = dist[j] * ray_z
-                if not (z >= min_depth and z <= max_depth):
-                    continue
-                if use_keep and not keep[i]:
-                    continue
-                if use_noise:
-                    z = z + noise[i] * noise_scale * z * z
-                s = z / ray_z
-                x = rx[j] * s
-                y = ry[j] * s
-                zz = ray_z * s
-                for k in range(3):
-                    out_points[count, k] = origin[k] + rotation[k, 0] * x + rotation[k, 1] * y + rotation[k, 2] * zz
-                label = geom_label[g]
-                if label == stem_label and s > stem_range:
-                    label = obstacle_label
-                out_labels[count] = label
-                out_colors[count, 0] = geom_color[g, 0]
-                out_colors[count, 1] = geom_color[g, 1]
-                out_colors[count, 2] = geom_color[g, 2]
-                out_depth[count] = z
-                out_pixels[count, 0] = v
-                out_pixels[count, 1] = u
-                count += 1
     return count

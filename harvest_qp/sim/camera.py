@@ -287,9 +287,6 @@ class RayCastCamera(DepthCamera):
         h, w = config.image_size
         self._hw = (h, w)
         self._focal = config.focal_length()
-        # The fused capture computes the rays per band of rows instead of reading the table:
-        # only where that gives the table bit for bit.
-        self._fused = engine == "numba" and bool(_raycast.rays_match(self._rays_c, h, w, self._focal))
 
     def cast(self, data: mujoco.MjData, pose: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
         """Per-pixel ray length [m] (-1: no hit) and geom id (-1: none) from camera ``pose``."""
@@ -314,40 +311,8 @@ class RayCastCamera(DepthCamera):
         pose = np.asarray(pose, dtype=float)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
             raise InvalidInputError(f"pose must be a finite 4x4 transform, got shape {pose.shape}")
-        if self._fused:
-            return self._capture_fused(data, pose, timestamp)
         dist, geomid = self.cast(data, pose)
         return self._finish_rays(pose, dist, geomid, timestamp)
-
-    def _capture_fused(self, data: mujoco.MjData, pose: NDArray[np.float64], timestamp: float) -> PointCloud:
-        """:meth:`cast` then :meth:`_finish_rays` in one kernel pass (:func:`_raycast.capture_rays`)."""
-        cfg = self.config
-        n = self.n_pixels
-        # Draw the random numbers for every pixel whatever the scene (as _finish does).
-        keep = self._rng.random(n) >= cfg.dropout if cfg.dropout > 0 else self._no_bool
-        noise = self._rng.standard_normal(n) if cfg.depth_noise > 0 else self._no_float
-        points = np.empty((n, 3))
-        labels = np.empty(n, np.int8)
-        rgb = np.empty((n, 3), np.uint8)
-        z = np.empty(n)
-        pixels = np.empty((n, 2), np.int32)
-        h, w = self._hw
-        count = _raycast.capture_rays(
-            h, w, self._focal, np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]), self._geom_type,
-            self.model.geom_size, data.geom_xpos, data.geom_xmat, self.model.geom_rbound, self._mask, self._cutoff,
-            cfg.min_depth, cfg.max_depth, cfg.stem_range, noise, cfg.depth_noise, keep, self._geom_ok, self._labels,
-            self._colors, STEM, OBSTACLE, points, labels, rgb, z, pixels, _raycast.BAND_ROWS,
-        )  # fmt: skip
-        return PointCloud(
-            points=points[:count],
-            labels=labels[:count],
-            colors=rgb[:count],
-            camera_pose=np.array(pose, dtype=float),
-            timestamp=float(timestamp),
-            depth=z[:count],
-            pixels=pixels[:count],
-            image_size=cfg.image_size,
-        )
 
     def _finish_rays(
         self, pose: NDArray[np.float64], dist: NDArray[np.float64], geom: NDArray[np.int32], timestamp: float
