@@ -345,13 +345,12 @@ class _Log:
                     raise InvalidInputError(f"value {name!r} changed shape from {column.shape[1:]} to ()")
                 column[k] = value
                 continue
-            if name not in self.values:
-                self.values[name] = np.full((self.n, *value.shape), np.nan)
-            if self.values[name].shape[1:] != value.shape:
-                raise InvalidInputError(
-                    f"value {name!r} changed shape from {self.values[name].shape[1:]} to {value.shape}"
-                )
-            self.values[name][k] = value
+            column = store.get(name)
+            if column is None:
+                column = store[name] = np.full((self.n, *value.shape), np.nan)
+            elif column.shape[1:] != value.shape:
+                raise InvalidInputError(f"value {name!r} changed shape from {column.shape[1:]} to {value.shape}")
+            column[k] = value
 
     def pairs(self, k: int, pairs: Sequence[tuple[str, str, float]]) -> None:
         if not pairs:

@@ -31,7 +31,7 @@ from harvest_qp.robot import description as desc
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo, _servo_step
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
 from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor
-from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor, site_force_world
+from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
 from harvest_qp.validation import as_positive_scalar, check_field_types
 
@@ -211,6 +211,9 @@ class SimRobot(RobotInterface):
         self._warning_counts = d.warning.number
         self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
         self._cluster_xipos = d.xipos[self._cluster]
+        # site_force_world's operands for the stem force (the stem end's rotation, the sensor).
+        adr = self._stem_force_adr
+        self._stem_force_operands = (d.site_xmat[self._stem_end_site].reshape(3, 3), d.sensordata[adr : adr + 3])
         self.reset()
 
     # ------------------------------------------------------------------ setup
@@ -392,7 +395,8 @@ class SimRobot(RobotInterface):
 
     def stem_force(self) -> NDArray[np.float64]:
         """True force the stem applies to the cluster [N, world] (ground truth, not measurable)."""
-        return site_force_world(self.model, self.data, self._ids["stem_force"], self._ids["stem_end_site"])
+        rotation, force = self._stem_force_operands  # site_force_world's product, on views bound once
+        return rotation @ force
 
     def stem_tension(self) -> float:
         """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""

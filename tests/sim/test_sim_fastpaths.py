@@ -39,8 +39,9 @@ class _Mixed:
             "scalar": t,
             "np_scalar": np.float64(2 * t),
             "vec": np.array([t, -t, 1.0]),
-            "int_value": self.k,  # not a float: takes the full check
         }
+        if self.k % 5 == 0:
+            values["int_value"] = self.k  # not a float: this command takes the full check
         pairs = [("a", "b", 0.05 + t)] + ([("a", "c", 0.04)] if self.k % 3 == 0 else [])
         if self.k % 4 == 0:
             pairs.append(["c", "d", 0.01])  # a list, not a tuple: takes the full check
@@ -52,8 +53,11 @@ def test_fast_command_check_logs_exactly_what_the_full_check_logs(monkeypatch):
 
     Oracle: the same episode with every command through :func:`runner._as_command`.
     """
+    calls = []
+    monkeypatch.setattr(runner, "_as_command", lambda out, full=runner._as_command: calls.append(1) or full(out))
     fast = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
-    monkeypatch.setattr(runner, "_as_command_fast", runner._as_command)
+    assert 0 < len(calls) < 15  # most of the 25 commands took the fast path, some the full check
+    monkeypatch.setattr(runner, "_as_command_fast", runner._as_command)  # the full check for every command
     full = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
     assert fast.ok and full.ok
     assert sorted(fast.log) == sorted(full.log)
@@ -146,6 +150,7 @@ def test_stem_tension_kernel_equals_the_force_sensor_reading():
         expected = math.copysign(np.linalg.norm(f), 1.0 if f @ towards_base >= 0 else -1.0)
         assert robot.stem_tension() == pytest.approx(expected, rel=1e-12, abs=1e-12)
         assert robot.stem_tension() == robot._fast_tension()
+        np.testing.assert_array_equal(robot.stem_force(), f)  # the bound views read the live state
         signs.add(expected > 0)
     assert True in signs
 
@@ -300,3 +305,25 @@ def test_one_pass_cloud_equals_the_two_pass_cloud_with_noise_and_dropout():
             np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
             np.testing.assert_array_equal(getattr(rays, name), getattr(two, name), err_msg=name)
     assert total > 5000
+
+
+@pytest.mark.parametrize(
+    ("first", "later", "words"),
+    [(np.zeros(3), np.zeros(2), "(3,) to (2,)"), (0.5, np.zeros(2), "() to (2,)"), (np.zeros(3), 0.5, "(3,) to ()")],
+)
+def test_a_value_that_changes_shape_is_refused(first, later, words):
+    """Bug caught: the per-key log writing a differently shaped value (a broadcast scalar into a
+    vector row, or a vector into a scalar column) instead of refusing it, in either fast path."""
+
+    class Changing:
+        def reset(self, robot) -> None:
+            self.k = 0
+
+        def step(self, obs) -> Command:
+            self.k += 1
+            return Command(qdot=np.zeros(12), values={"v": first if self.k < 3 else later})
+
+    with pytest.raises(
+        runner.InvalidInputError, match=r"value 'v' changed shape from " + words.replace("(", r"\(").replace(")", r"\)")
+    ):
+        run_episode(SimRobot(camera=None), Changing(), duration=0.02)
