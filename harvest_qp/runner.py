@@ -269,6 +269,8 @@ def _as_command_fast(out: Any) -> Command:
             if type(name) is not str or not (scalar or (kind is np.ndarray and value.dtype is _FLOAT64)):
                 return _as_command(out)
     pairs = out.collision_pairs
+    if type(pairs) is not list and type(pairs) is not tuple:
+        return _as_command(out)  # e.g. a generator, which the check below would consume
     if pairs:
         for pair in pairs:
             if (

@@ -45,6 +45,8 @@ class _Mixed:
         pairs = [("a", "b", 0.05 + t)] + ([("a", "c", 0.04)] if self.k % 3 == 0 else [])
         if self.k % 4 == 0:
             pairs.append(["c", "d", 0.01])  # a list, not a tuple: takes the full check
+        if self.k % 7 == 0:
+            pairs = (pair for pair in pairs)  # a generator: read once, by the full check
         return Command(qdot=qdot, values=values, collision_pairs=pairs, task_errors={"e": t})
 
 
