@@ -246,9 +246,10 @@ class RayCastCamera(DepthCamera):
 
     ``config.raycast_engine`` picks the caster: ``"mujoco"`` is one
     :func:`mujoco.mj_multiRay` call per frame; ``"numba"`` is a kernel giving the same
-    hits several times faster by culling geoms per pixel block
-    (:mod:`harvest_qp.sim._raycast`, primitive geoms only); ``"auto"`` uses the kernel
-    when the model allows it.
+    hits several times faster by culling geoms per image row (bounding spheres and each
+    geom's quadric) and intersecting spheres, ellipsoids and capsules a row span at a time
+    in vectorised loops (:mod:`harvest_qp.sim._raycast`, primitive geoms only); ``"auto"``
+    uses the kernel when the model allows it.
     """
 
     def __init__(self, model: mujoco.MjModel, config: CameraConfig, **kwargs) -> None:
