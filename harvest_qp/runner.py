@@ -320,9 +320,11 @@ class _Log:
         self.cloud_points: list[NDArray[np.float32]] = []
         self.cloud_labels: list[NDArray[np.int8]] = []
 
-    def frame(self, cloud: PointCloud) -> None:
+    def frame(self, cloud: PointCloud, stem_points: int | None = None) -> None:
+        """Log a camera frame; ``stem_points``: its STEM count when the caller has it already."""
         index = len(self.frames)
-        self.frames.append((cloud.timestamp, len(cloud), cloud.count(STEM), cloud.camera_pose))
+        stem = cloud.count(STEM) if stem_points is None else stem_points
+        self.frames.append((cloud.timestamp, len(cloud), stem, cloud.camera_pose))
         if self.log_clouds and index % self.cloud_every == 0:
             # thinned by a regular stride (keeps the labels' proportions; a viewer snapshot, not data)
             stride = 1 if not self.cloud_max_points else max(1, -(-len(cloud) // self.cloud_max_points))
@@ -513,7 +515,7 @@ def run_episode(
             cloud = robot.camera_cloud()
             if cloud is not None:
                 latest, latest_stem = cloud, cloud.count(STEM)
-                log.frame(cloud)
+                log.frame(cloud, latest_stem)
             obs = Observation(
                 time=robot.time,
                 q=robot.joint_positions(),
