@@ -269,6 +269,8 @@ def _as_command_fast(out: Any) -> Command:
             if type(name) is not str or not (scalar or (kind is np.ndarray and value.dtype is _FLOAT64)):
                 return _as_command(out)
     pairs = out.collision_pairs
+    if type(pairs) is not list and type(pairs) is not tuple:
+        return _as_command(out)  # e.g. a generator, which the check below would consume
     if pairs:
         for pair in pairs:
             if (
@@ -318,9 +320,11 @@ class _Log:
         self.cloud_points: list[NDArray[np.float32]] = []
         self.cloud_labels: list[NDArray[np.int8]] = []
 
-    def frame(self, cloud: PointCloud) -> None:
+    def frame(self, cloud: PointCloud, stem_points: int | None = None) -> None:
+        """Log a camera frame; ``stem_points``: its STEM count when the caller has it already."""
         index = len(self.frames)
-        self.frames.append((cloud.timestamp, len(cloud), cloud.count(STEM), cloud.camera_pose))
+        stem = cloud.count(STEM) if stem_points is None else stem_points
+        self.frames.append((cloud.timestamp, len(cloud), stem, cloud.camera_pose))
         if self.log_clouds and index % self.cloud_every == 0:
             # thinned by a regular stride (keeps the labels' proportions; a viewer snapshot, not data)
             stride = 1 if not self.cloud_max_points else max(1, -(-len(cloud) // self.cloud_max_points))
@@ -345,13 +349,12 @@ class _Log:
                     raise InvalidInputError(f"value {name!r} changed shape from {column.shape[1:]} to ()")
                 column[k] = value
                 continue
-            if name not in self.values:
-                self.values[name] = np.full((self.n, *value.shape), np.nan)
-            if self.values[name].shape[1:] != value.shape:
-                raise InvalidInputError(
-                    f"value {name!r} changed shape from {self.values[name].shape[1:]} to {value.shape}"
-                )
-            self.values[name][k] = value
+            column = store.get(name)
+            if column is None:
+                column = store[name] = np.full((self.n, *value.shape), np.nan)
+            elif column.shape[1:] != value.shape:
+                raise InvalidInputError(f"value {name!r} changed shape from {column.shape[1:]} to {value.shape}")
+            column[k] = value
 
     def pairs(self, k: int, pairs: Sequence[tuple[str, str, float]]) -> None:
         if not pairs:
@@ -512,7 +515,7 @@ def run_episode(
             cloud = robot.camera_cloud()
             if cloud is not None:
                 latest, latest_stem = cloud, cloud.count(STEM)
-                log.frame(cloud)
+                log.frame(cloud, latest_stem)
             obs = Observation(
                 time=robot.time,
                 q=robot.joint_positions(),

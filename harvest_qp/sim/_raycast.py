@@ -4,8 +4,12 @@
 283x160 image of the vine scene with its ~75 geoms, too slow for 30 Hz at 3x real
 time). This kernel gives the same distances and geom ids (agreement to ~1e-12 m, see
 tests/sim/test_camera.py) by testing each geom only against the pixels inside its
-projected bounding sphere, with the same filters as ``mj_multiRay`` (transparent geoms,
+projected bounding sphere (and, for ellipsoids, capsules and cylinders, its quadric's
+footprint on each row), with the same filters as ``mj_multiRay`` (transparent geoms,
 ``bodyexclude``, static geoms when ``flg_static`` is 0, geoms farther than ``cutoff``).
+Spheres, ellipsoids and capsules are intersected a row span at a time in vectorised loops
+(the same operations per pixel as the scalar code: its results bit for bit, see
+tests/sim/test_sim_fastpaths.py).
 It handles planes, spheres, capsules, ellipsoids, cylinders and boxes; a model with
 other geom types (meshes, height fields, SDFs) must use ``mj_multiRay``.
 """
@@ -76,6 +80,125 @@ def _keep(best, t):
     if t >= 0.0 and (best < 0.0 or t < best):
         return t
     return best
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _root(a, b, c):
+    """:func:`_quadratic` without branches: the same operations, the kept one selected."""
+    det = b * b - a * c
+    s = math.sqrt(det) if det >= 0.0 else 0.0
+    t0 = (-b - s) / a
+    t1 = (-b + s) / a
+    t = t0 if t0 >= 0.0 else (t1 if t1 >= 0.0 else -1.0)
+    return t if (det >= 0.0 and a >= 1e-15) else -1.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _root_front(a, b, c):
+    """:func:`_root` where the far root can never be the answer: the ray origin clearly outside
+    the quadric (``c > 1e-8 |o|^2``, see :func:`_front_only`), so that a negative near root
+    means a negative far root too (then -1 either way); one division instead of two."""
+    det = b * b - a * c
+    s = math.sqrt(det) if det >= 0.0 else 0.0
+    t0 = (-b - s) / a
+    return t0 if (det >= 0.0 and a >= 1e-15 and t0 >= 0.0) else -1.0
+
+
+@njit(cache=True, inline="always")
+def _front_only(c, o2):
+    """True when ``c = |o|^2 - r^2`` (``o2 = |o|^2``, in the metric of the quadric) is above
+    1e-8 |o|^2: then b^2 <= |o|^2 a (Cauchy-Schwarz) gives a c > 1e-8 b^2, so sqrt(b^2 - a c)
+    stays below |b| (1 - 5e-9), far beyond round-off: with t0 = (-b - s) / a < 0, b > 0 and
+    t1 = (-b + s) / a < 0 as computed too."""
+    return c > 1e-8 * o2
+
+
+@njit(cache=True, error_model="numpy")
+def _span_distances(
+    gt, rays_x, rays_y, rays_z, base, ua, ub, r00, r01, r02, r10, r11, r12, r20, r21, r22, ox, oy, oz, s0, s1, s2,
+    tbuf,
+):  # fmt: skip
+    """Distances (-1: miss) of the rays base+ua .. base+ub to a sphere (2), an ellipsoid (4) or a
+    capsule (3) into ``tbuf[ua..ub]``: :func:`_geom_local`'s arithmetic (the same operations in
+    the same order), branch-free so that it vectorises. ``error_model="numpy"`` leaves out
+    the zero-division checks (no division here is by zero where its result is kept).
+    """
+    n = ub + 1 - ua
+    ex_ = rays_x[base + ua : base + ub + 1]
+    ey_ = rays_y[base + ua : base + ub + 1]
+    ez_ = rays_z[base + ua : base + ub + 1]
+    out = tbuf[ua : ub + 1]
+    if gt == 2:
+        c = ox * ox + oy * oy + oz * oz - s0 * s0
+        if _front_only(c, ox * ox + oy * oy + oz * oz):
+            for j in range(n):
+                ex, ey, ez = ex_[j], ey_[j], ez_[j]
+                dx = r00 * ex + r10 * ey + r20 * ez
+                dy = r01 * ex + r11 * ey + r21 * ez
+                dz = r02 * ex + r12 * ey + r22 * ez
+                out[j] = _root_front(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz, c)
+        else:
+            for j in range(n):
+                ex, ey, ez = ex_[j], ey_[j], ez_[j]
+                dx = r00 * ex + r10 * ey + r20 * ez
+                dy = r01 * ex + r11 * ey + r21 * ez
+                dz = r02 * ex + r12 * ey + r22 * ez
+                out[j] = _root(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz, c)
+    elif gt == 4:
+        px, py, pz = ox / s0, oy / s1, oz / s2
+        c = px * px + py * py + pz * pz - 1.0 * 1.0
+        if _front_only(c, px * px + py * py + pz * pz):
+            for j in range(n):
+                ex, ey, ez = ex_[j], ey_[j], ez_[j]
+                dx = (r00 * ex + r10 * ey + r20 * ez) / s0
+                dy = (r01 * ex + r11 * ey + r21 * ez) / s1
+                dz = (r02 * ex + r12 * ey + r22 * ez) / s2
+                out[j] = _root_front(dx * dx + dy * dy + dz * dz, px * dx + py * dy + pz * dz, c)
+        else:
+            for j in range(n):
+                ex, ey, ez = ex_[j], ey_[j], ez_[j]
+                dx = (r00 * ex + r10 * ey + r20 * ez) / s0
+                dy = (r01 * ex + r11 * ey + r21 * ez) / s1
+                dz = (r02 * ex + r12 * ey + r22 * ez) / s2
+                out[j] = _root(dx * dx + dy * dy + dz * dz, px * dx + py * dy + pz * dz, c)
+    elif _front_only(ox * ox + oy * oy - s0 * s0, ox * ox + oy * oy) and _front_only(
+        ox * ox + oy * oy + (oz - s1) * (oz - s1) - s0 * s0, ox * ox + oy * oy + (oz - s1) * (oz - s1)
+    ) and _front_only(ox * ox + oy * oy + (oz + s1) * (oz + s1) - s0 * s0, ox * ox + oy * oy + (oz + s1) * (oz + s1)):
+        c_side = ox * ox + oy * oy - s0 * s0
+        zl = oz - s1
+        zh = oz + s1
+        c_low = ox * ox + oy * oy + zl * zl - s0 * s0
+        c_high = ox * ox + oy * oy + zh * zh - s0 * s0
+        for j in range(n):
+            ex, ey, ez = ex_[j], ey_[j], ez_[j]
+            dx = r00 * ex + r10 * ey + r20 * ez
+            dy = r01 * ex + r11 * ey + r21 * ez
+            dz = r02 * ex + r12 * ey + r22 * ez
+            t = _root_front(dx * dx + dy * dy, ox * dx + oy * dy, c_side)
+            t = t if (t >= 0.0 and abs(oz + t * dz) <= s1) else -1.0
+            a = dx * dx + dy * dy + dz * dz
+            t2 = _root_front(a, ox * dx + oy * dy + zl * dz, c_low)
+            t = t2 if (t2 >= 0.0 and (t < 0.0 or t2 < t)) else t
+            t3 = _root_front(a, ox * dx + oy * dy + zh * dz, c_high)
+            out[j] = t3 if (t3 >= 0.0 and (t < 0.0 or t3 < t)) else t
+    else:
+        c_side = ox * ox + oy * oy - s0 * s0
+        zl = oz - s1
+        zh = oz + s1
+        c_low = ox * ox + oy * oy + zl * zl - s0 * s0
+        c_high = ox * ox + oy * oy + zh * zh - s0 * s0
+        for j in range(n):
+            ex, ey, ez = ex_[j], ey_[j], ez_[j]
+            dx = r00 * ex + r10 * ey + r20 * ez
+            dy = r01 * ex + r11 * ey + r21 * ez
+            dz = r02 * ex + r12 * ey + r22 * ez
+            t = _root(dx * dx + dy * dy, ox * dx + oy * dy, c_side)
+            t = t if (t >= 0.0 and abs(oz + t * dz) <= s1) else -1.0
+            a = dx * dx + dy * dy + dz * dz
+            t2 = _root(a, ox * dx + oy * dy + zl * dz, c_low)
+            t = t2 if (t2 >= 0.0 and (t < 0.0 or t2 < t)) else t
+            t3 = _root(a, ox * dx + oy * dy + zh * dz, c_high)
+            out[j] = t3 if (t3 >= 0.0 and (t < 0.0 or t3 < t)) else t
 
 
 @njit(cache=True)
@@ -325,6 +448,9 @@ def cast_rays(
     cutoff,  # ignore geoms farther than this [m]
     geomid,  # out (h*w,) int32
     dist,  # out (h*w,) float64 (-1: no hit)
+    rays_x,  # (h*w,) rays_c[:, 0], contiguous (the vectorised spans read these)
+    rays_y,  # (h*w,) rays_c[:, 1]
+    rays_z,  # (h*w,) rays_c[:, 2]
 ):
     """For every pixel ray, the nearest geom hit (id, distance) as ``mj_multiRay`` returns them.
 
@@ -338,6 +464,22 @@ def cast_rays(
     for i in range(n):
         geomid[i] = -1
         dist[i] = -1.0
+    order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum = _setup(
+        height, width, focal, origin, rotation, geom_type, geom_size, geom_xpos, geom_xmat, geom_rbound, geom_mask,
+        cutoff,
+    )  # fmt: skip
+    _draw(
+        0, height - 1, 0, order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum, height, width, focal,
+        geom_type, geom_size, cutoff, rays_x, rays_y, rays_z, dist, geomid, np.empty(width),
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _setup(
+    height, width, focal, origin, rotation, geom_type, geom_size, geom_xpos, geom_xmat, geom_rbound, geom_mask, cutoff,
+):  # fmt: skip
+    """Per geom in the camera frame: pixel rectangle, rotation, ray origin, nearest possible hit,
+    row-span bounds (axis spheres, quadric); and the geoms that can be seen, nearest bound first."""
     # Half-extents of the frustum slightly enlarged: pixel rays reach to half a pixel in.
     tan_h = (width / 2.0 + 1.0) / focal
     tan_v = (height / 2.0 + 1.0) / focal
@@ -467,7 +609,19 @@ def cast_rays(
         todo[count] = g
         count += 1
     order = todo[:count][np.argsort(near[todo[:count]], kind="mergesort")]
+    return order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum
+
+
+@njit(cache=True)
+def _draw(
+    v_lo, v_hi, row0, order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum, height, width, focal,
+    geom_type, geom_size, cutoff, rays_x, rays_y, rays_z, dist, geomid, tbuf,
+):  # fmt: skip
+    """Draw the geoms of ``order`` into image rows v_lo..v_hi: the buffers (rays, ``dist``,
+    ``geomid``) hold rows from ``row0`` on, pixel (v, u) at (v - row0) * width + u."""
     for g in order:
+        if rects[g, 3] < v_lo or rects[g, 2] > v_hi:
+            continue
         rg = rgs[g]
         ox = locs[g, 0]
         oy = locs[g, 1]
@@ -491,7 +645,7 @@ def cast_rays(
         use_quad = quad[g]
         w0, w1, w2 = qw[g, 0], qw[g, 1], qw[g, 2]
         a0, a1, a2 = qsum[g, 0], qsum[g, 1], qsum[g, 2]
-        for v in range(v0, v1 + 1):
+        for v in range(max(v0, v_lo), min(v1, v_hi) + 1):
             ua, ub = u0, u1
             y = (v + 0.5 - height / 2.0) / focal
             restricted = False
@@ -521,14 +675,41 @@ def cast_rays(
                         ub = max(ub, b)
             ua = max(ua, u0)
             ub = min(ub, u1)
+            if gt == 2 or gt == 3 or gt == 4:
+                # The span's distances first, in a branch-free loop the compiler vectorises
+                # (the scalar code's operations on every pixel; SIMD square roots and
+                # divisions round exactly as scalar ones), then the nearest-hit merge.
+                # Pixels at the span's ends already hit nearer than this geom can be are skipped
+                # by the merge anyway: leave them out of the distances too.
+                row = (v - row0) * width
+                while ua <= ub and dist[row + ua] >= 0.0 and dist[row + ua] < bound:
+                    ua += 1
+                while ub >= ua and dist[row + ub] >= 0.0 and dist[row + ub] < bound:
+                    ub -= 1
+                if ua > ub:
+                    continue
+                _span_distances(
+                    gt, rays_x, rays_y, rays_z, (v - row0) * width, ua, ub, r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                    ox, oy, oz, s0, s1, s2, tbuf,
+                )  # fmt: skip
+                for u in range(ua, ub + 1):
+                    i = (v - row0) * width + u
+                    best = dist[i]
+                    if best >= 0.0 and best < bound:
+                        continue  # already hit closer than this geom can be
+                    t = tbuf[u]
+                    if t >= 0.0 and t <= cutoff and (best < 0.0 or t < best or (t == best and g < geomid[i])):
+                        dist[i] = t
+                        geomid[i] = g
+                continue
             for u in range(ua, ub + 1):
-                i = v * width + u
+                i = (v - row0) * width + u
                 best = dist[i]
                 if best >= 0.0 and best < bound:
                     continue  # already hit closer than this geom can be
-                ex = rays_c[i, 0]
-                ey = rays_c[i, 1]
-                ez = rays_c[i, 2]
+                ex = rays_x[i]
+                ey = rays_y[i]
+                ez = rays_z[i]
                 dx = r00 * ex + r10 * ey + r20 * ez
                 dy = r01 * ex + r11 * ey + r21 * ez
                 dz = r02 * ex + r12 * ey + r22 * ez

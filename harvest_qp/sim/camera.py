@@ -180,6 +180,8 @@ class DepthCamera:
         # The camera never sees its own tool (housing and cutter).
         self._geom_ok = np.asarray(model.geom_bodyid != self.exclude_body)
         self._rays_c = config.pixel_rays()
+        self._ray_x = self._rays_c[:, 0].copy()
+        self._ray_y = self._rays_c[:, 1].copy()
         self._ray_z = self._rays_c[:, 2].copy()
         self._no_bool = np.zeros(0, np.bool_)
         self._no_float = np.zeros(0)
@@ -244,9 +246,10 @@ class RayCastCamera(DepthCamera):
 
     ``config.raycast_engine`` picks the caster: ``"mujoco"`` is one
     :func:`mujoco.mj_multiRay` call per frame; ``"numba"`` is a kernel giving the same
-    hits several times faster by culling geoms per pixel block
-    (:mod:`harvest_qp.sim._raycast`, primitive geoms only); ``"auto"`` uses the kernel
-    when the model allows it.
+    hits several times faster by culling geoms per image row (bounding spheres and each
+    geom's quadric) and intersecting spheres, ellipsoids and capsules a row span at a time
+    in vectorised loops (:mod:`harvest_qp.sim._raycast`, primitive geoms only); ``"auto"``
+    uses the kernel when the model allows it.
     """
 
     def __init__(self, model: mujoco.MjModel, config: CameraConfig, **kwargs) -> None:
@@ -295,6 +298,7 @@ class RayCastCamera(DepthCamera):
                 self._rays_c, h, w, self._focal, origin, np.ascontiguousarray(pose[:3, :3]),
                 self._geom_type, self.model.geom_size, data.geom_xpos, data.geom_xmat,
                 self.model.geom_rbound, self._mask, self._cutoff, self._geomid, self._dist,
+                self._ray_x, self._ray_y, self._ray_z,
             )  # fmt: skip
         else:
             vec = np.ascontiguousarray(self._rays_c @ pose[:3, :3].T).ravel()

@@ -85,6 +85,10 @@ class ContactMonitor:
         )
         # The pair found by the last call: its distance now bounds this call's result.
         self._hint = -1
+        # Plain-int copies for the per-call Python loop (numpy scalar indexing costs more).
+        self._arm_list = self.arm_geoms.tolist()
+        self._vine_list = self.vine_geoms.tolist()
+        self._bounded_list = self._bounded_pairs.tolist()
 
     def contact_counts(self, data: mujoco.MjData) -> dict[str, int]:
         """Number of active contacts of each kind of :data:`CONTACT_KINDS` (penetrating or within margin)."""
@@ -111,22 +115,24 @@ class ContactMonitor:
         # One numba call for the capsule bounds (numpy's fancy indexing on ~17 x 80 pairs
         # cost ~100 us per tick); the exact distance of the few non-capsule pairs whose
         # bound beats the best stays with MuJoCo.
-        nv = self.vine_geoms.size
+        nv = len(self._vine_list)
         best, k, n_candidates = _capsule_bounds(
             data.geom_xpos, data.geom_xmat, self._static, self._radius_sum, self._exact_pairs,
             self._bounded_pairs, self.max_distance, self._lower, self._candidates, self._hint,
         )  # fmt: skip
         self._hint = k
-        pair = (-1, -1) if k < 0 else (int(self.arm_geoms[k // nv]), int(self.vine_geoms[k % nv]))
-        lower = self._lower
-        for i in self._candidates[:n_candidates]:
-            if lower[i] >= best:
-                break  # every remaining pair is at least this far apart
-            k = int(self._bounded_pairs[i])
-            ga, gv = int(self.arm_geoms[k // nv]), int(self.vine_geoms[k % nv])
-            dist = mujoco.mj_geomDistance(self.model, data, ga, gv, best, self._fromto)
-            if dist < best:
-                best, pair = float(dist), (ga, gv)
+        arm, vine = self._arm_list, self._vine_list
+        pair = (-1, -1) if k < 0 else (arm[k // nv], vine[k % nv])
+        if n_candidates:
+            lower, bounded = self._lower, self._bounded_list
+            for i in self._candidates[:n_candidates].tolist():
+                if lower[i] >= best:
+                    break  # every remaining pair is at least this far apart
+                k = bounded[i]
+                ga, gv = arm[k // nv], vine[k % nv]
+                dist = mujoco.mj_geomDistance(self.model, data, ga, gv, best, self._fromto)
+                if dist < best:
+                    best, pair = float(dist), (ga, gv)
         return float(best), pair[0], pair[1]
 
 

@@ -97,6 +97,7 @@ class WristForceSensor:
         self._history = np.zeros((config.tare_samples, 3))
         self._count = 0
         self._adr = int(model.sensor_adr[self.sensor_id])
+        self._bound: tuple[mujoco.MjData, NDArray[np.float64], NDArray[np.float64]] | None = None
 
     def reset(self, *, seed: int | None = None) -> None:
         """Clear the tare offset and the filter; optionally reseed the noise."""
@@ -119,9 +120,12 @@ class WristForceSensor:
 
     def _sample(self, data: mujoco.MjData, dt: float) -> None:
         """:meth:`update` without building the reading (the robot's step does not use it)."""
-        adr = self._adr
-        # site_force_world's arithmetic, with the sensor address looked up once.
-        f = data.site_xmat[self.site_id].reshape(3, 3) @ data.sensordata[adr : adr + 3] + self._tool_weight
+        bound = self._bound
+        if bound is None or bound[0] is not data:
+            # site_force_world's operands as live views into this data's buffers, made once.
+            adr = self._adr
+            bound = self._bound = (data, data.site_xmat[self.site_id].reshape(3, 3), data.sensordata[adr : adr + 3])
+        f = bound[1] @ bound[2] + self._tool_weight
         if self.config.noise_std > 0:
             f = f + self._rng.normal(0.0, self.config.noise_std, 3)
         tau = self.config.filter_time_constant

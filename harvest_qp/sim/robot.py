@@ -31,7 +31,7 @@ from harvest_qp.robot import description as desc
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo, _servo_step
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
 from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor
-from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor, site_force_world
+from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
 from harvest_qp.validation import as_positive_scalar, check_field_types
 
@@ -88,8 +88,10 @@ class SimRobot(RobotInterface):
         settle_time: time the scene settles at reset before the clock starts [s].
         faults: sensor faults (lost camera frames, frame latency, force noise).
         vine_distance_every: :meth:`ground_truth` measures ``min_vine_distance`` on every
-            this many control ticks and repeats the last value in between (~70 us per
-            measurement on the 2-core machine).
+            this many control ticks and repeats the last value in between (~35 us per
+            measurement inside the paper episode on the loaded 2-core machine, ~15 us hot:
+            a bounding-sphere broad phase, then MuJoCo's distance for the few pairs whose
+            capsule bound beats the best).
     """
 
     def __init__(
@@ -205,6 +207,15 @@ class SimRobot(RobotInterface):
         self._grasp_kp = np.ascontiguousarray(self._kp[6:])
         self._viewer = None
         self._viewer_every = 16
+        # Live views into MjData's buffers (allocated once with the MjData, never moved):
+        # building them anew costs ~0.1-1 us per access, several times per tick.
+        d = self.data
+        self._warning_counts = d.warning.number
+        self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
+        self._cluster_xipos = d.xipos[self._cluster]
+        # site_force_world's operands for the stem force (the stem end's rotation, the sensor).
+        adr = self._stem_force_adr
+        self._stem_force_operands = (d.site_xmat[self._stem_end_site].reshape(3, 3), d.sensordata[adr : adr + 3])
         self.reset()
 
     # ------------------------------------------------------------------ setup
@@ -386,7 +397,8 @@ class SimRobot(RobotInterface):
 
     def stem_force(self) -> NDArray[np.float64]:
         """True force the stem applies to the cluster [N, world] (ground truth, not measurable)."""
-        return site_force_world(self.model, self.data, self._ids["stem_force"], self._ids["stem_end_site"])
+        rotation, force = self._stem_force_operands  # site_force_world's product, on views bound once
+        return rotation @ force
 
     def stem_tension(self) -> float:
         """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""
@@ -497,7 +509,7 @@ class SimRobot(RobotInterface):
             # The weld keeps the cluster's centre of mass fixed on the tool. The Jacobian only
             # depends on the kinematics, so it is taken first and the servo law and the
             # payload torque run in one numba call (the servo writes ctrl, the payload adds).
-            mujoco.mj_jac(m, d, self._jacp, None, d.xipos[self._cluster], self._grasp_tool)
+            mujoco.mj_jac(m, d, self._jacp, None, self._cluster_xipos, self._grasp_tool)
             _servo_step_with_payload(
                 servo.qd_ref, servo.qd_cmd, servo.acc_limit, m.opt.timestep, servo.q_ref, servo._q_lo, servo._q_hi,
                 d.qpos, servo.qpos_ids, servo.config.max_following_error, servo._ff, d.ctrl, servo.ctrl_ids,
@@ -514,9 +526,9 @@ class SimRobot(RobotInterface):
         """Tear the stem when its tension exceeds the break force: release its axial spring."""
         if self._torn:
             return
-        d = self.data
         tension = _stem_tension(
-            d.sensordata, d.site_xmat, d.site_xpos, self._stem_force_adr, self._stem_end_site, self._stem_base_array,
+            self._sensordata, self._site_xmat, self._site_xpos, self._stem_force_adr, self._stem_end_site,
+            self._stem_base_array,
         )  # fmt: skip
         self._max_tension = max(self._max_tension, tension)
         if tension > self.scene.params.stem_break_force:
@@ -546,7 +558,7 @@ class SimRobot(RobotInterface):
 
     def _check_physics(self) -> None:
         d = self.data
-        counts = d.warning.number
+        counts = self._warning_counts
         if _diverged(counts, self._warnings, d.qvel):
             counts = np.asarray(counts, dtype=np.int64)
             new = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts > self._warnings)]

@@ -39,11 +39,14 @@ class _Mixed:
             "scalar": t,
             "np_scalar": np.float64(2 * t),
             "vec": np.array([t, -t, 1.0]),
-            "int_value": self.k,  # not a float: takes the full check
         }
+        if self.k % 5 == 0:
+            values["int_value"] = self.k  # not a float: this command takes the full check
         pairs = [("a", "b", 0.05 + t)] + ([("a", "c", 0.04)] if self.k % 3 == 0 else [])
         if self.k % 4 == 0:
             pairs.append(["c", "d", 0.01])  # a list, not a tuple: takes the full check
+        if self.k % 7 == 0:
+            pairs = (pair for pair in pairs)  # a generator: read once, by the full check
         return Command(qdot=qdot, values=values, collision_pairs=pairs, task_errors={"e": t})
 
 
@@ -52,8 +55,11 @@ def test_fast_command_check_logs_exactly_what_the_full_check_logs(monkeypatch):
 
     Oracle: the same episode with every command through :func:`runner._as_command`.
     """
+    calls = []
+    monkeypatch.setattr(runner, "_as_command", lambda out, full=runner._as_command: calls.append(1) or full(out))
     fast = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
-    monkeypatch.setattr(runner, "_as_command_fast", runner._as_command)
+    assert 0 < len(calls) < 15  # most of the 25 commands took the fast path, some the full check
+    monkeypatch.setattr(runner, "_as_command_fast", runner._as_command)  # the full check for every command
     full = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
     assert fast.ok and full.ok
     assert sorted(fast.log) == sorted(full.log)
@@ -146,6 +152,7 @@ def test_stem_tension_kernel_equals_the_force_sensor_reading():
         expected = math.copysign(np.linalg.norm(f), 1.0 if f @ towards_base >= 0 else -1.0)
         assert robot.stem_tension() == pytest.approx(expected, rel=1e-12, abs=1e-12)
         assert robot.stem_tension() == robot._fast_tension()
+        np.testing.assert_array_equal(robot.stem_force(), f)  # the bound views read the live state
         signs.add(expected > 0)
     assert True in signs
 
@@ -273,18 +280,52 @@ def test_culled_caster_equals_every_ray_against_every_geom_bit_for_bit(downsampl
 
 
 def test_one_pass_cloud_equals_the_two_pass_cloud_with_noise_and_dropout():
-    """Bug caught: the one-pass compaction (depth per pixel, row/column from the loop) changing
-    a point, its order, a label or the noise/dropout draws. Oracle: the shared
-    ``_finish(pose, dist * ray_z, ...)`` path (also used by the OpenGL camera)."""
+    """Bug caught: the one-pass compaction of the ray lengths (depth per pixel, row and column
+    from the loop) changing a point, its order, a label or the noise and dropout draws.
+    Oracle: the shared ``_finish(pose, dist * ray_z, ...)`` path (also used by the OpenGL
+    camera), over several views.
+    """
     cfg = CameraConfig(downsample=4, depth_noise=0.003, dropout=0.1, stem_range=0.9)
     robot = SimRobot(camera=cfg, seed=3)
     cam, d = robot._camera, robot.data
-    pose = robot.site_pose("camera")
-    dist, geomid = (x.copy() for x in cam.cast(d, pose))
-    cam.reset(seed=3)
-    one = cam._finish_rays(pose, dist, geomid, 0.5)
-    cam.reset(seed=3)
-    two = cam._finish(pose, dist * cam._ray_z, geomid, 0.5)
-    assert len(one) > 1000
-    for name in ("points", "labels", "colors", "depth", "pixels", "camera_pose"):
-        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
+    rng = np.random.default_rng(1)
+    centre = np.asarray(robot.scene.stem_base)
+    poses = [robot.site_pose("camera")] + [
+        look_at(centre + rng.normal(0, 0.25, 3) + (-0.3, 0.0, 0.1), centre + rng.normal(0, 0.1, 3)) for _ in range(4)
+    ]
+    total = 0
+    for k, pose in enumerate(poses):
+        cam.reset(seed=k)
+        one = cam.capture(d, pose, 0.5)
+        dist, geomid = (x.copy() for x in cam.cast(d, pose))
+        cam.reset(seed=k)
+        two = cam._finish(pose, dist * cam._ray_z, geomid, 0.5)
+        cam.reset(seed=k)
+        rays = cam._finish_rays(pose, dist, geomid, 0.5)
+        total += len(one)
+        for name in ("points", "labels", "colors", "depth", "pixels", "camera_pose"):
+            np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
+            np.testing.assert_array_equal(getattr(rays, name), getattr(two, name), err_msg=name)
+    assert total > 5000
+
+
+@pytest.mark.parametrize(
+    ("first", "later", "words"),
+    [(np.zeros(3), np.zeros(2), "(3,) to (2,)"), (0.5, np.zeros(2), "() to (2,)"), (np.zeros(3), 0.5, "(3,) to ()")],
+)
+def test_a_value_that_changes_shape_is_refused(first, later, words):
+    """Bug caught: the per-key log writing a differently shaped value (a broadcast scalar into a
+    vector row, or a vector into a scalar column) instead of refusing it, in either fast path."""
+
+    class Changing:
+        def reset(self, robot) -> None:
+            self.k = 0
+
+        def step(self, obs) -> Command:
+            self.k += 1
+            return Command(qdot=np.zeros(12), values={"v": first if self.k < 3 else later})
+
+    with pytest.raises(
+        runner.InvalidInputError, match=r"value 'v' changed shape from " + words.replace("(", r"\(").replace(")", r"\)")
+    ):
+        run_episode(SimRobot(camera=None), Changing(), duration=0.02)
