@@ -328,10 +328,12 @@ class SimRobot(RobotInterface):
         """``send_joint_velocities`` without its checks, for a caller that has checked the command.
 
         The episode runner checks every command (finite float64, shape (12,)) before sending
-        it; this skips the second check. None when a subclass overrides
-        ``send_joint_velocities`` (its override must run).
+        it; this skips the second check. None when a subclass or the instance itself overrides
+        ``send_joint_velocities`` (a user's safety or fault-injection wrapper must run).
         """
-        if type(self).send_joint_velocities is not SimRobot.send_joint_velocities:
+        if type(self).send_joint_velocities is not SimRobot.send_joint_velocities or (
+            "send_joint_velocities" in vars(self)
+        ):
             return None
         return self._servo._command_unchecked
 

@@ -133,6 +133,42 @@ def test_runner_uses_an_overridden_send_joint_velocities():
     assert Counting.sent == 5
 
 
+def test_runner_calls_an_instance_override_and_a_proxys_own_sender():
+    """Bug caught: the unchecked sender bypassing ``robot.send_joint_velocities = wrapper`` set on
+    the instance, or a proxy whose ``__getattr__`` hands out the inner SimRobot's sender (a
+    user's safety or fault-injection wrapper silently skipped; found by an audit)."""
+    from harvest_qp.interface import RobotInterface
+
+    robot = SimRobot(camera=None)
+    calls = []
+    robot.send_joint_velocities = lambda qdot: calls.append(np.array(qdot))
+    assert robot._unchecked_sender() is None
+    run_episode(robot, _Mixed(), duration=0.01, stop_at_end=False)
+    assert len(calls) == 5
+
+    class Proxy(RobotInterface):
+        def __init__(self, inner):
+            self.__dict__["inner"], self.__dict__["sent"] = inner, 0
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def send_joint_velocities(self, qdot):
+            self.__dict__["sent"] += 1
+            self.inner.send_joint_velocities(qdot)
+
+    for name in RobotInterface.__abstractmethods__ - {"send_joint_velocities"}:
+        attr = getattr(SimRobot, name)
+        if isinstance(attr, property):
+            setattr(Proxy, name, property(lambda self, n=name: getattr(self.inner, n)))
+        else:
+            setattr(Proxy, name, lambda self, *a, n=name, **k: getattr(self.inner, n)(*a, **k))
+    Proxy.__abstractmethods__ = frozenset()
+    proxy = Proxy(SimRobot(camera=None))
+    run_episode(proxy, _Mixed(), duration=0.01, stop_at_end=False)
+    assert proxy.sent == 5
+
+
 def test_stem_tension_kernel_equals_the_force_sensor_reading():
     """Bug caught: a wrong row/column of the site rotation or a wrong sign in the numba tension.
 
