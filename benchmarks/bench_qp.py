@@ -16,9 +16,10 @@ damping, the joint limits and the collision limit with the obstacle map's cells)
 from the first ``S`` simulated seconds of the default episode (every ``--episode-every``-th
 tick: joint positions, previous command, the three task references and the map cells fed
 to the collision limit) and replayed problem by problem on the episode's own
-:class:`~harvest_qp.TaskController`, next to ``harvest_qp_collision_us`` timed the same way
-(thread CPU time, interleaved rounds): the like-for-like figure for the in-episode QP step
-of ``bench_episode.py`` (issue 7 section 7).
+:class:`~harvest_qp.TaskController` the way the loop calls it (the tick's kinematics updated
+first, untimed, then ``TaskController._step(q, reuse_kinematics=True)`` timed), next to
+``harvest_qp_collision_us`` timed the same way (thread CPU time, interleaved rounds): the
+like-for-like figure for the in-episode QP step of ``bench_episode.py`` (issue 7 section 7).
 """
 
 from __future__ import annotations

@@ -118,7 +118,9 @@ class DaqpBackend:
         rows_changed = fresh or n_in > 0 or n_eq > 0 or n_eq_before > 0
         # One compiled call writes the bounds, equality slots and inequality rows (ten numpy
         # slice assignments before: ~13 us per level inside the episode).
-        self._n_eq = load_daqp_rows(A, upper, lower, sense, A_eq, problem.b, G, h, box_lower, box_upper, n_eq_before, _INF)
+        self._n_eq = load_daqp_rows(
+            A, upper, lower, sense, A_eq, problem.b, G, h, box_lower, box_upper, n_eq_before, _INF
+        )
         if fresh:
             self._model = self._daqp.Model()
             flag, _ = self._model.setup(problem.H, problem.f, A, upper, lower, sense)

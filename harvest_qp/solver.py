@@ -336,7 +336,6 @@ class Solver:
             )
         else:
             A, b = self._no_equalities  # empty, so shared between steps
-        k = len(box_limits)
         if boxes is None:
             lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
         else:
