@@ -16,9 +16,10 @@ damping, the joint limits and the collision limit with the obstacle map's cells)
 from the first ``S`` simulated seconds of the default episode (every ``--episode-every``-th
 tick: joint positions, previous command, the three task references and the map cells fed
 to the collision limit) and replayed problem by problem on the episode's own
-:class:`~harvest_qp.TaskController`, next to ``harvest_qp_collision_us`` timed the same way
-(thread CPU time, interleaved rounds): the like-for-like figure for the in-episode QP step
-of ``bench_episode.py`` (issue 7 section 7).
+:class:`~harvest_qp.TaskController` the way the loop calls it (the tick's kinematics updated
+first, untimed, then ``TaskController._step(q, reuse_kinematics=True)`` timed), next to
+``harvest_qp_collision_us`` timed the same way (thread CPU time, interleaved rounds): the
+like-for-like figure for the in-episode QP step of ``bench_episode.py`` (issue 7 section 7).
 """
 
 from __future__ import annotations
@@ -162,10 +163,10 @@ class EpisodeProblems:
         slots = controller.map_feed.slots if controller.map_feed is not None else 0
         self.first = self.collision.cap_p0.shape[0] - slots
         self.ticks: list[EpisodeTick] = []
-        step = qp.step
+        step = qp._step  # the loop's own call (HarvestController: ``qp._step(q, reuse_kinematics=True)``)
         count = [0]
 
-        def recording_step(q):
+        def recording_step(q, *, reuse_kinematics):
             record = count[0] % every == 0
             count[0] += 1
             if record:
@@ -176,17 +177,19 @@ class EpisodeProblems:
                     obstacle_p0=lim.cap_p0[first:].copy(), obstacle_p1=lim.cap_p1[first:].copy(),
                     obstacle_radius=lim.cap_radius[first:].copy(),
                 )
-            result = step(q)
+            result = step(q, reuse_kinematics=reuse_kinematics)
             if record:
                 tick.qdot = result.qdot.copy()
                 self.ticks.append(tick)
             return result
 
-        qp.step = recording_step
+        qp._step = recording_step
         try:
             run_episode(robot, controller, duration=duration)
         finally:
-            del qp.step  # the instance attribute: back to the class's method
+            del qp._step  # the instance attribute: back to the class's method
+        if not self.ticks:
+            raise RuntimeError("no QP step was recorded: the loop no longer calls TaskController._step")
         self.qp = qp
         self.levels = sorted({task.level for task in qp.tasks})
 
@@ -205,11 +208,15 @@ class EpisodeProblems:
         difference [rad/s] between the replayed and the episode's commands."""
         times = np.empty(len(self.ticks))
         worst = 0.0
-        step = self.qp.step
+        step = self.qp._step
+        update = self.qp.configuration.update
         for j, tick in enumerate(self.ticks):
             self.load(tick)
+            # As in the loop: the tick's kinematics are computed before the QP step (for the
+            # reference laws) and reused by it, so they are not part of the step's time.
+            update(tick.q)
             t0 = clock()
-            result = step(tick.q)
+            result = step(tick.q, reuse_kinematics=True)
             times[j] = clock() - t0
             worst = max(worst, float(np.max(np.abs(result.qdot - tick.qdot))))
         return times, worst

@@ -106,17 +106,20 @@ class DaqpBackend:
         return SolverError
 
     def solve(self, problem: QPProblem) -> np.ndarray:
-        n, n_eq, n_in = problem.n, problem.A.shape[0], problem.G.shape[0]
-        fresh = self._model is None or self._shape != (n, n_in)
+        H, f, A_eq, G, h = problem.H, problem.f, problem.A, problem.G, problem.h
+        box_lower, box_upper = problem.lower, problem.upper
+        n, n_eq, n_in = H.shape[0], A_eq.shape[0], G.shape[0]
+        shape = self._shape
+        fresh = self._model is None or shape is None or shape[0] != n or shape[1] != n_in
         if fresh:
             self._allocate(n, n_in)
         A, upper, lower, sense = self._A, self._upper, self._lower, self._sense
-        rows_changed = fresh or n_in > 0 or n_eq > 0 or self._n_eq > 0
+        n_eq_before = self._n_eq
+        rows_changed = fresh or n_in > 0 or n_eq > 0 or n_eq_before > 0
         # One compiled call writes the bounds, equality slots and inequality rows (ten numpy
         # slice assignments before: ~13 us per level inside the episode).
         self._n_eq = load_daqp_rows(
-            A, upper, lower, sense, problem.A, problem.b, problem.G, problem.h, problem.lower, problem.upper,
-            self._n_eq, _INF,
+            A, upper, lower, sense, A_eq, problem.b, G, h, box_lower, box_upper, n_eq_before, _INF
         )
         if fresh:
             self._model = self._daqp.Model()
@@ -130,11 +133,10 @@ class DaqpBackend:
                     backend=self.name,
                     status=flag,
                 )
-        else:
-            if rows_changed:
-                self._model.update(H=problem.H, f=problem.f, A=A, bupper=upper, blower=lower, sense=sense)
-            else:  # only bounds and cost moved: skip copying the constraint matrix
-                self._model.update(H=problem.H, f=problem.f, bupper=upper, blower=lower)
+        elif rows_changed:
+            self._model.update(H=H, f=f, A=A, bupper=upper, blower=lower, sense=sense)
+        else:  # only bounds and cost moved: skip copying the constraint matrix
+            self._model.update(H=H, f=f, bupper=upper, blower=lower)
         x, _, flag, _ = self._model.solve()
         if flag < 0:
             self._model = None  # start from scratch next time: a bad active set is not reused
@@ -145,9 +147,7 @@ class DaqpBackend:
                 status=flag,
             )
         # The check of _checked, without its conversions (x is DAQP's own float64 copy).
-        violation = max_scaled_violation(
-            x, problem.lower, problem.upper, problem.A, problem.b, problem.G, problem.h
-        )
+        violation = max_scaled_violation(x, box_lower, box_upper, A_eq, problem.b, G, h)
         if violation <= FEASIBILITY_TOLERANCE:
             return x
         return _checked(x, problem, self.name)  # raises with the message and the last-resort data

@@ -92,6 +92,11 @@ ControlStep.active_pairs = property(
 )
 
 
+def _new_control_step(_new=object.__new__, _cls=ControlStep) -> ControlStep:
+    """An empty :class:`ControlStep` (the hot path fills its ``__dict__`` as ``__init__`` would)."""
+    return _new(_cls)
+
+
 class _BrakeTask(Task):
     """Joint-space target ``qdot = target`` [rad/s] used by the safe stop."""
 
@@ -190,7 +195,12 @@ class TaskController:
                 status = f"{OK}: separation asked lowered by up to {np.max(solution.row_relaxation):.3g} m/s"
             elif solution.retries:
                 status = f"{OK}: retried after {'; '.join(solution.retries)}"
-            result = ControlStep(qdot=solution.qdot, status=status, conflicts=solution.conflicts, acceleration=accel)
+            # The dataclass constructor, without its call overhead (and without routing
+            # ``active_pairs = []`` through the property setter): the same instance state.
+            result = _new_control_step()
+            result.__dict__.update(
+                qdot=solution.qdot, status=status, conflicts=solution.conflicts, acceleration=accel, _active_pairs=[]
+            )
         except Exception as err:  # the loop must keep commanding the robot: stop it safely
             self.last_error = err
             qdot, how = self._safe_stop_command(measured)

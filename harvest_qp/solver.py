@@ -77,6 +77,8 @@ from harvest_qp.qp_kernels import (
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
 
+_new = object.__new__
+
 #: Bound magnitude that stands for "no bound" in the QP data.
 INF = 1e30
 #: Box limits from this priority on (acceleration limits) yield to infeasibility.
@@ -334,7 +336,6 @@ class Solver:
             )
         else:
             A, b = self._no_equalities  # empty, so shared between steps
-        k = len(box_limits)
         if boxes is None:
             lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
         else:
@@ -490,44 +491,53 @@ class Solver:
     # ------------------------------------------------------------------ cascade
     def _cascade(self, n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=None) -> Solution:
         """Solve the levels in order, each within the optimal set of those before."""
-        solution = Solution(qdot=None, lower=lower, upper=upper, conflicts=conflicts, retries=retries)
+        # The dataclasses' constructors without their call overhead (the same instance state).
+        solution = _new(Solution)
+        solution.__dict__.update(
+            qdot=None, problems=[], lower=lower, upper=upper, conflicts=conflicts, relaxed=[],
+            box_relaxation=None, row_relaxation=None, retries=retries,
+        )
+        problems = solution.problems
         levels = sorted(by_level) or [1]
+        last = levels[-1]
+        regularization = self.regularization
         for level in levels:
-            entries = by_level.get(level, [])
+            entries = by_level.get(level, ())
             # H, f and the floor (weight joint-space tasks already put on each joint) as rows of
             # one fresh block: one allocation instead of three (H and f stay contiguous).
             block = np.zeros((n + 2, n))
             H, f, floor = block[:n], block[n], block[n + 1]
             # Top the diagonal up to the regularization only where it is missing, so a
             # damped problem stays exactly the damped least-squares problem.
-            reg = self.regularization if entries else max(self.regularization, 1e-12)
             count = len(entries)
             if 0 < count <= 4:
                 # One compiled call for the level: each task's kernel in order, then the top-up.
-                args = []
+                args = [H, f, floor, regularization]
                 for task, J, v in entries:
                     args += (IDENTITY_ROWS if J is None else J, task.weight, v)
                 if count == 2:
-                    assemble_level_2(H, f, floor, reg, *args)
+                    assemble_level_2(*args)
                 elif count == 3:
-                    assemble_level_3(H, f, floor, reg, *args)
+                    assemble_level_3(*args)
                 elif count == 1:
-                    assemble_level_1(H, f, floor, reg, *args)
+                    assemble_level_1(*args)
                 else:
-                    assemble_level_4(H, f, floor, reg, *args)
+                    assemble_level_4(*args)
             else:
+                reg = regularization if entries else max(regularization, 1e-12)
                 for task, J, v in entries:
                     if J is None:  # joint-space task: J = I
                         accumulate_diagonal(H, f, task.weight, v, floor)
                     else:
                         accumulate_task(H, f, J, task.weight, v)
                 top_up_diagonal(H, floor, reg)
-            problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
-            solution.problems.append(problem)
+            problem = _new(QPProblem)
+            problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
+            problems.append(problem)
             x = self._solve_qp(level, problem, retries, confirm)
             # Backends meet bounds to their tolerance; clip so joint limits hold exactly.
             x = clip_inplace(x, lower, upper)
-            if level != levels[-1] and entries:
+            if level != last and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
                 A, b = self._level_equalities(A, entries, n, x)
         solution.qdot = x
@@ -562,18 +572,25 @@ class Solver:
         if count > 3 or A.dtype != np.float64:
             A_lvl = self._level_rows(A, entries, n)
             return _orthonormal_rows(A_lvl, A_lvl @ x)
-        m = A.shape[0] + sum(task.weight.shape[0] if J is None else J.shape[0] for task, J, _ in entries)
+        m = A.shape[0]
+        args = [A, x, 1e-9, None]
+        for task, J, _ in entries:
+            weight = task.weight
+            if J is None:
+                m += weight.shape[0]
+                args += (IDENTITY_ROWS, weight)
+            else:
+                m += J.shape[0]
+                args += (J, weight)
         stack = self._rows_buffer
         if stack.shape[0] < m or stack.shape[1] != n:
             stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
-        args = []
-        for task, J, _ in entries:
-            args += (IDENTITY_ROWS if J is None else J, task.weight)
+        args[3] = stack
         if count == 2:
-            return level_equalities_2(A, x, 1e-9, stack, *args)
+            return level_equalities_2(*args)
         if count == 1:
-            return level_equalities_1(A, x, 1e-9, stack, *args)
-        return level_equalities_3(A, x, 1e-9, stack, *args)
+            return level_equalities_1(*args)
+        return level_equalities_3(*args)
 
     # ------------------------------------------------------------------ relaxation
     def _least_relaxation(self, n, box_limits, lower, upper, A, b, G, h, separating, retries, tolerance=0.0):

@@ -135,21 +135,26 @@ def pair_distances(pair_a, pair_b, cap_radius, w0, w1, influence, out_d, out_s, 
     Pairs whose bounding spheres are farther apart than ``influence`` get
     ``out_d = inf`` without the exact segment test (the broadphase).
     """
-    # Bounding-sphere radius of each capsule, once per capsule instead of twice per pair
-    # (the same expression, so the same bits).
-    bound = np.empty(cap_radius.shape[0])
-    for c in range(cap_radius.shape[0]):
+    # Bounding sphere (centre and radius) of each capsule, once per capsule instead of twice
+    # per pair; the test on squared distances needs no square root per pair. It only decides
+    # which pairs get the exact test: a pair it passes gets the same exact distance as before.
+    m = cap_radius.shape[0]
+    centre = np.empty((m, 3))
+    bound = np.empty(m)
+    for c in range(m):
         dx, dy, dz = w1[c, 0] - w0[c, 0], w1[c, 1] - w0[c, 1], w1[c, 2] - w0[c, 2]
         bound[c] = 0.5 * np.sqrt(dx * dx + dy * dy + dz * dz) + cap_radius[c]
+        centre[c, 0] = 0.5 * (w0[c, 0] + w1[c, 0])
+        centre[c, 1] = 0.5 * (w0[c, 1] + w1[c, 1])
+        centre[c, 2] = 0.5 * (w0[c, 2] + w1[c, 2])
     for k in range(pair_a.shape[0]):
         a = pair_a[k]
         b = pair_b[k]
-        cx = 0.5 * (w0[a, 0] + w1[a, 0] - w0[b, 0] - w1[b, 0])
-        cy = 0.5 * (w0[a, 1] + w1[a, 1] - w0[b, 1] - w1[b, 1])
-        cz = 0.5 * (w0[a, 2] + w1[a, 2] - w0[b, 2] - w1[b, 2])
-        ra = bound[a]
-        rb = bound[b]
-        if np.sqrt(cx * cx + cy * cy + cz * cz) - ra - rb > influence:
+        cx = centre[a, 0] - centre[b, 0]
+        cy = centre[a, 1] - centre[b, 1]
+        cz = centre[a, 2] - centre[b, 2]
+        reach = influence + bound[a] + bound[b]
+        if cx * cx + cy * cy + cz * cz > reach * reach:
             out_d[k] = np.inf
             continue
         dist, s, t = segment_distance(

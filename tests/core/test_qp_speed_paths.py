@@ -405,3 +405,81 @@ def test_public_step_recomputes_after_a_direct_pinocchio_write():
     pin.computeJointJacobians(c.model, c.data, other)
     pin.updateFramePlacements(c.model, c.data)
     np.testing.assert_array_equal(tc.step(q).qdot, expected)
+
+
+def test_fast_built_step_results_carry_the_dataclass_constructors_state(rng):
+    """Oracle: the dataclasses' own constructors (``ControlStep(...)``, ``Solution(...)``,
+    ``QPProblem(...)``) called with the same values: the hot path's ``object.__new__`` +
+    ``__dict__`` objects must hold the same attributes and compare equal, and
+    ``ControlStep.active_pairs`` stays ``[]`` without a collision limit.
+
+    Bugs caught: a field left out of a fast-built object (``Solution.relaxed`` missing: the
+    controller's status check raises and every tick falls back), ``active_pairs`` not
+    initialised (AttributeError on read), a field stored under another name."""
+    from dataclasses import fields
+
+    from harvest_qp.controller import ControlStep
+    from harvest_qp.solver import QPProblem, Solution
+
+    config = Configuration.dual_ur5e(HOME_Q)
+    limit = CollisionAvoidance.dual_ur5e(config, influence_distance=0.3)
+    camera = FrameTwistTask("camera")
+    camera.set_reference([0.05, 0.0, -0.05, 0.0, 0.0, 0.0])
+    posture = PostureTask(HOME_Q, weight=1e-3)
+    posture.level = 2
+    for limits in ([limit], []):
+        controller = TaskController(config, [camera, posture, DampingTask(12)], limits)
+        q = HOME_Q + rng.normal(0, 0.1, 12)
+        result = controller._step(q, reuse_kinematics=False)
+        assert result.status == "ok"
+        reference = ControlStep(
+            qdot=result.qdot, status=result.status, conflicts=result.conflicts, acceleration=result.acceleration
+        )
+        assert set(vars(result)) - {"_pair_snapshots"} == set(vars(reference))
+        if not limits:
+            assert result.active_pairs == [] and result == reference
+        else:
+            assert result.active_pairs == limit.active_pair_distances()
+        solution = controller.solver_solution
+        assert set(vars(solution)) == {f.name for f in fields(Solution)}
+        assert solution == Solution(**{f.name: getattr(solution, f.name) for f in fields(Solution)})
+        assert solution.relaxed == [] and solution.box_relaxation is None and solution.row_relaxation is None
+        assert [p.level for p in solution.problems] == [1, 2]
+        for problem in solution.problems:
+            assert set(vars(problem)) == {f.name for f in fields(QPProblem)}
+            rebuilt = QPProblem(**vars(problem))
+            assert all(np.array_equal(getattr(rebuilt, f.name), getattr(problem, f.name)) for f in fields(QPProblem))
+
+
+def test_broadphase_keeps_every_pair_within_the_influence_distance(rng):
+    """Oracle: the same kernel with an infinite influence distance (no broadphase: every pair
+    gets the exact segment test). Every pair closer than ``d_i`` keeps its exact distance and
+    witness parameters bit for bit; a pair the broadphase skipped is truly farther than ``d_i``.
+
+    Bugs caught: a bounding sphere without one capsule's half-length or radius, or the
+    squared test comparing against ``d_i`` instead of ``(d_i + r_a + r_b)^2`` (close pairs
+    skipped: rows missing)."""
+    from harvest_qp.collision import kernels
+
+    config = Configuration.dual_ur5e(HOME_Q)
+    limit = CollisionAvoidance.dual_ur5e(config, influence_distance=0.25)
+    limit.set_obstacle_spheres(rng.uniform([0.3, -0.3, 0.9], [0.7, 0.6, 1.3], (8, 3)), 0.05)
+    influence = limit.influence_distance
+    checked = 0
+    for _ in range(20):
+        config.update(HOME_Q + rng.normal(0, 0.4, 12))
+        exact = limit.distances(config)  # influence = inf inside
+        w0, w1 = limit._w0, limit._w1
+        n = limit.pair_a.shape[0]
+        d, s, t = np.empty(n), np.empty(n), np.empty(n)
+        kernels.pair_distances(limit.pair_a, limit.pair_b, limit.cap_radius, w0, w1, influence, d, s, t)
+        d_all, s_all, t_all = np.empty(n), np.empty(n), np.empty(n)
+        kernels.pair_distances(limit.pair_a, limit.pair_b, limit.cap_radius, w0, w1, np.inf, d_all, s_all, t_all)
+        assert np.array_equal(d_all, exact)
+        close = exact < influence
+        checked += int(close.sum())
+        assert np.array_equal(d[close], exact[close])
+        assert np.array_equal(s[close], s_all[close]) and np.array_equal(t[close], t_all[close])
+        skipped = np.isinf(d)
+        assert np.all(exact[skipped] >= influence)
+    assert checked > 20
