@@ -22,6 +22,7 @@ from harvest_qp.loop.controller import (
     _LabelRows,
     _labelled_rows,
     _scan_cloud,
+    _split_labelled,
 )
 from harvest_qp.loop.settings import check_settings
 
@@ -56,6 +57,24 @@ def test_scan_and_gather_equal_boolean_indexing(n):
                 assert got.shape == expected.shape and _bits(got) == _bits(expected)
                 count = len(range(0, int(mask.sum()), stride))
                 assert _bits(_gather_labelled(points, labels, label, equal, stride, count)) == _bits(expected)
+
+
+@pytest.mark.parametrize("n", [0, 1, 5003])
+def test_split_equals_boolean_indexing(n):
+    """``_split_labelled`` gives the stem rows and every k-th other row in one pass. Catches:
+    the stride counted over all rows instead of the non-stem ones, the first non-stem row
+    skipped, stem rows counted into the stride."""
+    rng = np.random.default_rng(n + 30)
+    points, labels = _cloud_arrays(rng, n, stem_fraction=0.3)
+    is_stem = labels == STEM
+    for stride in (1, 2, 7):
+        n_other = len(range(0, int((~is_stem).sum()), stride))
+        stem, other = _split_labelled(points, labels, STEM, int(is_stem.sum()), stride, n_other)
+        assert _bits(stem) == _bits(points[is_stem]) and stem.shape == (int(is_stem.sum()), 3)
+        assert _bits(other) == _bits(points[~is_stem][::stride]) and other.shape == (n_other, 3)
+    if n:
+        with pytest.raises(ValueError, match="row counts"):
+            _split_labelled(points, labels, STEM, int(is_stem.sum()) + 1, 1, int((~is_stem).sum()))
 
 
 def test_labelled_rows_fall_back_on_other_layouts():
