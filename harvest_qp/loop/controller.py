@@ -300,33 +300,48 @@ def _gather_labelled(points, labels, label, equal, stride, count):  # pragma: no
 
 
 @njit(cache=True)
+def _count_label(labels, label):  # pragma: no cover (compiled)
+    """Number of ``labels`` equal to ``label`` (a branch-free loop LLVM vectorises)."""
+    n = 0
+    for i in range(labels.shape[0]):
+        n += labels[i] == label
+    return n
+
+
+@njit(cache=True)
 def _split_labelled(points, labels, label, n_label, stride, n_other):  # pragma: no cover (compiled)
-    """``(points[labels == label], points[labels != label][::stride])`` in one pass;
-    ``n_label``, ``n_other``: the two row counts (``n_other`` after the stride)."""
+    """``(points[labels == label], points[labels != label][::stride], every coordinate finite)``
+    in one pass over the cloud; ``n_label``, ``n_other``: the two row counts (``n_other``
+    after the stride)."""
     first = np.empty((n_label, 3))
     other = np.empty((n_other, 3))
     skip = 0
     j = 0
     k = 0
+    bad = False
     for i in range(labels.shape[0]):
+        x0 = points[i, 0]
+        x1 = points[i, 1]
+        x2 = points[i, 2]
+        bad |= ((x0 - x0) + (x1 - x1) + (x2 - x2)) != 0.0  # NaN only from a NaN or an inf
         if labels[i] == label:
             if j < n_label:
-                first[j, 0] = points[i, 0]
-                first[j, 1] = points[i, 1]
-                first[j, 2] = points[i, 2]
+                first[j, 0] = x0
+                first[j, 1] = x1
+                first[j, 2] = x2
             j += 1
         elif skip == 0:
             if k < n_other:
-                other[k, 0] = points[i, 0]
-                other[k, 1] = points[i, 1]
-                other[k, 2] = points[i, 2]
+                other[k, 0] = x0
+                other[k, 1] = x1
+                other[k, 2] = x2
             k += 1
             skip = stride - 1
         else:
             skip -= 1
     if j != n_label or k != n_other:
         raise ValueError("_split_labelled: the row counts do not match the labels")
-    return first, other
+    return first, other, not bad
 
 
 def _compiled_cloud(points: np.ndarray, labels: np.ndarray) -> bool:
@@ -622,8 +637,8 @@ class HarvestController:
     # ------------------------------------------------------------------ perception
 
     def _perceive(self, cloud: PointCloud, T_g: np.ndarray) -> None:
-        # Speed (per camera frame): compiled loops count the stem rows and check the cloud's
-        # finiteness (_scan_cloud), then gather the stem rows and only the non-stem rows the
+        # Speed (per camera frame): compiled loops count the stem rows (_count_label), then
+        # check the cloud's finiteness and gather the stem rows and only the non-stem rows the
         # unveiling law keeps (every k-th) in one pass (_split_labelled); all non-stem rows
         # are gathered lazily where the switch or the predicted mode needs them, the obstacle
         # rows only at the switch (numpy's masks and row gathers: 0.8 ms at 848x480, these
@@ -635,27 +650,30 @@ class HarvestController:
         points = cloud.points
         unveiling = self.unveiling
         compiled = _compiled_cloud(points, labels)
-        if compiled:
-            n_stem, finite = _scan_cloud(points, labels, STEM)
-        else:
-            n_stem, finite = int(np.count_nonzero(labels == STEM)), bool(np.isfinite(points).all())
+        n_stem = _count_label(labels, STEM) if compiled else int(np.count_nonzero(labels == STEM))
         n_non_stem = int(points.shape[0]) - n_stem
         non_stem = _LabelRows(points, labels, STEM, equal=False, n_match=n_non_stem)
         # The non-stem rows the unveiling law's paper mode uses (every k-th), gathered with
-        # the stem rows in one pass; None where the paper mode cannot run on this frame (no
-        # stem, the unveiling law off, or fewer than min_stem_points stem points with a
-        # predicted stem: its next-best-view step reads every non-stem row).
+        # the stem rows in the pass that checks the cloud's finiteness; None where the paper
+        # mode cannot run on this frame (no stem, the unveiling law off, or fewer than
+        # min_stem_points stem points with a predicted stem: its next-best-view step reads
+        # every non-stem row).
         predicted_mode = s["unveiling"]["predicted_stem"] and n_stem < unveiling.min_stem_points
         thinned = None
-        if compiled and finite and n_stem > 0 and s["unveiling"]["enabled"] and not predicted_mode:
+        if compiled and n_stem > 0 and s["unveiling"]["enabled"] and not predicted_mode:
             stride = unveiling.obstacle_stride(n_non_stem)
-            stem, thinned = _split_labelled(points, labels, STEM, n_stem, stride, len(range(0, n_non_stem, stride)))
-            if stride == 1:
+            stem, thinned, finite = _split_labelled(points, labels, STEM, n_stem, stride,
+                                                    len(range(0, n_non_stem, stride)))
+            if not finite:
+                thinned = None
+            elif stride == 1:
                 non_stem = _LabelRows(points, labels, STEM, equal=False, n_match=n_non_stem, rows=thinned)
         elif compiled:
+            finite = _scan_cloud(points, labels, STEM)[1]
             stem = _gather_labelled(points, labels, STEM, True, 1, n_stem)
         else:
             stem = _rows(points, labels == STEM)
+            finite = bool(np.isfinite(points).all())
         approach = st.phase == Phase.APPROACH
         spheres = self.collision is not None and s["obstacles"]["enabled"]
         obstacles = _LabelRows(points, labels, OBSTACLE) if approach or spheres else None

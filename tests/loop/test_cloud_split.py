@@ -21,6 +21,7 @@ from harvest_qp.loop.controller import (
     _gather_labelled,
     _LabelRows,
     _labelled_rows,
+    _count_label,
     _scan_cloud,
     _split_labelled,
 )
@@ -69,7 +70,8 @@ def test_split_equals_boolean_indexing(n):
     is_stem = labels == STEM
     for stride in (1, 2, 7):
         n_other = len(range(0, int((~is_stem).sum()), stride))
-        stem, other = _split_labelled(points, labels, STEM, int(is_stem.sum()), stride, n_other)
+        stem, other, finite = _split_labelled(points, labels, STEM, int(is_stem.sum()), stride, n_other)
+        assert finite and _count_label(labels, STEM) == int(is_stem.sum())
         assert _bits(stem) == _bits(points[is_stem]) and stem.shape == (int(is_stem.sum()), 3)
         assert _bits(other) == _bits(points[~is_stem][::stride]) and other.shape == (n_other, 3)
     if n:
@@ -99,6 +101,10 @@ def test_scan_finds_every_non_finite_coordinate(bad, where):
     n_stem, finite = _scan_cloud(points, labels, STEM)
     assert finite == bool(np.isfinite(points).all()) is False
     assert n_stem == int(np.count_nonzero(labels == STEM))
+    n_other = int(np.count_nonzero(labels != STEM))
+    for stride in (1, 3):  # the split checks every row, also those it does not gather
+        *_, finite = _split_labelled(points, labels, STEM, n_stem, stride, len(range(0, n_other, stride)))
+        assert finite is False
 
 
 def test_label_rows_gather_once_on_first_use():
@@ -173,3 +179,21 @@ def test_gather_with_a_wrong_count_raises_instead_of_writing_past_the_end():
     for count in (3, 11):
         with pytest.raises(ValueError, match="row count"):
             _gather_labelled(points, labels, STEM, True, 1, count)
+
+
+def test_a_nan_in_a_row_the_thinned_law_skips_still_raises():
+    """Paper mode with thinning (stride 5): a NaN in a non-stem row the law does not use
+    still raises the package's error naming the obstacle points, as the checked observe of
+    the whole cloud did. Catches: the finiteness checked on the gathered rows only."""
+    from harvest_qp.exceptions import InvalidInputError
+
+    c = HarvestController(check_settings({}))
+    c.unveiling.max_obstacle_points = 100
+    rng = np.random.default_rng(31)
+    n_stem, n_other = 40, 500
+    points = np.vstack((rng.normal(size=(n_stem, 3)), rng.normal(size=(n_other, 3))))
+    labels = np.array([STEM] * n_stem + [OBSTACLE] * n_other, dtype=np.int8)
+    points[n_stem + 1, 2] = np.nan  # the second non-stem row: not in [::5]
+    c.reaching.reset(np.zeros(3))
+    with pytest.raises(InvalidInputError, match="obstacle_points"):
+        c._perceive(_cloud(points, labels, np.array([0.6, 0.0, 0.4]), 0.1), np.eye(4))
