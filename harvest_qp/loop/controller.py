@@ -219,34 +219,6 @@ _ZEROS6.setflags(write=False)
 _ROW = np.dtype((np.void, 24))
 
 
-class _LazyRows:
-    """The rows of ``points`` [m] where ``mask`` is true, gathered (``_rows``) on first use.
-
-    Supports ``.shape`` and slicing (``rows[::1]``: all of them). The frame's obstacle rows
-    are only needed at the switch: gathering them on every 848x480 approach frame cost ~0.3 ms.
-    (Gathering only a law's every k-th row through np.flatnonzero cost as much as all rows.)
-    """
-
-    __slots__ = ("_points", "_mask", "_all")
-
-    def __init__(self, points: np.ndarray, mask: np.ndarray) -> None:
-        self._points = points
-        self._mask = mask
-        self._all: np.ndarray | None = None
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self[::1].shape
-
-    def __len__(self) -> int:
-        return len(self[::1])
-
-    def __getitem__(self, key) -> np.ndarray:
-        if self._all is None:
-            self._all = _rows(self._points, self._mask)
-        return self._all[key]
-
-
 def _rows(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``points[mask]`` for ``(n, 3)`` points and a boolean ``(n,)`` mask, as a new array.
 
@@ -373,8 +345,9 @@ def _labelled_rows(points: np.ndarray, labels: np.ndarray, label: int, *, equal:
 class _LabelRows:
     """The rows of ``points`` [m] labelled (``equal``) / not labelled ``label``, gathered on first use.
 
-    Like :class:`_LazyRows`, without computing a mask per frame: the frame's obstacle rows
-    (and, when the unveiling law thins them, its full non-stem rows) are only needed at the switch.
+    Supports ``.shape`` and slicing (``rows[::1]``: all of them). No mask is computed per
+    frame: the frame's obstacle rows (and, when the unveiling law thins them, its full
+    non-stem rows) are only needed at the switch (~0.3 ms each per 848x480 frame otherwise).
     """
 
     __slots__ = ("_points", "_labels", "_label", "_equal", "_n_match", "_all")

@@ -18,10 +18,10 @@ from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.loop.controller import (
     HarvestController,
     Phase,
-    _gather_labelled,
-    _LabelRows,
-    _labelled_rows,
     _count_label,
+    _gather_labelled,
+    _labelled_rows,
+    _LabelRows,
     _scan_cloud,
     _split_labelled,
 )
