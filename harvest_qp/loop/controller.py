@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
+from numba import njit
 
 from harvest_qp.baseline import PseudoInverseMapper
 from harvest_qp.config import _build_limit
@@ -116,19 +117,23 @@ class SwitchSnapshot:
 class _Frame:
     """Perception of one frame during the approach.
 
-    ``obstacles`` (``(n, 3)`` [m]) are gathered from the cloud on first use: only the frame at
-    the switch needs them (~0.3 ms per 848x480 frame otherwise).
+    ``obstacles`` and ``non_stem`` (``(n, 3)`` [m]) are gathered from the cloud on first use:
+    only the frame at the switch needs them (~0.3 ms per 848x480 frame otherwise).
     """
 
     def __init__(self, time: float, camera_position: np.ndarray, camera_pose: np.ndarray, stem: np.ndarray,
-                 non_stem: np.ndarray, obstacles: _LazyRows, fit: Any = None) -> None:
+                 non_stem: _LabelRows, obstacles: _LabelRows, fit: Any = None) -> None:
         self.time = time
         self.camera_position = camera_position
         self.camera_pose = camera_pose
         self.stem = stem
-        self.non_stem = non_stem
+        self._non_stem = non_stem
         self._obstacles = obstacles
         self.fit = fit
+
+    @property
+    def non_stem(self) -> np.ndarray:
+        return self._non_stem[::1]
 
     @property
     def obstacles(self) -> np.ndarray:
@@ -214,34 +219,6 @@ _ZEROS6.setflags(write=False)
 _ROW = np.dtype((np.void, 24))
 
 
-class _LazyRows:
-    """The rows of ``points`` [m] where ``mask`` is true, gathered (``_rows``) on first use.
-
-    Supports ``.shape`` and slicing (``rows[::1]``: all of them). The frame's obstacle rows
-    are only needed at the switch: gathering them on every 848x480 approach frame cost ~0.3 ms.
-    (Gathering only a law's every k-th row through np.flatnonzero cost as much as all rows.)
-    """
-
-    __slots__ = ("_points", "_mask", "_all")
-
-    def __init__(self, points: np.ndarray, mask: np.ndarray) -> None:
-        self._points = points
-        self._mask = mask
-        self._all: np.ndarray | None = None
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self[::1].shape
-
-    def __len__(self) -> int:
-        return len(self[::1])
-
-    def __getitem__(self, key) -> np.ndarray:
-        if self._all is None:
-            self._all = _rows(self._points, self._mask)
-        return self._all[key]
-
-
 def _rows(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``points[mask]`` for ``(n, 3)`` points and a boolean ``(n,)`` mask, as a new array.
 
@@ -252,6 +229,150 @@ def _rows(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
     if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 and points.flags.c_contiguous:
         return points.view(_ROW).reshape(-1)[mask].view(np.float64).reshape(-1, 3)
     return points[mask]
+
+
+@njit(cache=True)
+def _scan_cloud(points, labels, stem_label):  # pragma: no cover (compiled)
+    """(number of rows labelled ``stem_label``, whether every coordinate is finite).
+
+    Two branch-free loops that LLVM vectorises: the label count, and ``x - x != 0`` (true
+    for NaN and +-inf only) OR-ed over the flat coordinates."""
+    n_stem = 0
+    for i in range(labels.shape[0]):
+        n_stem += labels[i] == stem_label
+    flat = points.reshape(-1)
+    bad = False
+    for i in range(flat.shape[0]):
+        x = flat[i]
+        bad |= (x - x) != 0.0
+    return n_stem, not bad
+
+
+@njit(cache=True)
+def _gather_labelled(points, labels, label, equal, stride, count):  # pragma: no cover (compiled)
+    """Every ``stride``-th row of ``points`` whose label is (``equal``) / is not (not ``equal``)
+    ``label``, in order: ``points[labels == label][::stride]``; ``count`` is that number of rows."""
+    out = np.empty((count, 3))
+    skip = 0  # matching rows left to pass over before the next one taken
+    k = 0
+    for i in range(labels.shape[0]):
+        if (labels[i] == label) == equal:
+            if skip == 0:
+                if k < count:  # never past the end, whatever the caller's count
+                    out[k, 0] = points[i, 0]
+                    out[k, 1] = points[i, 1]
+                    out[k, 2] = points[i, 2]
+                k += 1
+                skip = stride - 1
+            else:
+                skip -= 1
+    if k != count:
+        raise ValueError("_gather_labelled: the row count does not match the labels")
+    return out
+
+
+@njit(cache=True)
+def _count_label(labels, label):  # pragma: no cover (compiled)
+    """Number of ``labels`` equal to ``label`` (a branch-free loop LLVM vectorises)."""
+    n = 0
+    for i in range(labels.shape[0]):
+        n += labels[i] == label
+    return n
+
+
+@njit(cache=True)
+def _split_labelled(points, labels, label, n_label, stride, n_other):  # pragma: no cover (compiled)
+    """``(points[labels == label], points[labels != label][::stride], every coordinate finite)``
+    in one pass over the cloud; ``n_label``, ``n_other``: the two row counts (``n_other``
+    after the stride)."""
+    first = np.empty((n_label, 3))
+    other = np.empty((n_other, 3))
+    skip = 0
+    j = 0
+    k = 0
+    bad = False
+    for i in range(labels.shape[0]):
+        x0 = points[i, 0]
+        x1 = points[i, 1]
+        x2 = points[i, 2]
+        bad |= ((x0 - x0) + (x1 - x1) + (x2 - x2)) != 0.0  # NaN only from a NaN or an inf
+        if labels[i] == label:
+            if j < n_label:
+                first[j, 0] = x0
+                first[j, 1] = x1
+                first[j, 2] = x2
+            j += 1
+        elif skip == 0:
+            if k < n_other:
+                other[k, 0] = x0
+                other[k, 1] = x1
+                other[k, 2] = x2
+            k += 1
+            skip = stride - 1
+        else:
+            skip -= 1
+    if j != n_label or k != n_other:
+        raise ValueError("_split_labelled: the row counts do not match the labels")
+    return first, other, not bad
+
+
+def _compiled_cloud(points: np.ndarray, labels: np.ndarray) -> bool:
+    """Whether the compiled split (:func:`_scan_cloud`, :func:`_gather_labelled`) takes this cloud."""
+    return (points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 and points.flags.c_contiguous
+            and labels.dtype == np.int8
+            and labels.ndim == 1 and labels.shape[0] == points.shape[0])
+
+
+def _labelled_rows(points: np.ndarray, labels: np.ndarray, label: int, *, equal: bool = True, stride: int = 1,
+                   n_match: int | None = None) -> np.ndarray:
+    """``points[(labels == label) if equal else (labels != label)][::stride]`` as a new ``(m, 3)`` array.
+
+    One compiled pass for a float64 cloud with int8 labels (numpy needs the mask, its
+    negation and a row gather: ~0.5 ms for the ~190k non-stem rows of an 848x480 frame, and
+    a thinned law then still gathered all of them); the same bytes as numpy's
+    (tests/loop/test_fast_paths.py). ``n_match``: the number of matching rows if known."""
+    if not _compiled_cloud(points, labels):
+        mask = labels == label if equal else labels != label
+        return _rows(points, mask)[::stride]
+    if n_match is None:
+        n_match = int(np.count_nonzero(labels == label))
+        if not equal:
+            n_match = points.shape[0] - n_match
+    count = len(range(0, n_match, stride))
+    return _gather_labelled(points, labels, label, equal, stride, count)
+
+
+class _LabelRows:
+    """The rows of ``points`` [m] labelled (``equal``) / not labelled ``label``, gathered on first use.
+
+    Supports ``.shape`` and slicing (``rows[::1]``: all of them). No mask is computed per
+    frame: the frame's obstacle rows (and, when the unveiling law thins them, its full
+    non-stem rows) are only needed at the switch (~0.3 ms each per 848x480 frame otherwise).
+    """
+
+    __slots__ = ("_points", "_labels", "_label", "_equal", "_n_match", "_all")
+
+    def __init__(self, points: np.ndarray, labels: np.ndarray, label: int, *, equal: bool = True,
+                 n_match: int | None = None, rows: np.ndarray | None = None) -> None:
+        self._points = points
+        self._labels = labels
+        self._label = label
+        self._equal = equal
+        self._n_match = n_match
+        self._all = rows
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self[::1].shape
+
+    def __len__(self) -> int:
+        return len(self[::1])
+
+    def __getitem__(self, key) -> np.ndarray:
+        if self._all is None:
+            self._all = _labelled_rows(self._points, self._labels, self._label, equal=self._equal,
+                                       n_match=self._n_match)
+        return self._all[key]
 
 
 def _first_in_each_voxel(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -279,8 +400,10 @@ def _pose_matrix(pose: pin.SE3) -> np.ndarray:
 
 def _wrap_half_turn(angle: float) -> float:
     """An angle between two undirected lines, in [-pi/2, pi/2]."""
-    angle = (angle + np.pi / 2) % np.pi - np.pi / 2
-    return float(angle)
+    # On Python floats: the same IEEE operations as on numpy's float64 scalars (numpy's and
+    # Python's floor remainder are both fmod then one correction towards the divisor's sign).
+    angle = float(angle)
+    return (angle + math.pi / 2) % math.pi - math.pi / 2
 
 
 class HarvestController:
@@ -353,6 +476,8 @@ class HarvestController:
         self.target_choice: str | None = None
         self.state = _State()
         self.dt = 0.002
+        self._force_fraction_key: tuple[float, float] | None = None
+        self._force_fraction = np.float64(0.0)
         self.snapshots: dict[str, FrameSnapshot] = {}
         self.switch_snapshot: SwitchSnapshot | None = None
         #: Set to a dict to collect wall-clock times [s] per tick: "perception" (per new
@@ -485,36 +610,64 @@ class HarvestController:
     # ------------------------------------------------------------------ perception
 
     def _perceive(self, cloud: PointCloud, T_g: np.ndarray) -> None:
-        # Speed (per camera frame): each label mask is computed once and the rows are gathered
-        # through a 24-byte record view (_rows: ~8x cheaper than points[mask] on (n, 3) float64);
-        # the cloud's finiteness is checked once, then the unveiling law gets the split points
-        # unchecked (its public observe() checks the same points again, ~0.3 ms at 848x480).
+        # Speed (per camera frame): compiled loops count the stem rows (_count_label), then
+        # check the cloud's finiteness and gather the stem rows and only the non-stem rows the
+        # unveiling law keeps (every k-th) in one pass (_split_labelled); all non-stem rows
+        # are gathered lazily where the switch or the predicted mode needs them, the obstacle
+        # rows only at the switch (numpy's masks and row gathers: 0.8 ms at 848x480, these
+        # 0.4 ms). The unveiling law then gets the split points unchecked (its public
+        # observe() checks the same points again, ~0.3 ms at 848x480). The same bytes as
+        # numpy's boolean indexing (tests/loop/test_fast_paths.py).
         st, s = self.state, self.settings
         labels = cloud.labels
         points = cloud.points
-        is_stem = labels == STEM
-        stem = _rows(points, is_stem)
-        non_stem = _rows(points, ~is_stem)
+        unveiling = self.unveiling
+        compiled = _compiled_cloud(points, labels)
+        n_stem = _count_label(labels, STEM) if compiled else int(np.count_nonzero(labels == STEM))
+        n_non_stem = int(points.shape[0]) - n_stem
+        non_stem = _LabelRows(points, labels, STEM, equal=False, n_match=n_non_stem)
+        # The non-stem rows the unveiling law's paper mode uses (every k-th), gathered with
+        # the stem rows in the pass that checks the cloud's finiteness; None where the paper
+        # mode cannot run on this frame (no stem, the unveiling law off, or fewer than
+        # min_stem_points stem points with a predicted stem: its next-best-view step reads
+        # every non-stem row).
+        predicted_mode = s["unveiling"]["predicted_stem"] and n_stem < unveiling.min_stem_points
+        thinned = None
+        if compiled and n_stem > 0 and s["unveiling"]["enabled"] and not predicted_mode:
+            stride = unveiling.obstacle_stride(n_non_stem)
+            stem, thinned, finite = _split_labelled(points, labels, STEM, n_stem, stride,
+                                                    len(range(0, n_non_stem, stride)))
+            if not finite:
+                thinned = None
+            elif stride == 1:
+                non_stem = _LabelRows(points, labels, STEM, equal=False, n_match=n_non_stem, rows=thinned)
+        elif compiled:
+            finite = _scan_cloud(points, labels, STEM)[1]
+            stem = _gather_labelled(points, labels, STEM, True, 1, n_stem)
+        else:
+            stem = _rows(points, labels == STEM)
+            finite = bool(np.isfinite(points).all())
         approach = st.phase == Phase.APPROACH
         spheres = self.collision is not None and s["obstacles"]["enabled"]
-        obstacles = _LazyRows(points, labels == OBSTACLE) if approach or spheres else None
-        st.n_stem = int(stem.shape[0])
-        if st.n_stem > 0:
+        obstacles = _LabelRows(points, labels, OBSTACLE) if approach or spheres else None
+        st.n_stem = n_stem
+        if n_stem > 0:
             st.last_stem_time = cloud.timestamp
         p_c = cloud.camera_position
         snap = FrameSnapshot(cloud.timestamp, cloud.pixels, labels, cloud.image_size, cloud.depth)
         self.snapshots.setdefault("start", snap)
         self.snapshots["end"] = snap
         if s["unveiling"]["enabled"]:
-            predicted = None
-            if s["unveiling"]["predicted_stem"]:
-                predicted = self._predicted_stem(T_g)
-            if np.isfinite(points).all():
-                self.unveiling._observe_points(p_c, stem, non_stem, predicted_stem_points=predicted,
-                                               roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
+            # Only the predicted mode reads the predicted stem (the law ignores it once
+            # min_stem_points stem points are seen): not computed on the other frames.
+            predicted = self._predicted_stem(T_g) if predicted_mode else None
+            if finite:
+                unveiling._observe_points(p_c, stem, non_stem, predicted_stem_points=predicted,
+                                          roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp,
+                                          thinned_obstacles=thinned)
             else:  # the checked call raises the package's error naming the bad points
-                self.unveiling.observe(p_c, stem, non_stem, predicted_stem_points=predicted,
-                                       roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
+                unveiling.observe(p_c, stem, non_stem[::1], predicted_stem_points=predicted,
+                                  roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
         if spheres:
             self._update_obstacle_spheres(obstacles[::1], T_g)
         if not approach:
@@ -964,7 +1117,7 @@ class HarvestController:
                     if st.force_filtered is None or tau == 0:
                         st.force_filtered = force_nc
                     else:
-                        st.force_filtered += (-np.expm1(-dt / tau)) * (force_nc - st.force_filtered)
+                        st.force_filtered += self._force_filter_fraction(dt, tau) * (force_nc - st.force_filtered)
                     self._check_precut(t, st.force_filtered)
             V_c = np.array(V)
             roll, roll_angle = self._roll_reference(T_c, direction)
@@ -1024,12 +1177,22 @@ class HarvestController:
             done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
         return Command(qdot=qdot, status=status, values=values, collision_pairs=self._active_pairs(), done=done)
 
+    def _force_filter_fraction(self, dt: float, tau: float) -> np.float64:
+        """-expm1(-dt / tau), the pre-cut force filter's step fraction: numpy's expm1 (as
+        before; libm's may differ in the last bit), computed once per (dt, tau)."""
+        key = (dt, tau)
+        if self._force_fraction_key != key:
+            self._force_fraction_key = key
+            self._force_fraction = -np.expm1(-dt / tau)
+        return self._force_fraction
+
     def _check_precut(self, t: float, force_nc: float) -> None:
         st, p, g = self.state, self.settings["precut"], self.settings["grasping"]
         within = (
             abs(force_nc - g["f_d"]) <= p["force_tolerance"] * g["f_d"]
             and self.stretching.position_error <= p["position_tolerance"]
-            and np.degrees(self.stretching.alignment) <= p["alignment_tolerance_deg"]
+            # math.degrees: x * (180 / pi), the same product as np.degrees (tests/loop/test_tick_paths.py).
+            and math.degrees(self.stretching.alignment) <= p["alignment_tolerance_deg"]
         )
         if not within:
             st.precut_since = None
@@ -1055,29 +1218,35 @@ class HarvestController:
         if roi_distance is None:
             offset = reaching.roi_centre - T_c[:3, 3]
             roi_distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
-        values["phase"] = float(st.phase)
-        values["p_r"] = reaching.roi_centre
-        values["p_c"] = T_c[:3, 3]
-        values["z_c"] = T_c[:3, 2]
-        values["x_c"] = T_c[:3, 0]
-        values["p_sb"] = st.p_sb if st.p_sb is not None else _NAN3
-        values["p_gd"] = st.p_gd if st.p_gd is not None else _NAN3
-        values["n_c"] = stretching.n_c if bimanual else _NAN3
-        values["V_c"] = V_c
-        values["V_g"] = V_g
-        values["force_nc"] = force_nc
-        values["theta"] = reaching.theta
-        values["roi_distance"] = roi_distance
-        values["position_error"] = stretching.position_error if bimanual else float("nan")
-        values["alignment"] = stretching.alignment if bimanual else float("nan")
-        values["unveiling_pairs"] = float(self.unveiling.n_pairs)
+        nan = math.nan
+        # One dict display merged in (the same keys in the same order as item by item).
+        values.update({
+            "phase": float(st.phase),
+            "p_r": reaching.roi_centre,
+            "p_c": T_c[:3, 3],
+            "z_c": T_c[:3, 2],
+            "x_c": T_c[:3, 0],
+            "p_sb": st.p_sb if st.p_sb is not None else _NAN3,
+            "p_gd": st.p_gd if st.p_gd is not None else _NAN3,
+            "n_c": stretching.n_c if bimanual else _NAN3,
+            "V_c": V_c,
+            "V_g": V_g,
+            "force_nc": force_nc,
+            "theta": reaching.theta,
+            "roi_distance": roi_distance,
+            "position_error": stretching.position_error if bimanual else nan,
+            "alignment": stretching.alignment if bimanual else nan,
+            "unveiling_pairs": float(self.unveiling.n_pairs),
+        })
         return values
 
     def _active_pairs(self) -> list[tuple[str, str, float]]:
         lim = self.collision
         if lim is None or self.mapper_kind != "qp":
             return []
-        active = np.asarray(getattr(lim, "active_pairs", ()), dtype=np.int64)
+        active = getattr(lim, "active_pairs", ())
+        if type(active) is not np.ndarray or active.dtype != np.int64:
+            active = np.asarray(active, dtype=np.int64)
         if active.size == 0:
             return []
         names = lim.capsule_names

@@ -44,6 +44,8 @@ def cross_rows(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.flo
 
 def as_position(value: ArrayLike, name: str) -> NDArray[np.float64]:
     """A finite ``(3,)`` float64 vector [m]; a scalar is an error (never meant for a position)."""
+    if type(value) is np.ndarray and value.shape == (3,):
+        return as_vector(value, 3, name)  # not a scalar: np.ndim's dispatch skipped (per tick)
     if np.ndim(value) == 0:
         raise InvalidInputError(f"{name} must have shape (3,), got the scalar {value!r}")
     return as_vector(value, 3, name)

@@ -488,10 +488,16 @@ class Unveiling:
         predicted_stem_points: ArrayLike | None = None,
         roi_centre: ArrayLike | None = None,
         timestamp: float | None = None,
+        thinned_obstacles: NDArray[np.float64] | None = None,
     ) -> None:
         """:meth:`observe` on ``stem`` and ``obstacles`` already known to be finite float64
         ``(n, 3)`` arrays (the control loop checks its whole cloud once); the few small
-        arguments are still checked."""
+        arguments are still checked.
+
+        ``obstacles`` may also be a lazy row source (``.shape`` and ``[::k]`` slicing give
+        arrays): the control loop gathers the whole non-stem cloud only when it is used.
+        ``thinned_obstacles``: ``obstacles[::obstacle_stride(n_O)]`` if the caller already
+        gathered it (the paper mode uses only those rows)."""
         camera = as_position(camera_position, "camera_position")
         predicted = None if predicted_stem_points is None else as_points(predicted_stem_points, "predicted_stem_points")
         self._time = self._time + self.frame_period if timestamp is None else float(timestamp)
@@ -502,6 +508,8 @@ class Unveiling:
             self.mode = "predicted"
             self.n_pairs = 0
             self._last_plan = self._time
+            if not isinstance(obstacles, np.ndarray):
+                obstacles = obstacles[::1]
             twist = self.next_best_view.step(camera, predicted, obstacles, centre, self._time)
             self.raw = saturate_twist(twist, self.max_linear, self.max_angular)
             return
@@ -515,8 +523,12 @@ class Unveiling:
         # it while the cost stays about that of a 283x160 frame (see max_stem_points).
         if self.max_stem_points is not None and stem.shape[0] > self.max_stem_points:
             stem = stem[:: -(-stem.shape[0] // self.max_stem_points)]
-        if self.max_obstacle_points is not None and obstacles.shape[0] > self.max_obstacle_points:
-            obstacles = obstacles[:: -(-obstacles.shape[0] // self.max_obstacle_points)]
+        if thinned_obstacles is not None:
+            obstacles = thinned_obstacles
+        else:
+            stride = self.obstacle_stride(obstacles.shape[0])
+            if stride > 1 or not isinstance(obstacles, np.ndarray):
+                obstacles = obstacles[::stride]
         pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=self.d_a, d_o=self.d_o)
         self.mode = "paper"
         # The pair weights once, for the count and the law (bounded_unveiling_velocity with its
@@ -525,6 +537,13 @@ class Unveiling:
         self.n_pairs = int(np.count_nonzero(weight))
         twist = _unveiling_velocity_from_weights(pairs, weight, self.k_c)
         self.raw = saturate_twist(twist, self.max_linear, self.max_angular)
+
+    def obstacle_stride(self, n_obstacles: int) -> int:
+        """The stride k the paper mode thins ``n_obstacles`` non-stem points with (it uses
+        ``obstacles[::k]``; 1 when ``max_obstacle_points`` is None or not exceeded)."""
+        if self.max_obstacle_points is not None and n_obstacles > self.max_obstacle_points:
+            return -(-n_obstacles // self.max_obstacle_points)
+        return 1
 
     # ------------------------------------------------------------ per tick
 

@@ -1,12 +1,12 @@
 """HarvestController's per-tick and per-frame fast paths equal the numpy formulas they replace, bit for bit.
 
 The controller computes its references on Python floats (``_camera_twist``, ``_hold_twist``,
-``_roll_reference``, ``_camera_speeds``), splits the cloud through a record view (``_rows``)
-and lists the active collision pairs column-wise (``_active_pairs``). Oracles: the reference
-laws' checked public methods, the numpy expressions of the previous implementation (written
-out here), numpy's boolean indexing, and the collision limit's own
-``active_pair_distances``. Exact equality is asserted: the closed loop's results must not
-move by a bit (``/work/notes/compare_golden.py``).
+``_roll_reference``, ``_camera_speeds``), splits a cloud the compiled split does not take
+through a record view (``_rows``) and lists the active collision pairs column-wise
+(``_active_pairs``). Oracles: the reference laws' checked public methods, the numpy
+expressions of the previous implementation (written out here), numpy's boolean indexing, and
+the collision limit's own ``active_pair_distances``. Exact equality is asserted: the closed
+loop's results must not move by a bit (``/work/notes/compare_golden.py``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
-from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _LazyRows, _rows, _wrap_half_turn
+from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
 from harvest_qp.loop.settings import check_settings
 
 
@@ -183,19 +183,6 @@ def test_rows_equal_boolean_indexing():
         assert got.dtype == p.dtype and got.shape == (int(m.sum()), 3)
         np.testing.assert_array_equal(got, p[m])
     assert _rows(points, np.zeros(1001, bool)).shape == (0, 3)
-
-
-def test_lazy_rows_equal_boolean_indexing():
-    """``_LazyRows(points, mask)`` gathers ``points[mask]`` once, on first use. Catches: rows
-    gathered with a stale or inverted mask."""
-    rng = np.random.default_rng(18)
-    points = rng.normal(size=(2003, 3))
-    mask = rng.random(2003) < 0.6
-    rows = _LazyRows(points, mask)
-    assert rows._all is None
-    assert rows.shape == (int(mask.sum()), 3) and len(rows) == int(mask.sum())
-    for k in (5, 1):
-        np.testing.assert_array_equal(rows[::k], points[mask][::k])
 
 
 def test_active_pairs_equal_the_limits_own_listing(controller):
