@@ -288,11 +288,9 @@ def ray_obstacle_pairs(
         candidates, offsets = _candidate_obstacles(rays, ray_directions, obstacles, camera, slack_reach)
     else:
         candidates, offsets = np.zeros(0, dtype=np.intp), np.zeros((0, 3))
-    offsets_t = np.ascontiguousarray(offsets.T)  # p_co_k as columns
     squared_offsets = np.einsum("ij,ij->i", offsets, offsets)
     slant = _slant(squared_offsets, slack_reach)
     near_camera = squared_offsets < slack_reach * slack_reach
-    rays_t = np.ascontiguousarray(rays.T)
 
     if _COMPILED_BLOCKS and candidates.size:
         order, cuts = _ray_bundle_order(ray_directions, _BUNDLE_SIZE)
@@ -304,6 +302,8 @@ def ray_obstacle_pairs(
         obstacle_index = np.take(candidates, local)
         return _pairs_result(stem_index, obstacle_index, s, distance, away, stem, obstacles, camera, d_a, d_o,
                              candidates.size)  # fmt: skip
+    offsets_t = np.ascontiguousarray(offsets.T)  # p_co_k as columns
+    rays_t = np.ascontiguousarray(rays.T)
     parts: dict[str, list[NDArray]] = {name: [] for name in ("ray", "obstacle", "s", "nearest", "away", "distance")}
     bundles = _ray_bundles(ray_directions, _BUNDLE_SIZE) if candidates.size else []
     for bundle in bundles:

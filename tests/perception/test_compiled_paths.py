@@ -257,3 +257,85 @@ def test_compiled_ray_blocks_give_the_numpy_blocks_pairs_in_the_same_order(seed,
         assert np.array_equal(getattr(compiled, name), getattr(expected, name)), name
     for name in ("surface_distance", "segment_parameter", "away_directions"):
         np.testing.assert_allclose(getattr(compiled, name), getattr(expected, name), rtol=0, atol=1e-15)
+
+
+def _rows_with_ties(rng, n):
+    """Rows repeated, some changed by one ulp, by the sign of a zero, or sharing a coordinate."""
+    base = rng.normal(size=(n, 3))
+    base[::3, 0] = base[0, 0]  # runs of equal x, sorted by (y, z) within
+    rows = base[rng.integers(0, n, 3 * n)].copy()
+    rows[::5, 1] = np.nextafter(rows[::5, 1], np.inf)
+    rows[::7, 2] = base[0, 2]
+    rows[::11, 0] = 0.0
+    rows[::13, 0] = -0.0
+    rows[::4, 1] = 0.0
+    rows[::6, 1] = -0.0
+    rows[::9, 2] = -0.0
+    rows[::10, 2] = 0.0
+    return rows
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_distinct_rows_are_the_lexsort_rows_bit_for_bit(seed):
+    """The compiled distinct rows are those of the numpy column lexsort (``_distinct_rows_numpy``,
+    itself checked against ``np.unique(axis=0)``), in the same order and with the same bits,
+    including which of 0.0 / -0.0 is kept (the first in input order, lexsort being stable).
+    Catches an unstable sort within runs of equal x (the other zero kept) or runs sorted by
+    z before y."""
+    from harvest_qp.perception import _stem_kernels
+    from harvest_qp.perception.stem import _distinct_rows_numpy
+
+    rng = np.random.default_rng(seed)
+    for n in (2, 3, 7, 40, 300):
+        rows = _rows_with_ties(rng, n)
+        expected = _distinct_rows_numpy(rows)
+        got = _stem_kernels.distinct_rows(np.ascontiguousarray(rows))
+        assert got.shape == expected.shape
+        assert got.tobytes() == expected.tobytes()  # bytes: the sign of each zero too
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_compiled_point_spacing_is_the_median_of_ckdtrees_distances_over_unique_rows(seed):
+    """``_point_spacing`` (one compiled call: distinct rows, the nearest-neighbour sweep along the
+    widest axis, the median) equals numpy's median of cKDTree's nearest-neighbour distances
+    over ``np.unique(axis=0)``'s rows, bit for bit, for clouds elongated along x, y or z.
+    Catches a sweep pruned on the wrong axis's gap, a median of an even count taken as one
+    middle value, or duplicates counted."""
+    from scipy.spatial import cKDTree
+
+    from harvest_qp.perception.stem import _point_spacing
+
+    rng = np.random.default_rng(seed)
+    clouds = list(_stem_like_clouds(seed))
+    for axis in range(3):
+        scale = np.full(3, 0.004)
+        scale[axis] = 0.05
+        clouds.append(rng.uniform(-1.0, 1.0, (500, 3)) * scale)
+        clouds.append(np.round(rng.uniform(-1.0, 1.0, (400, 3)) * scale, 3))  # a lattice: ties
+    clouds += [_rows_with_ties(rng, n) for n in (2, 5, 60)]
+    for points in clouds:
+        unique = np.unique(points, axis=0)
+        expected = 0.0 if unique.shape[0] < 2 else float(np.median(cKDTree(unique).query(unique, k=2)[0][:, 1]))
+        assert _point_spacing(points) == expected
+
+
+def test_compiled_ray_blocks_keep_every_pair_when_their_outputs_grow(monkeypatch):
+    """Many more pairs than the compiled kernel's first output size (1,024 or 8 per ray): 12 rays
+    through a dense cloud of 3,000 obstacle points around them (~20,000 pairs), so the outputs
+    are grown several times mid-bundle. The pairs must still be the numpy blocks' pairs, in
+    their order. Catches a growth that drops the pairs already found (outputs not copied) or
+    overruns them."""
+    import harvest_qp.perception.unveiling as unveiling
+
+    rng = np.random.default_rng(7)
+    camera = np.zeros(3)
+    stem = np.column_stack([rng.uniform(-0.005, 0.005, 12), rng.uniform(-0.005, 0.005, 12), np.full(12, 0.4)])
+    obstacles = np.column_stack([rng.uniform(-0.01, 0.01, 3000), rng.uniform(-0.01, 0.01, 3000), rng.uniform(0.0, 0.4, 3000)])
+    compiled = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
+    monkeypatch.setattr(unveiling, "_COMPILED_BLOCKS", False)
+    expected = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
+    assert len(expected) > 8 * 1024
+    for name in ("stem_index", "obstacle_index", "case"):
+        assert np.array_equal(getattr(compiled, name), getattr(expected, name)), name
+    for name in ("surface_distance", "segment_parameter", "away_directions"):
+        np.testing.assert_allclose(getattr(compiled, name), getattr(expected, name), rtol=0, atol=1e-15)
