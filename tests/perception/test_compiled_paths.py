@@ -339,3 +339,75 @@ def test_compiled_ray_blocks_keep_every_pair_when_their_outputs_grow(monkeypatch
         assert np.array_equal(getattr(compiled, name), getattr(expected, name)), name
     for name in ("surface_distance", "segment_parameter", "away_directions"):
         np.testing.assert_allclose(getattr(compiled, name), getattr(expected, name), rtol=0, atol=1e-15)
+
+
+def _random_capsules(rng, n):
+    """``(n, 7)`` capsules around (0.4, 0, 1) [m]: some spheres, radii 5-90 mm, any axis."""
+    a = rng.uniform((0.2, -0.2, 0.8), (0.6, 0.2, 1.2), size=(n, 3))
+    b = a + rng.normal(scale=0.08, size=(n, 3)) * (rng.uniform(size=(n, 1)) < 0.8)
+    return np.column_stack([a, b, rng.uniform(0.005, 0.09, n)])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_cell_region_classes_agree_with_the_exact_point_test(seed):
+    """The map update decides exclusion once per cell where a cell lies wholly inside a region or
+    wholly outside all (``_cell_region_class``); the per-point exact test
+    (``_point_in_boxed_regions``, the oracle) must agree on every point of such a cell,
+    including points at its corners and one ulp inside its faces. Catches a class that ignores
+    the cell's extent (its centre's distance alone) or the widened boxes."""
+    rng = np.random.default_rng(seed)
+    res = 0.01
+    regions = _random_capsules(rng, 3)
+    boxes = K._region_boxes(regions)
+    classes = []
+    for _ in range(600):
+        # Cells near the capsules' surfaces, inside and outside.
+        k = rng.integers(0, regions.shape[0])
+        on_axis = regions[k, :3] + rng.uniform() * (regions[k, 3:6] - regions[k, :3])
+        offset = rng.normal(size=3)
+        near = on_axis + offset / np.linalg.norm(offset) * regions[k, 6] * rng.uniform(0.0, 1.6)
+        key = np.floor(near / res)
+        cls = K._cell_region_class(key[0], key[1], key[2], res, regions, boxes)
+        classes.append(cls)
+        if cls == 2:
+            continue
+        corners = np.array([[i, j, k] for i in (0.0, 1.0) for j in (0.0, 1.0) for k in (0.0, 1.0)])
+        u = np.vstack([rng.uniform(size=(60, 3)), corners, np.nextafter(corners, 0.5)])
+        points = (key + u) * res
+        for p in points:
+            if not np.array_equal(np.floor(p * (1.0 / res)), key):
+                continue  # rounded into the next cell: not this cell's point
+            assert K._point_in_boxed_regions(p[0], p[1], p[2], regions, boxes) == (cls == 1), (key, p, cls)
+    assert classes.count(0) > 20 and classes.count(1) > 5 and classes.count(2) > 5
+
+
+def test_exclusion_counts_every_obstacle_point_in_the_regions():
+    """A cloud thick inside and around exclusion capsules: the update's ``excluded`` count is the
+    number of obstacle points within a capsule by a numpy brute force (segment distance), and
+    no cell is occupied by those points alone. Catches cells classed wholly inside a region
+    whose corner sticks out of it (points outside counted as excluded)."""
+    rng = np.random.default_rng(11)
+    regions = _random_capsules(rng, 2)
+    points = rng.uniform((0.1, -0.3, 0.7), (0.7, 0.3, 1.3), size=(40000, 3))
+    a, d = regions[:, :3], regions[:, 3:6] - regions[:, :3]
+    w = points[:, None, :] - a[None]
+    dd = np.einsum("kj,kj->k", d, d)
+    t = np.clip(np.einsum("nkj,kj->nk", w, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    gap = w - t[..., None] * d[None]
+    inside = (np.einsum("nkj,nkj->nk", gap, gap) <= regions[:, 6] ** 2).any(axis=1)
+    pose = np.eye(4)
+    pose[:3, 3] = (-0.1, 0.0, 1.0)
+    n = points.shape[0]
+    cloud = PointCloud(
+        points=points, labels=np.full(n, OBSTACLE, np.int8), colors=np.zeros((n, 3), np.uint8),
+        camera_pose=pose, timestamp=0.0, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(1, 1),
+    )  # fmt: skip
+    m = ObstacleMap(bounds=((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4)), erase_excluded=False)
+    stats = m.update(cloud, exclude=regions)
+    assert stats.excluded == int(inside.sum()) > 300
+    only_inside = np.setdiff1d(
+        np.unique(np.floor(points[inside] / 0.01), axis=0).view([("", float)] * 3),
+        np.unique(np.floor(points[~inside] / 0.01), axis=0).view([("", float)] * 3),
+    ).view(float).reshape(-1, 3)
+    assert only_inside.shape[0] > 10
+    assert not m.is_occupied((only_inside + 0.5) * 0.01).any()
