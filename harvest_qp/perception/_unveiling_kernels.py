@@ -194,3 +194,47 @@ def bundle_pairs(
             away[1, m] = g1 * inverse
             away[2, m] = g2 * inverse
     return out_ray[:n_out].copy(), out_obstacle[:n_out].copy(), out_s[:n_out].copy(), out_distance[:n_out].copy(), away
+
+
+@njit(cache=True)
+def bundle_order(major, minor, strip_size, max_size):
+    """The integer part of ``unveiling._ray_bundle_order`` (its numpy form is the oracle): the
+    rays sorted (stably) along ``major`` and cut into strips of ``strip_size``, each strip
+    sorted (stably, ties in ray order, as ``np.lexsort((minor, strip))``) along ``minor`` and
+    cut into bundles of at most ``max_size``. Returns ``(order, cuts)``: the rays in bundle
+    order and where each bundle after the first starts."""
+    n = major.shape[0]
+    by_major = np.argsort(major, kind="mergesort")
+    strip = np.empty(n, np.int64)
+    for p in range(n):
+        strip[by_major[p]] = p // strip_size
+    n_strips = (n + strip_size - 1) // strip_size
+    starts = np.zeros(n_strips + 1, np.int64)
+    for i in range(n):
+        starts[strip[i] + 1] += 1
+    for s in range(n_strips):
+        starts[s + 1] += starts[s]
+    members = np.empty(n, np.int64)
+    filled = starts[:-1].copy()
+    for i in range(n):  # each strip's rays in ray order
+        members[filled[strip[i]]] = i
+        filled[strip[i]] += 1
+    order = np.empty(n, np.int64)
+    bundles_per_strip = (strip_size + max_size - 1) // max_size
+    cuts = np.empty(n, np.int64)
+    n_cuts = 0
+    previous = -1
+    for s in range(n_strips):
+        lo, hi = starts[s], starts[s + 1]
+        keys = np.empty(hi - lo)
+        for p in range(lo, hi):
+            keys[p - lo] = minor[members[p]]
+        within = np.argsort(keys, kind="mergesort")
+        for p in range(lo, hi):
+            order[p] = members[lo + within[p - lo]]
+            bundle = s * bundles_per_strip + (p - lo) // max_size
+            if p > 0 and bundle != previous:
+                cuts[n_cuts] = p
+                n_cuts += 1
+            previous = bundle
+    return order, cuts[:n_cuts].copy()

@@ -411,3 +411,25 @@ def test_exclusion_counts_every_obstacle_point_in_the_regions():
     ).view(float).reshape(-1, 3)
     assert only_inside.shape[0] > 10
     assert not m.is_occupied((only_inside + 0.5) * 0.01).any()
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_compiled_bundle_order_is_the_numpy_sorts_order(seed):
+    """The ray bundles' compiled sorts and cuts give the order and cuts of the numpy form
+    (``_ray_bundle_order_numpy``: a stable argsort along the major axis, ``np.lexsort`` by strip
+    and minor axis), which fix the order the pairs are summed in. Directions rounded to a
+    coarse grid make ties along both axes. Catches an unstable sort within a strip (ties in
+    another order) or bundles cut across strips."""
+    from harvest_qp.perception.unveiling import _ray_bundle_order, _ray_bundle_order_numpy
+
+    rng = np.random.default_rng(seed)
+    for trial in range(60):
+        n = int(rng.integers(1, 700))
+        directions = rng.normal(size=(n, 3)) * rng.uniform(0.01, 1.0, 3) + (0.0, 0.0, 5.0)
+        if trial % 2 == 0:
+            directions = np.round(directions, 1)  # ties
+        directions /= np.linalg.norm(directions, axis=1)[:, None]
+        for max_size in (1, 7, 64):
+            order, cuts = _ray_bundle_order(directions, max_size)
+            expected_order, expected_cuts = _ray_bundle_order_numpy(directions, max_size)
+            assert np.array_equal(order, expected_order) and np.array_equal(cuts, expected_cuts)
