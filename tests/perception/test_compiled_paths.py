@@ -433,3 +433,29 @@ def test_compiled_bundle_order_is_the_numpy_sorts_order(seed):
             order, cuts = _ray_bundle_order(directions, max_size)
             expected_order, expected_cuts = _ray_bundle_order_numpy(directions, max_size)
             assert np.array_equal(order, expected_order) and np.array_equal(cuts, expected_cuts)
+
+
+def test_every_non_finite_coordinate_makes_a_point_invalid():
+    """The update's finiteness test (one sum of the coordinates times zero) counts a point with
+    NaN, +inf or -inf in any single coordinate as invalid, and no finite point (huge, tiny,
+    negative zero) as invalid: ``stats.invalid`` equals numpy's count of non-finite rows.
+    Catches a test that misses one coordinate or lets an infinity through."""
+    rng = np.random.default_rng(3)
+    n = 600
+    points = rng.uniform((0.3, -0.2, 0.9), (0.8, 0.2, 1.1), size=(n, 3))
+    points[::50] = (-0.0, 0.0, 1.0)
+    points[1::50, 0] = 1e-300
+    points[2::50, 1] = -1e-300
+    for k, value in enumerate((np.nan, np.inf, -np.inf)):
+        for axis in range(3):
+            points[3 + 3 * k + axis :: 40, axis] = value
+    bad = ~np.isfinite(points).all(axis=1)
+    assert bad.sum() > 100
+    pose = np.eye(4)
+    pose[:3, 3] = (0.0, 0.0, 1.0)
+    cloud = PointCloud(
+        points=points, labels=np.full(n, OBSTACLE, np.int8), colors=np.zeros((n, 3), np.uint8),
+        camera_pose=pose, timestamp=0.0, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(1, 1),
+    )  # fmt: skip
+    stats = ObstacleMap(bounds=((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4)), min_range=0.0).update(cloud)
+    assert stats.invalid == int(bad.sum())
