@@ -111,6 +111,50 @@ def _point_in_boxed_regions(px, py, pz, regions, boxes):
 
 
 @njit(cache=True)
+def _cell_region_class(fx, fy, fz, res, regions, boxes):
+    """Whether every point whose cell key is ``(fx, fy, fz)`` (floats) lies in a region (1), every
+    one outside all of them (0), or it depends on the point (2), as :func:`_point_in_boxed_regions`
+    decides it.
+
+    The points of a cell lie in its box [key res, (key + 1) res] up to the rounding of
+    ``p / res`` (~1e-16 m), so in the box widened by 1 nm, and that box in the ball of its
+    centre with radius half its diagonal plus 1 nm. A region whose segment is farther than its
+    radius plus that ball's from the centre (or whose 1 nm-wider bounding box misses the box)
+    holds none of them; one nearer than its radius minus the ball's radius holds them all, 1 nm
+    or more inside, far beyond the rounding of the exact test (the same 1 nm margin as
+    :func:`_region_boxes`).
+    """
+    margin = 1e-9
+    lo_x, lo_y, lo_z = fx * res - margin, fy * res - margin, fz * res - margin
+    hi_x, hi_y, hi_z = (fx + 1.0) * res + margin, (fy + 1.0) * res + margin, (fz + 1.0) * res + margin
+    cx, cy, cz = 0.5 * (lo_x + hi_x), 0.5 * (lo_y + hi_y), 0.5 * (lo_z + hi_z)
+    ball = 0.5 * np.sqrt(3.0) * (res + 2.0 * margin) + margin
+    undecided = False
+    for k in range(regions.shape[0]):
+        if (
+            hi_x < boxes[k, 0] or lo_x > boxes[k, 3] or hi_y < boxes[k, 1] or lo_y > boxes[k, 4]
+            or hi_z < boxes[k, 2] or lo_z > boxes[k, 5]
+        ):  # fmt: skip
+            continue
+        ax, ay, az = regions[k, 0], regions[k, 1], regions[k, 2]
+        dx, dy, dz = regions[k, 3] - ax, regions[k, 4] - ay, regions[k, 5] - az
+        wx, wy, wz = cx - ax, cy - ay, cz - az
+        dd = dx * dx + dy * dy + dz * dz
+        t = 0.0
+        if dd > 0.0:
+            t = (wx * dx + wy * dy + wz * dz) / dd
+            t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+        ex, ey, ez = wx - t * dx, wy - t * dy, wz - t * dz
+        distance = np.sqrt(ex * ex + ey * ey + ez * ez)
+        radius = regions[k, 6]
+        if distance + ball + margin <= radius:
+            return 1
+        if distance - ball - margin <= radius:
+            undecided = True
+    return 2 if undecided else 0
+
+
+@njit(cache=True)
 def _grid_classes(size, phase, stride):
     """Per pixel row (or column) index: 2 on the ``2 * stride`` grid of ``phase``, 1 on the
     ``stride`` grid only, 0 off it (the same tests as ``(i - phase) % stride == 0``)."""
@@ -311,10 +355,15 @@ def integrate_frame(
     # either way): a point in the same cell would find it stamped, so it is skipped before
     # the key is computed (neighbouring pixels mostly fall in one cell).
     fx0 = fy0 = fz0 = np.nan
+    # Cell key of the last point tested against the exclusion regions, and its region class.
+    gx0 = gy0 = gz0 = np.nan
+    region_class = 2
     for i in range(n):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         lab = labels[i]
-        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)) or lab < 0 or lab > 2:
+        # Finite exactly when x * 0 + y * 0 + z * 0 == 0 (inf * 0 and NaN give NaN): one test,
+        # not three (~0.1 ms of the pass over 190,000 points, measured).
+        if not (px * 0.0 + py * 0.0 + pz * 0.0 == 0.0) or lab < 0 or lab > 2:
             counters[N_INVALID] += 1
             continue
         r2 = (px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2
@@ -338,13 +387,17 @@ def integrate_frame(
                 stem_list[n_stem] = i
                 n_stem += 1
             continue
-        if (
-            ulx <= px and px <= uhx and uly <= py and py <= uhy and ulz <= pz and pz <= uhz
-            and _point_in_boxed_regions(px, py, pz, regions, boxes)
-        ):  # fmt: skip
-            counters[N_EXCLUDED] += 1
-            continue
         vx, vy, vz = px * inv, py * inv, pz * inv
+        if ulx <= px and px <= uhx and uly <= py and py <= uhy and ulz <= pz and pz <= uhz:
+            # Most points in the regions' box lie in a cell wholly inside a region (the held
+            # cluster) or wholly outside all: decided once per cell (_cell_region_class), the
+            # exact test only in the cells the regions' surfaces cross.
+            if not (gx0 <= vx and vx < gx0 + 1.0 and gy0 <= vy and vy < gy0 + 1.0 and gz0 <= vz and vz < gz0 + 1.0):
+                gx0, gy0, gz0 = np.floor(vx), np.floor(vy), np.floor(vz)
+                region_class = _cell_region_class(gx0, gy0, gz0, res, regions, boxes)
+            if region_class == 1 or (region_class == 2 and _point_in_boxed_regions(px, py, pz, regions, boxes)):
+                counters[N_EXCLUDED] += 1
+                continue
         # floor(v) == f exactly when f <= v < f + 1 (NaN at the start: never).
         if fx0 <= vx and vx < fx0 + 1.0 and fy0 <= vy and vy < fy0 + 1.0 and fz0 <= vz and vz < fz0 + 1.0:
             continue

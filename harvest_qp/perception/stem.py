@@ -186,6 +186,15 @@ def _invalid(points: NDArray[np.float64], reason: str, top_mask: NDArray[np.bool
 
 
 def _distinct_rows(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The distinct rows of an ``(n, 3)`` array, as ``np.unique(points, axis=0)`` finds them, in
+    lexicographic order: :func:`_distinct_rows_numpy`'s rows in its order, compiled (0.2 ms ->
+    0.03 ms on the ~400 points of an 848x480 frame's stem cluster)."""
+    if points.shape[0] < 2:
+        return points.copy()
+    return _stem_kernels.distinct_rows(np.ascontiguousarray(points, dtype=np.float64))
+
+
+def _distinct_rows_numpy(points: NDArray[np.float64]) -> NDArray[np.float64]:
     """The distinct rows of an ``(n, 3)`` array, as ``np.unique(points, axis=0)`` finds them (in
     lexicographic order of the columns, not necessarily the same order as numpy's).
 
@@ -205,12 +214,12 @@ def _distinct_rows(points: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _point_spacing(points: NDArray[np.float64]) -> float:
     """Median nearest-neighbour distance [m] (the pixel pitch at the stem's range)."""
-    distinct = _distinct_rows(points)  # duplicated points are not a finer sampling
-    if distinct.shape[0] < 2:
+    # Over the distinct rows (duplicated points are not a finer sampling), the median of the
+    # distances cKDTree(distinct).query(distinct, k=2) gives, bit for bit, in one compiled call
+    # (0.2 ms -> 0.02 ms on 100 points, 0.45 -> ~0.1 ms on 800; see _stem_kernels).
+    if points.shape[0] < 2:
         return 0.0
-    # The distances cKDTree(distinct).query(distinct, k=2) gives, bit for bit, without its
-    # build and call overhead (0.2 ms -> 0.02 ms on 100 points; see _stem_kernels).
-    return float(np.median(_stem_kernels.nearest_neighbour_distances(np.ascontiguousarray(distinct))))
+    return float(_stem_kernels.median_nearest_neighbour_distance(np.ascontiguousarray(points, dtype=np.float64)))
 
 
 def _estimate_radius(

@@ -257,3 +257,205 @@ def test_compiled_ray_blocks_give_the_numpy_blocks_pairs_in_the_same_order(seed,
         assert np.array_equal(getattr(compiled, name), getattr(expected, name)), name
     for name in ("surface_distance", "segment_parameter", "away_directions"):
         np.testing.assert_allclose(getattr(compiled, name), getattr(expected, name), rtol=0, atol=1e-15)
+
+
+def _rows_with_ties(rng, n):
+    """Rows repeated, some changed by one ulp, by the sign of a zero, or sharing a coordinate."""
+    base = rng.normal(size=(n, 3))
+    base[::3, 0] = base[0, 0]  # runs of equal x, sorted by (y, z) within
+    rows = base[rng.integers(0, n, 3 * n)].copy()
+    rows[::5, 1] = np.nextafter(rows[::5, 1], np.inf)
+    rows[::7, 2] = base[0, 2]
+    rows[::11, 0] = 0.0
+    rows[::13, 0] = -0.0
+    rows[::4, 1] = 0.0
+    rows[::6, 1] = -0.0
+    rows[::9, 2] = -0.0
+    rows[::10, 2] = 0.0
+    return rows
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_distinct_rows_are_the_lexsort_rows_bit_for_bit(seed):
+    """The compiled distinct rows are those of the numpy column lexsort (``_distinct_rows_numpy``,
+    itself checked against ``np.unique(axis=0)``), in the same order and with the same bits,
+    including which of 0.0 / -0.0 is kept (the first in input order, lexsort being stable).
+    Catches an unstable sort within runs of equal x (the other zero kept) or runs sorted by
+    z before y."""
+    from harvest_qp.perception import _stem_kernels
+    from harvest_qp.perception.stem import _distinct_rows_numpy
+
+    rng = np.random.default_rng(seed)
+    for n in (2, 3, 7, 40, 300):
+        rows = _rows_with_ties(rng, n)
+        expected = _distinct_rows_numpy(rows)
+        got = _stem_kernels.distinct_rows(np.ascontiguousarray(rows))
+        assert got.shape == expected.shape
+        assert got.tobytes() == expected.tobytes()  # bytes: the sign of each zero too
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_compiled_point_spacing_is_the_median_of_ckdtrees_distances_over_unique_rows(seed):
+    """``_point_spacing`` (one compiled call: distinct rows, the nearest-neighbour sweep along the
+    widest axis, the median) equals numpy's median of cKDTree's nearest-neighbour distances
+    over ``np.unique(axis=0)``'s rows, bit for bit, for clouds elongated along x, y or z.
+    Catches a sweep pruned on the wrong axis's gap, a median of an even count taken as one
+    middle value, or duplicates counted."""
+    from scipy.spatial import cKDTree
+
+    from harvest_qp.perception.stem import _point_spacing
+
+    rng = np.random.default_rng(seed)
+    clouds = list(_stem_like_clouds(seed))
+    for axis in range(3):
+        scale = np.full(3, 0.004)
+        scale[axis] = 0.05
+        clouds.append(rng.uniform(-1.0, 1.0, (500, 3)) * scale)
+        clouds.append(np.round(rng.uniform(-1.0, 1.0, (400, 3)) * scale, 3))  # a lattice: ties
+    clouds += [_rows_with_ties(rng, n) for n in (2, 5, 60)]
+    for points in clouds:
+        unique = np.unique(points, axis=0)
+        expected = 0.0 if unique.shape[0] < 2 else float(np.median(cKDTree(unique).query(unique, k=2)[0][:, 1]))
+        assert _point_spacing(points) == expected
+
+
+def test_compiled_ray_blocks_keep_every_pair_when_their_outputs_grow(monkeypatch):
+    """Many more pairs than the compiled kernel's first output size (1,024 or 8 per ray): 12 rays
+    through a dense cloud of 3,000 obstacle points around them (~20,000 pairs), so the outputs
+    are grown several times mid-bundle. The pairs must still be the numpy blocks' pairs, in
+    their order. Catches a growth that drops the pairs already found (outputs not copied) or
+    overruns them."""
+    import harvest_qp.perception.unveiling as unveiling
+
+    rng = np.random.default_rng(7)
+    camera = np.zeros(3)
+    stem = np.column_stack([rng.uniform(-0.005, 0.005, 12), rng.uniform(-0.005, 0.005, 12), np.full(12, 0.4)])
+    obstacles = np.column_stack([rng.uniform(-0.01, 0.01, 3000), rng.uniform(-0.01, 0.01, 3000), rng.uniform(0.0, 0.4, 3000)])
+    compiled = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
+    monkeypatch.setattr(unveiling, "_COMPILED_BLOCKS", False)
+    expected = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
+    assert len(expected) > 8 * 1024
+    for name in ("stem_index", "obstacle_index", "case"):
+        assert np.array_equal(getattr(compiled, name), getattr(expected, name)), name
+    for name in ("surface_distance", "segment_parameter", "away_directions"):
+        np.testing.assert_allclose(getattr(compiled, name), getattr(expected, name), rtol=0, atol=1e-15)
+
+
+def _random_capsules(rng, n):
+    """``(n, 7)`` capsules around (0.4, 0, 1) [m]: some spheres, radii 5-90 mm, any axis."""
+    a = rng.uniform((0.2, -0.2, 0.8), (0.6, 0.2, 1.2), size=(n, 3))
+    b = a + rng.normal(scale=0.08, size=(n, 3)) * (rng.uniform(size=(n, 1)) < 0.8)
+    return np.column_stack([a, b, rng.uniform(0.005, 0.09, n)])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_cell_region_classes_agree_with_the_exact_point_test(seed):
+    """The map update decides exclusion once per cell where a cell lies wholly inside a region or
+    wholly outside all (``_cell_region_class``); the per-point exact test
+    (``_point_in_boxed_regions``, the oracle) must agree on every point of such a cell,
+    including points at its corners and one ulp inside its faces. Catches a class that ignores
+    the cell's extent (its centre's distance alone) or the widened boxes."""
+    rng = np.random.default_rng(seed)
+    res = 0.01
+    regions = _random_capsules(rng, 3)
+    boxes = K._region_boxes(regions)
+    classes = []
+    for _ in range(600):
+        # Cells near the capsules' surfaces, inside and outside.
+        k = rng.integers(0, regions.shape[0])
+        on_axis = regions[k, :3] + rng.uniform() * (regions[k, 3:6] - regions[k, :3])
+        offset = rng.normal(size=3)
+        near = on_axis + offset / np.linalg.norm(offset) * regions[k, 6] * rng.uniform(0.0, 1.6)
+        key = np.floor(near / res)
+        cls = K._cell_region_class(key[0], key[1], key[2], res, regions, boxes)
+        classes.append(cls)
+        if cls == 2:
+            continue
+        corners = np.array([[i, j, k] for i in (0.0, 1.0) for j in (0.0, 1.0) for k in (0.0, 1.0)])
+        u = np.vstack([rng.uniform(size=(60, 3)), corners, np.nextafter(corners, 0.5)])
+        points = (key + u) * res
+        for p in points:
+            if not np.array_equal(np.floor(p * (1.0 / res)), key):
+                continue  # rounded into the next cell: not this cell's point
+            assert K._point_in_boxed_regions(p[0], p[1], p[2], regions, boxes) == (cls == 1), (key, p, cls)
+    assert classes.count(0) > 20 and classes.count(1) > 5 and classes.count(2) > 5
+
+
+def test_exclusion_counts_every_obstacle_point_in_the_regions():
+    """A cloud thick inside and around exclusion capsules: the update's ``excluded`` count is the
+    number of obstacle points within a capsule by a numpy brute force (segment distance), and
+    no cell is occupied by those points alone. Catches cells classed wholly inside a region
+    whose corner sticks out of it (points outside counted as excluded)."""
+    rng = np.random.default_rng(11)
+    regions = _random_capsules(rng, 2)
+    points = rng.uniform((0.1, -0.3, 0.7), (0.7, 0.3, 1.3), size=(40000, 3))
+    a, d = regions[:, :3], regions[:, 3:6] - regions[:, :3]
+    w = points[:, None, :] - a[None]
+    dd = np.einsum("kj,kj->k", d, d)
+    t = np.clip(np.einsum("nkj,kj->nk", w, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    gap = w - t[..., None] * d[None]
+    inside = (np.einsum("nkj,nkj->nk", gap, gap) <= regions[:, 6] ** 2).any(axis=1)
+    pose = np.eye(4)
+    pose[:3, 3] = (-0.1, 0.0, 1.0)
+    n = points.shape[0]
+    cloud = PointCloud(
+        points=points, labels=np.full(n, OBSTACLE, np.int8), colors=np.zeros((n, 3), np.uint8),
+        camera_pose=pose, timestamp=0.0, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(1, 1),
+    )  # fmt: skip
+    m = ObstacleMap(bounds=((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4)), erase_excluded=False)
+    stats = m.update(cloud, exclude=regions)
+    assert stats.excluded == int(inside.sum()) > 300
+    only_inside = np.setdiff1d(
+        np.unique(np.floor(points[inside] / 0.01), axis=0).view([("", float)] * 3),
+        np.unique(np.floor(points[~inside] / 0.01), axis=0).view([("", float)] * 3),
+    ).view(float).reshape(-1, 3)
+    assert only_inside.shape[0] > 10
+    assert not m.is_occupied((only_inside + 0.5) * 0.01).any()
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_compiled_bundle_order_is_the_numpy_sorts_order(seed):
+    """The ray bundles' compiled sorts and cuts give the order and cuts of the numpy form
+    (``_ray_bundle_order_numpy``: a stable argsort along the major axis, ``np.lexsort`` by strip
+    and minor axis), which fix the order the pairs are summed in. Directions rounded to a
+    coarse grid make ties along both axes. Catches an unstable sort within a strip (ties in
+    another order) or bundles cut across strips."""
+    from harvest_qp.perception.unveiling import _ray_bundle_order, _ray_bundle_order_numpy
+
+    rng = np.random.default_rng(seed)
+    for trial in range(60):
+        n = int(rng.integers(1, 700))
+        directions = rng.normal(size=(n, 3)) * rng.uniform(0.01, 1.0, 3) + (0.0, 0.0, 5.0)
+        if trial % 2 == 0:
+            directions = np.round(directions, 1)  # ties
+        directions /= np.linalg.norm(directions, axis=1)[:, None]
+        for max_size in (1, 7, 64):
+            order, cuts = _ray_bundle_order(directions, max_size)
+            expected_order, expected_cuts = _ray_bundle_order_numpy(directions, max_size)
+            assert np.array_equal(order, expected_order) and np.array_equal(cuts, expected_cuts)
+
+
+def test_every_non_finite_coordinate_makes_a_point_invalid():
+    """The update's finiteness test (one sum of the coordinates times zero) counts a point with
+    NaN, +inf or -inf in any single coordinate as invalid, and no finite point (huge, tiny,
+    negative zero) as invalid: ``stats.invalid`` equals numpy's count of non-finite rows.
+    Catches a test that misses one coordinate or lets an infinity through."""
+    rng = np.random.default_rng(3)
+    n = 600
+    points = rng.uniform((0.3, -0.2, 0.9), (0.8, 0.2, 1.1), size=(n, 3))
+    points[::50] = (-0.0, 0.0, 1.0)
+    points[1::50, 0] = 1e-300
+    points[2::50, 1] = -1e-300
+    for k, value in enumerate((np.nan, np.inf, -np.inf)):
+        for axis in range(3):
+            points[3 + 3 * k + axis :: 40, axis] = value
+    bad = ~np.isfinite(points).all(axis=1)
+    assert bad.sum() > 100
+    pose = np.eye(4)
+    pose[:3, 3] = (0.0, 0.0, 1.0)
+    cloud = PointCloud(
+        points=points, labels=np.full(n, OBSTACLE, np.int8), colors=np.zeros((n, 3), np.uint8),
+        camera_pose=pose, timestamp=0.0, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(1, 1),
+    )  # fmt: skip
+    stats = ObstacleMap(bounds=((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4)), min_range=0.0).update(cloud)
+    assert stats.invalid == int(bad.sum())
