@@ -602,6 +602,45 @@ def _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd):
 
 
 @njit(cache=True)
+def _insert_sorted(scratch_distance, scratch_index, count, m_max, d, idx):
+    """Insert ``(d, idx)`` into the ascending top-``m_max`` list; returns the new count."""
+    pos = count if count < m_max else m_max - 1
+    while pos > 0 and scratch_distance[pos - 1] > d:
+        scratch_distance[pos] = scratch_distance[pos - 1]
+        scratch_index[pos] = scratch_index[pos - 1]
+        pos -= 1
+    scratch_distance[pos] = d
+    scratch_index[pos] = idx
+    return count + 1 if count < m_max else count
+
+
+@njit(cache=True)
+def _keep_separated(c, count, k_max, sep2, res, nby, nbz, radius, cell_radius, scratch_index, scratch_distance,
+                    out_index, out_distance):
+    """Capsule ``c``'s first ``k_max`` cells of the sorted list, each at least ``sqrt(sep2)``
+    from those kept before it; their surface distances into ``out_*[c]``. Returns how many."""
+    kept = 0
+    for j in range(count):
+        if kept == k_max:
+            break
+        idx = scratch_index[j]
+        if sep2 > 0.0:
+            ix, iy, iz = index_to_cell(idx, nby, nbz)
+            far = True
+            for i in range(kept):
+                jx, jy, jz = index_to_cell(out_index[c, i], nby, nbz)
+                if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
+                    far = False
+                    break
+            if not far:
+                continue
+        out_index[c, kept] = idx
+        out_distance[c, kept] = scratch_distance[j] - radius - cell_radius
+        kept += 1
+    return kept
+
+
+@njit(cache=True)
 def closest_cells(
     w0, w1, radii, max_distance, cell_radius, min_separation, res, lo_key, dims, nby, nbz, block_cells,
     block_count, scratch_index, scratch_distance, out_index, out_distance, out_count,
@@ -658,37 +697,11 @@ def closest_cells(
                         d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
                         if d > worst:
                             continue
-                        # Insert in the sorted top-m list.
-                        pos = count if count < m_max else m_max - 1
-                        while pos > 0 and scratch_distance[pos - 1] > d:
-                            scratch_distance[pos] = scratch_distance[pos - 1]
-                            scratch_index[pos] = scratch_index[pos - 1]
-                            pos -= 1
-                        scratch_distance[pos] = d
-                        scratch_index[pos] = (b << 9) | local
-                        if count < m_max:
-                            count += 1
+                        count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, (b << 9) | local)
                         if count == m_max:
                             worst = scratch_distance[m_max - 1]
-        kept = 0
-        for j in range(count):
-            if kept == k_max:
-                break
-            idx = scratch_index[j]
-            if sep2 > 0.0:
-                ix, iy, iz = index_to_cell(idx, nby, nbz)
-                far = True
-                for i in range(kept):
-                    jx, jy, jz = index_to_cell(out_index[c, i], nby, nbz)
-                    if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
-                        far = False
-                        break
-                if not far:
-                    continue
-            out_index[c, kept] = idx
-            out_distance[c, kept] = scratch_distance[j] - radii[c] - cell_radius
-            kept += 1
-        out_count[c] = kept
+        out_count[c] = _keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
+                                       scratch_distance, out_index, out_distance)
 
 
 @njit(cache=True)
@@ -928,35 +941,11 @@ def feed_update(
             d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
             if d > worst:
                 continue
-            pos = count if count < m_max else m_max - 1
-            while pos > 0 and scratch_distance[pos - 1] > d:
-                scratch_distance[pos] = scratch_distance[pos - 1]
-                scratch_index[pos] = scratch_index[pos - 1]
-                pos -= 1
-            scratch_distance[pos] = d
-            scratch_index[pos] = cand_index[i]
-            if count < m_max:
-                count += 1
+            count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, cand_index[i])
             if count == m_max:
                 worst = scratch_distance[m_max - 1]
-        kept = 0
-        for j in range(count):
-            if kept == k_max:
-                break
-            idx = scratch_index[j]
-            if sep2 > 0.0:
-                ix, iy, iz = index_to_cell(idx, nby, nbz)
-                far = True
-                for i in range(kept):
-                    jx, jy, jz = index_to_cell(out_index[c, i], nby, nbz)
-                    if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
-                        far = False
-                        break
-                if not far:
-                    continue
-            out_index[c, kept] = idx
-            out_distance[c, kept] = scratch_distance[j] - radii[c] - cell_radius
-            kept += 1
+        kept = _keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
+                               scratch_distance, out_index, out_distance)
         for j in range(kept, k_max):
             out_index[c, j] = -1
         out_count[c] = kept
