@@ -207,7 +207,10 @@ def _as_command(out: Any) -> Command:
     for name, value in dict(cmd.task_errors).items():
         if not isinstance(name, str):
             raise InvalidInputError(f"task error names must be str, got {name!r}")
-        errors[name] = float(value)
+        try:
+            errors[name] = float(value)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"task error {name!r} must be a number, got {value!r}") from None
     values = {}
     for name, value in dict(cmd.values).items():
         if not isinstance(name, str):
@@ -553,10 +556,17 @@ def run_episode(
                 log.status[k] = "error"
                 k += 1
                 break
+            try:
+                # A value whose shape changes from tick to tick is refused here, by the log.
+                log.task(k, cmd.task_errors)
+                log.value(k, cmd.values)
+            except InvalidInputError as exc:
+                status, error = "invalid_command", str(exc)
+                log.status[k] = "error"
+                k += 1
+                break
             log.qdot_cmd[k] = cmd.qdot
             log.status[k] = cmd.status
-            log.task(k, cmd.task_errors)
-            log.value(k, cmd.values)
             log.pairs(k, cmd.collision_pairs)
             send(cmd.qdot)
             k += 1

@@ -163,7 +163,10 @@ class SpeedjServo:
 
     def command(self, qdot: ArrayLike) -> None:
         """Set the target joint velocities (12,) [rad/s], clipped to the speed limit."""
-        qd = np.asarray(qdot, dtype=float)
+        try:
+            qd = np.asarray(qdot, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"qdot must be 12 numbers [rad/s], got {qdot!r}") from None
         if qd.shape != (12,):
             raise InvalidInputError(f"qdot must have shape (12,) [rad/s], got shape {qd.shape}")
         if not np.all(np.isfinite(qd)):

@@ -137,6 +137,10 @@ def test_invalid_commands_are_rejected(blind_robot):
         blind_robot.send_joint_velocities(np.zeros(6))
     with pytest.raises(InvalidInputError, match="finite"):
         blind_robot.send_joint_velocities(np.full(12, np.nan))
+    # Not numbers at all: the package's error naming the value (was numpy's ValueError; an audit).
+    for bad in ("x", ["a"] * 12, {"q": 1}):
+        with pytest.raises(InvalidInputError, match="12 numbers"):
+            blind_robot.send_joint_velocities(bad)
     with pytest.raises(InvalidInputError, match="duration"):
         blind_robot.advance(-1.0)
 

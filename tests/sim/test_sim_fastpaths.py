@@ -10,6 +10,7 @@ ray against every geom for the culled ray caster, and the two-pass cloud for the
 from __future__ import annotations
 
 import math
+import re
 
 import mujoco
 import numpy as np
@@ -361,7 +362,22 @@ def test_a_value_that_changes_shape_is_refused(first, later, words):
             self.k += 1
             return Command(qdot=np.zeros(12), values={"v": first if self.k < 3 else later})
 
-    with pytest.raises(
-        runner.InvalidInputError, match=r"value 'v' changed shape from " + words.replace("(", r"\(").replace(")", r"\)")
-    ):
-        run_episode(SimRobot(camera=None), Changing(), duration=0.02)
+    # An invalid command ends the episode with its status and the arms stopped; run_episode
+    # itself does not raise (it did before an audit of the fast paths).
+    result = run_episode(SimRobot(camera=None), Changing(), duration=0.02)
+    assert result.status == "invalid_command" and result.n_ticks == 3
+    assert re.search(r"value 'v' changed shape from " + re.escape(words), result.error)
+
+
+def test_a_task_error_that_is_not_a_number_is_an_invalid_command():
+    """Bug caught: numpy's ValueError from float("abc") escaping run_episode (an audit)."""
+
+    class Wordy:
+        def reset(self, robot) -> None:
+            pass
+
+        def step(self, obs) -> Command:
+            return Command(qdot=np.zeros(12), task_errors={"e": "abc"})
+
+    result = run_episode(SimRobot(camera=None), Wordy(), duration=0.02)
+    assert result.status == "invalid_command" and "task error 'e' must be a number" in result.error
