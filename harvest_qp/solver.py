@@ -331,6 +331,13 @@ class Solver:
         hard = by_level.pop(HARD, None)
         if hard:
             hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in hard]
+            for t, J, v in hard:
+                # A hard task must be met exactly: a non-finite target is an error, not a
+                # problem daqp refuses and a retry quietly drops (an audit found the latter).
+                if not (np.all(np.isfinite(v)) and np.all(np.isfinite(J))):
+                    raise InvalidInputError(
+                        f"hard task {type(t).__name__} (level 0) computed non-finite rows: target {v.tolist()}"
+                    )
             A, b = _least_squares_rows(
                 np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
             )

@@ -63,3 +63,25 @@ def test_a_nan_in_a_hard_task_jacobian_stops_the_arms_safely():
     step = TaskController(c, [_NaNJacobian(), DampingTask(12)], dt=0.002).step(np.array(desc.HOME_Q))
     assert step.status.startswith("fallback")
     assert np.all(np.isfinite(step.qdot))
+
+
+class _NaNTarget(Task):
+    """A user hard task whose target holds a NaN."""
+
+    def __init__(self) -> None:
+        super().__init__(3, level=0, weight=1.0)
+
+    def compute_rows(self, configuration, dt):
+        return configuration.frame_jacobian("gripper")[:3].copy(), np.array([0.01, np.nan, 0.0])
+
+    def compute(self, configuration, dt):
+        return self.compute_rows(configuration, dt)
+
+
+def test_a_nan_hard_target_stops_the_arms_safely_naming_the_task():
+    """Catches: a NaN hard target reported as "ok: retried after daqp" (the retry dropped the
+    task without a word; an audit)."""
+    c = Configuration.dual_ur5e(desc.HOME_Q)
+    step = TaskController(c, [_NaNTarget(), DampingTask(12)], dt=0.002).step(np.array(desc.HOME_Q))
+    assert step.status.startswith("fallback") and "_NaNTarget" in step.status and "non-finite" in step.status
+    assert np.all(np.isfinite(step.qdot))
