@@ -199,6 +199,32 @@ class DepthCamera:
     def n_pixels(self) -> int:
         return int(self._rays_c.shape[0])
 
+    def _frame_arrays(self, n: int) -> tuple:
+        """The frame's dropout mask and depth noise, and the output buffers of the compaction.
+
+        The random numbers are drawn for every pixel whatever the scene, so the noise
+        sequence only depends on the seed and the frame count.
+        """
+        cfg = self.config
+        keep = self._rng.random(n) >= cfg.dropout if cfg.dropout > 0 else self._no_bool
+        noise = self._rng.standard_normal(n) if cfg.depth_noise > 0 else self._no_float
+        buffers = (np.empty((n, 3)), np.empty(n, np.int8), np.empty((n, 3), np.uint8), np.empty(n),
+                   np.empty((n, 2), np.int32))
+        return keep, noise, buffers
+
+    def _cloud(self, pose, timestamp, count, points, labels, rgb, z, pixels) -> PointCloud:
+        """The first ``count`` compacted points as the frame's :class:`PointCloud`."""
+        return PointCloud(
+            points=points[:count],
+            labels=labels[:count],
+            colors=rgb[:count],
+            camera_pose=np.array(pose, dtype=float),
+            timestamp=float(timestamp),
+            depth=z[:count],
+            pixels=pixels[:count],
+            image_size=self.config.image_size,
+        )
+
     def _finish(
         self,
         pose: NDArray[np.float64],
@@ -209,32 +235,14 @@ class DepthCamera:
     ) -> PointCloud:
         """Turn per-pixel z-depth [m] and geom id (-1: none) into a labelled world cloud."""
         cfg = self.config
-        n = depth.shape[0]
-        # Draw the random numbers for every pixel whatever the scene, so the noise
-        # sequence only depends on the seed and the frame count.
-        keep = self._rng.random(n) >= cfg.dropout if cfg.dropout > 0 else self._no_bool
-        noise = self._rng.standard_normal(n) if cfg.depth_noise > 0 else self._no_float
-        points = np.empty((n, 3))
-        labels = np.empty(n, np.int8)
-        rgb = np.empty((n, 3), np.uint8)
-        z = np.empty(n)
-        pixels = np.empty((n, 2), np.int32)
+        keep, noise, (points, labels, rgb, z, pixels) = self._frame_arrays(depth.shape[0])
         count = _raycast.compact_cloud(
             depth, geom, self._rays_c, np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
             cfg.min_depth, cfg.max_depth, cfg.stem_range, noise, cfg.depth_noise, keep, self._geom_ok,
             self._labels, self._colors, self._no_color if colors is None else colors, STEM, OBSTACLE,
             points, labels, rgb, z, pixels, cfg.image_size[1],
         )  # fmt: skip
-        return PointCloud(
-            points=points[:count],
-            labels=labels[:count],
-            colors=rgb[:count],
-            camera_pose=np.array(pose, dtype=float),
-            timestamp=float(timestamp),
-            depth=z[:count],
-            pixels=pixels[:count],
-            image_size=cfg.image_size,
-        )
+        return self._cloud(pose, timestamp, count, points, labels, rgb, z, pixels)
 
     def capture(self, data: mujoco.MjData, pose: NDArray[np.float64], timestamp: float) -> PointCloud:
         """Capture a frame from camera ``pose`` (4x4, {C} in the world) in the current ``data`` state."""
@@ -320,31 +328,14 @@ class RayCastCamera(DepthCamera):
     ) -> PointCloud:
         """:meth:`_finish` of the ray lengths: ``_finish(pose, dist * ray_z, geom, timestamp)`` in one pass."""
         cfg = self.config
-        n = dist.shape[0]
-        # Draw the random numbers for every pixel whatever the scene (as _finish does).
-        keep = self._rng.random(n) >= cfg.dropout if cfg.dropout > 0 else self._no_bool
-        noise = self._rng.standard_normal(n) if cfg.depth_noise > 0 else self._no_float
-        points = np.empty((n, 3))
-        labels = np.empty(n, np.int8)
-        rgb = np.empty((n, 3), np.uint8)
-        z = np.empty(n)
-        pixels = np.empty((n, 2), np.int32)
+        keep, noise, (points, labels, rgb, z, pixels) = self._frame_arrays(dist.shape[0])
         h, w = self._hw
         count = _raycast.compact_rays(
             dist, geom, self._rays_c, np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
             cfg.min_depth, cfg.max_depth, cfg.stem_range, noise, cfg.depth_noise, keep, self._geom_ok,
             self._labels, self._colors, STEM, OBSTACLE, points, labels, rgb, z, pixels, h, w,
         )  # fmt: skip
-        return PointCloud(
-            points=points[:count],
-            labels=labels[:count],
-            colors=rgb[:count],
-            camera_pose=np.array(pose, dtype=float),
-            timestamp=float(timestamp),
-            depth=z[:count],
-            pixels=pixels[:count],
-            image_size=cfg.image_size,
-        )
+        return self._cloud(pose, timestamp, count, points, labels, rgb, z, pixels)
 
 
 class OpenGLCamera(DepthCamera):
