@@ -37,14 +37,11 @@ def accumulate_diagonal(H, f, w, v, floor):
 @njit(cache=True)
 def rotate_twist_rows(R, J, v, J_out, v_out):
     """Rows of a world-aligned twist task expressed in the frame's axes: ``blkdiag(R^T, R^T)``."""
+    rotate_twist(R, v, v_out)
     n = J.shape[1]
     for b in range(2):
         o = 3 * b
         for i in range(3):
-            acc = 0.0
-            for k in range(3):
-                acc += R[k, i] * v[o + k]
-            v_out[o + i] = acc
             for c in range(n):
                 acc = 0.0
                 for k in range(3):

@@ -602,6 +602,17 @@ def _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd):
 
 
 @njit(cache=True)
+def _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi):
+    """The map blocks ``blo..bhi`` (inclusive, per axis) that capsule ``c``'s segment box,
+    grown by ``reach`` [m], overlaps."""
+    for a in range(3):
+        lo_c = min(w0[c, a], w1[c, a]) - reach
+        hi_c = max(w0[c, a], w1[c, a]) + reach
+        blo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
+        bhi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+
+
+@njit(cache=True)
 def _insert_sorted(scratch_distance, scratch_index, count, m_max, d, idx):
     """Insert ``(d, idx)`` into the ascending top-``m_max`` list; returns the new count."""
     pos = count if count < m_max else m_max - 1
@@ -671,11 +682,7 @@ def closest_cells(
         reach = radii[c] + max_distance + cell_radius  # centre distance that still counts
         count = 0
         worst = reach  # current admission bound on the centre distance
-        for a in range(3):
-            lo_c = min(w0[c, a], w1[c, a]) - reach
-            hi_c = max(w0[c, a], w1[c, a]) + reach
-            blo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
-            bhi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
         for bx in range(blo[0], bhi[0] + 1):
             cx0 = (lo_key[0] + bx * BLOCK) * res
             for by in range(blo[1], bhi[1] + 1):
@@ -830,11 +837,7 @@ def _feed_candidates(
         dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
         dd = dx * dx + dy * dy + dz * dz
         reach = radii[c] + max_distance + cell_radius + slack
-        for a in range(3):
-            lo_c = min(w0[c, a], w1[c, a]) - reach
-            hi_c = max(w0[c, a], w1[c, a]) + reach
-            blo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
-            bhi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
         for bx in range(blo[0], bhi[0] + 1):
             cx0 = (lo_key[0] + bx * BLOCK) * res
             for by in range(blo[1], bhi[1] + 1):
