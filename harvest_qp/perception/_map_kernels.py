@@ -61,8 +61,8 @@ def index_to_cell(idx, nby, nbz):
 
 
 @njit(cache=True, inline="always")
-def _point_in_region(px, py, pz, regions, k):
-    """True if the point lies in the capsule ``regions[k] = (x0, y0, z0, x1, y1, z1, r)``."""
+def _squared_axis_distance(px, py, pz, regions, k):
+    """Squared distance [m^2] from the point to the axis segment of capsule ``regions[k]``."""
     ax, ay, az = regions[k, 0], regions[k, 1], regions[k, 2]
     dx, dy, dz = regions[k, 3] - ax, regions[k, 4] - ay, regions[k, 5] - az
     wx, wy, wz = px - ax, py - ay, pz - az
@@ -72,7 +72,13 @@ def _point_in_region(px, py, pz, regions, k):
         t = (wx * dx + wy * dy + wz * dz) / dd
         t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
     ex, ey, ez = wx - t * dx, wy - t * dy, wz - t * dz
-    return ex * ex + ey * ey + ez * ez <= regions[k, 6] * regions[k, 6]
+    return ex * ex + ey * ey + ez * ez
+
+
+@njit(cache=True, inline="always")
+def _point_in_region(px, py, pz, regions, k):
+    """True if the point lies in the capsule ``regions[k] = (x0, y0, z0, x1, y1, z1, r)``."""
+    return _squared_axis_distance(px, py, pz, regions, k) <= regions[k, 6] * regions[k, 6]
 
 
 @njit(cache=True, inline="always")
@@ -136,16 +142,7 @@ def _cell_region_class(fx, fy, fz, res, regions, boxes):
             or hi_z < boxes[k, 2] or lo_z > boxes[k, 5]
         ):  # fmt: skip
             continue
-        ax, ay, az = regions[k, 0], regions[k, 1], regions[k, 2]
-        dx, dy, dz = regions[k, 3] - ax, regions[k, 4] - ay, regions[k, 5] - az
-        wx, wy, wz = cx - ax, cy - ay, cz - az
-        dd = dx * dx + dy * dy + dz * dz
-        t = 0.0
-        if dd > 0.0:
-            t = (wx * dx + wy * dy + wz * dz) / dd
-            t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-        ex, ey, ez = wx - t * dx, wy - t * dy, wz - t * dz
-        distance = np.sqrt(ex * ex + ey * ey + ez * ez)
+        distance = np.sqrt(_squared_axis_distance(cx, cy, cz, regions, k))
         radius = regions[k, 6]
         if distance + ball + margin <= radius:
             return 1
