@@ -548,20 +548,14 @@ def run_episode(
             else:
                 try:
                     cmd = _as_command_fast(out)
+                    # The log refuses a value whose shape changes from tick to tick.
+                    log.task(k, cmd.task_errors)
+                    log.value(k, cmd.values)
                 except InvalidInputError as exc:
                     status, error = "invalid_command", str(exc)
             if log.controller_time is not None:
                 log.controller_time[k] = time.perf_counter() - t0
             if status != "completed":
-                log.status[k] = "error"
-                k += 1
-                break
-            try:
-                # A value whose shape changes from tick to tick is refused here, by the log.
-                log.task(k, cmd.task_errors)
-                log.value(k, cmd.values)
-            except InvalidInputError as exc:
-                status, error = "invalid_command", str(exc)
                 log.status[k] = "error"
                 k += 1
                 break
