@@ -21,6 +21,7 @@ from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
 from harvest_qp.loop.settings import check_settings
+from tests.helpers import random_pose
 
 
 def _bits(values) -> list[int]:
@@ -31,17 +32,6 @@ def _bits(values) -> list[int]:
 @pytest.fixture(scope="module")
 def controller():
     return HarvestController(check_settings({}))
-
-
-def _random_pose(rng: np.random.Generator, scale: float = 0.5) -> np.ndarray:
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q = q * np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] = -q[:, 0]
-    pose = np.eye(4)
-    pose[:3, :3] = q
-    pose[:3, 3] = scale * rng.normal(size=3)
-    return pose
 
 
 def test_camera_twist_equals_the_checked_laws(controller):
@@ -61,7 +51,7 @@ def test_camera_twist_equals_the_checked_laws(controller):
         c.reaching.set_roi_centre(centre + 0.05 * rng.normal(size=3))
         c.unveiling.reset()
         c.unveiling.raw = 0.1 * rng.normal(size=6)
-        pose = _random_pose(rng)
+        pose = random_pose(rng)
         if i % 3 == 0:
             pose[:3, 3] = centre + rng.uniform(0.1, 0.95) * keep_out * pose[:3, 2]
         reaching, unveiling = copy.deepcopy(c.reaching), copy.deepcopy(c.unveiling)
@@ -85,7 +75,7 @@ def test_camera_twist_without_unveiling_keeps_the_sign_of_zero(controller):
         for _ in range(50):
             centre = 0.3 * rng.normal(size=3)
             c.reaching.reset(centre)
-            pose = _random_pose(rng)
+            pose = random_pose(rng)
             pose[:3, 3] = centre - 0.925 * r["radius"] * pose[:3, 2]  # p_r ahead, at 0.925 r
             reaching = copy.deepcopy(c.reaching)
             got = c._camera_twist(pose, 0.002)
@@ -102,9 +92,9 @@ def test_hold_twist_equals_the_numpy_formula(controller):
     rng = np.random.default_rng(12)
     k = c.settings["grasping"]["k_hold"]
     for _ in range(300):
-        hold = pin.SE3(_random_pose(rng))
+        hold = pin.SE3(random_pose(rng))
         c.state.hold_translation, c.state.hold_rotation_T = hold.translation, hold.rotation.T
-        T_g = _random_pose(rng)
+        T_g = random_pose(rng)
         expected = np.zeros(6)
         expected[:3] = -k * (T_g[:3, 3] - hold.translation)
         expected[3:] = -k * pin.log3(T_g[:3, :3] @ hold.rotation.T)
@@ -131,13 +121,13 @@ def test_roll_reference_equals_the_numpy_formula(controller):
     rng = np.random.default_rng(13)
     k_roll = c.settings["roll"]["k_roll"]
     for i in range(1000):
-        T_c = _random_pose(rng)
-        direction = _random_pose(rng)[:3, 1] if i % 2 else rng.normal(size=3)
+        T_c = random_pose(rng)
+        direction = random_pose(rng)[:3, 1] if i % 2 else rng.normal(size=3)
         twist, angle = c._roll_reference(T_c, direction)
         twist_np, angle_np = _roll_reference_numpy(k_roll, T_c, direction)
         assert _bits(twist) == _bits(twist_np)
         assert _bits(angle) == _bits(angle_np)
-    T_c = _random_pose(rng)
+    T_c = random_pose(rng)
     twist, angle = c._roll_reference(T_c, T_c[:3, 2].copy())
     assert np.isnan(angle) and not np.any(twist)
 
@@ -153,7 +143,7 @@ def test_camera_speeds_equal_the_numpy_formula(controller):
     poses, times = [], []
     for k in range(600):
         t = 0.002 * (k + 1)
-        pose = _random_pose(rng, scale=0.01)
+        pose = random_pose(rng, scale=0.01)
         poses.append(pose)
         times.append(t)
         if k % 3 == 0:  # no stem base yet: recorded, not measured

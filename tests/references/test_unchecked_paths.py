@@ -19,24 +19,13 @@ import pytest
 
 from harvest_qp.references import GraspFeedForward, ReachingCentering, StemStretching, Unveiling
 from harvest_qp.references._checks import cross3, cross_rows
+from tests.helpers import random_pose
 
 
 def _bits(values) -> list[int]:
     """The IEEE bit patterns (so that -0.0 differs from 0.0, and NaN equals itself)."""
     return np.asarray(values, dtype=np.float64).reshape(-1).view(np.int64).tolist()
 
-
-
-def _random_pose(rng: np.random.Generator, scale: float = 0.5) -> np.ndarray:
-    """A C-ordered homogeneous pose with a uniformly random rotation (QR of a Gaussian matrix)."""
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q = q * np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] = -q[:, 0]
-    pose = np.eye(4)
-    pose[:3, :3] = q
-    pose[:3, 3] = scale * rng.normal(size=3)
-    return pose
 
 
 def test_cross3_equals_np_cross_bit_for_bit():
@@ -71,7 +60,7 @@ def test_reaching_fast_path_equals_update():
         target = centre + 0.2 * rng.normal(size=3)
         checked.set_roi_centre(target)
         fast.set_roi_centre(target)
-        pose = _random_pose(rng)
+        pose = random_pose(rng)
         if i % 5 == 0:  # ROI on the optical axis: theta 0 or pi (k undefined)
             pose[:3, 3] = centre - (0.4 if i % 2 else -0.4) * pose[:3, 2]
             checked.reset(centre)
@@ -98,7 +87,7 @@ def test_stretching_fast_path_equals_update():
         checked.set_target(stem_base, target)
         fast.set_target(stem_base, target)
         for _ in range(6):
-            pose = _random_pose(rng)
+            pose = random_pose(rng)
             force = 4.0 * rng.normal(size=3)
             expected = checked.update(pose, force, 0.002)
             got = fast._update_unchecked(pose, force.copy(), 0.002)
