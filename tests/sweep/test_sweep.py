@@ -530,7 +530,7 @@ def _processes_with_env_value(value: str) -> list[int]:
     return found
 
 
-def test_ray_sweep_matches_local_row_for_row(local_sweep, tmp_path):
+def test_ray_sweep_matches_local_row_for_row(local_sweep, tmp_path, monkeypatch):
     """The same seeds as Ray tasks on a private local instance give the local rows, crash rows included.
 
     Catches: Ray retrying the dying seed, an engine-dependent row, an episode exception escaping,
@@ -541,6 +541,10 @@ def test_ray_sweep_matches_local_row_for_row(local_sweep, tmp_path):
     result, _, _ = local_sweep
     token_file = Path.home() / ".ray" / "auth_token"
     had_token_file = token_file.exists()
+    # A private, short temp folder (Ray's socket paths must fit in 107 bytes): a sweep of
+    # another process running at the same time (a second test session) cannot add to it.
+    private_tmp = tempfile.mkdtemp(prefix="hqt-")
+    monkeypatch.setattr(tempfile, "tempdir", private_tmp)
     temp_before = set(Path(tempfile.gettempdir()).glob("hqray-*"))
     assert "RAY_AUTH_TOKEN" not in os.environ  # else the instance would use the caller's token
     marker_dir = tmp_path / "markers"
@@ -557,6 +561,7 @@ def test_ray_sweep_matches_local_row_for_row(local_sweep, tmp_path):
     while _processes_with_env_value(engines._LOCAL_RAY_TOKEN) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert _processes_with_env_value(engines._LOCAL_RAY_TOKEN) == []
+    shutil.rmtree(private_tmp, ignore_errors=True)
 
 
 def test_ray_cluster_auth_failure_names_the_fix(monkeypatch, tmp_path):
