@@ -105,6 +105,33 @@ class DaqpBackend:
             return SolverCyclingError
         return SolverError
 
+    def _ready(self, n: int, n_in: int) -> bool:
+        """Whether the model is set up for ``n`` variables and ``n_in`` inequality rows (then a
+        problem of that size is an :meth:`_update_solve` on rows loaded into its buffers)."""
+        shape = self._shape
+        return self._model is not None and shape is not None and shape[0] == n and shape[1] == n_in
+
+    def _update_solve(self, problem: QPProblem, H: np.ndarray, f: np.ndarray, rows_changed: bool) -> np.ndarray:
+        """The set-up model updated with ``H``, ``f`` and the rows already in this backend's buffers
+        (``load_daqp_rows``), then solved; raises on a failure flag (no feasibility check here)."""
+        if rows_changed:
+            self._model.update(H=H, f=f, A=self._A, bupper=self._upper, blower=self._lower, sense=self._sense)
+        else:  # only bounds and cost moved: skip copying the constraint matrix
+            self._model.update(H=H, f=f, bupper=self._upper, blower=self._lower)
+        return self._solve_model(problem)
+
+    def _solve_model(self, problem: QPProblem) -> np.ndarray:
+        x, _, flag, _ = self._model.solve()
+        if flag < 0:
+            self._model = None  # start from scratch next time: a bad active set is not reused
+            raise self._error(flag)(
+                f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
+                problem=problem,
+                backend=self.name,
+                status=flag,
+            )
+        return x
+
     def solve(self, problem: QPProblem) -> np.ndarray:
         H, f, A_eq, G, h = problem.H, problem.f, problem.A, problem.G, problem.h
         box_lower, box_upper = problem.lower, problem.upper
@@ -133,19 +160,9 @@ class DaqpBackend:
                     backend=self.name,
                     status=flag,
                 )
-        elif rows_changed:
-            self._model.update(H=H, f=f, A=A, bupper=upper, blower=lower, sense=sense)
-        else:  # only bounds and cost moved: skip copying the constraint matrix
-            self._model.update(H=H, f=f, bupper=upper, blower=lower)
-        x, _, flag, _ = self._model.solve()
-        if flag < 0:
-            self._model = None  # start from scratch next time: a bad active set is not reused
-            raise self._error(flag)(
-                f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
-                problem=problem,
-                backend=self.name,
-                status=flag,
-            )
+            x = self._solve_model(problem)
+        else:
+            x = self._update_solve(problem, H, f, rows_changed)
         # The check of _checked, without its conversions (x is DAQP's own float64 copy).
         violation = max_scaled_violation(x, box_lower, box_upper, A_eq, problem.b, G, h)
         if violation <= FEASIBILITY_TOLERANCE:
