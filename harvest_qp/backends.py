@@ -96,6 +96,8 @@ class DaqpBackend:
         self._lower = np.full(2 * n + n_in, -_INF)
         self._sense = np.zeros(2 * n + n_in, dtype=np.int32)
         self._n_eq = 0
+        #: The four layout buffers in the order the solver's fused kernels take them.
+        self._layout = (self._A, self._upper, self._lower, self._sense)
 
     @staticmethod
     def _error(flag: int) -> type[SolverError]:
@@ -105,15 +107,11 @@ class DaqpBackend:
             return SolverCyclingError
         return SolverError
 
-    def _ready(self, n: int, n_in: int) -> bool:
-        """Whether the model is set up for ``n`` variables and ``n_in`` inequality rows (then a
-        problem of that size is an :meth:`_update_solve` on rows loaded into its buffers)."""
-        shape = self._shape
-        return self._model is not None and shape is not None and shape[0] == n and shape[1] == n_in
-
     def _update_solve(self, problem: QPProblem, H: np.ndarray, f: np.ndarray, rows_changed: bool) -> np.ndarray:
         """The set-up model updated with ``H``, ``f`` and the rows already in this backend's buffers
-        (``load_daqp_rows``), then solved; raises on a failure flag (no feasibility check here)."""
+        (``load_daqp_rows``), then solved; raises on a failure flag (no feasibility check here).
+        The solver's fused levels call it when the model is set up for the problem's size
+        (``_model`` not None, ``_shape == (n, n_in)``)."""
         if rows_changed:
             self._model.update(H=H, f=f, A=self._A, bupper=self._upper, blower=self._lower, sense=self._sense)
         else:  # only bounds and cost moved: skip copying the constraint matrix

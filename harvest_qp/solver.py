@@ -94,6 +94,7 @@ from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
 
 _new = object.__new__
+_FLOAT64 = np.dtype(np.float64)
 # The fused DAQP level kernels by the level's task count (see Solver._daqp_level).
 _ASSEMBLE_LOAD = {1: assemble_load_1, 2: assemble_load_2, 3: assemble_load_3, 4: assemble_load_4}
 _CHECK_CLIP_EQUALITIES = {1: check_clip_equalities_1, 2: check_clip_equalities_2, 3: check_clip_equalities_3}
@@ -535,13 +536,14 @@ class Solver:
         # DAQP levels whose model is set up for this size take the fused path (_daqp_level).
         daqp = self._backends if self.backend_name == "daqp" else None
         n_in = G.shape[0]
+        shape = (n, n_in)
         for level in levels:
             entries = by_level.get(level, ())
             count = len(entries)
             if daqp is not None and 0 < count <= 4:
                 backend = daqp.get(("daqp", level))
                 # Only DAQP's own backend (a replaced or subclassed one keeps its own solve).
-                if type(backend) is DaqpBackend and backend._ready(n, n_in):
+                if type(backend) is DaqpBackend and backend._model is not None and backend._shape == shape:
                     x, A, b = self._daqp_level(
                         backend, level, level != last, n, entries, lower, upper, A, b, G, h, retries, confirm, problems
                     )
@@ -595,34 +597,35 @@ class Solver:
         count = len(entries)
         block = np.zeros((n + 2, n))  # H, f, floor: fresh, the problem keeps H and f
         H, f = block[:n], block[n]
+        # One pass over the tasks: the assembly's (J, w, v) and the equalities' (J, w) arguments
+        # and the rows the equalities stack (A's and every task's).
         args = [block, self.regularization]
+        eq_tail = []
+        m = A.shape[0]
         for task, J, v in entries:
-            args += (IDENTITY_ROWS if J is None else J, task.weight, v)
+            weight = task.weight
+            if J is None:
+                m += weight.shape[0]
+                J = IDENTITY_ROWS
+            else:
+                m += J.shape[0]
+            args += (J, weight, v)
+            eq_tail += (J, weight)
         n_eq_before = backend._n_eq
         rows_changed = G.shape[0] > 0 or A.shape[0] > 0 or n_eq_before > 0
-        args += (backend._A, backend._upper, backend._lower, backend._sense, A, b, G, h, lower, upper, n_eq_before, INF)
-        backend._n_eq = _ASSEMBLE_LOAD[count](*args)
+        backend._n_eq = _ASSEMBLE_LOAD[count](*args, *backend._layout, A, b, G, h, lower, upper, n_eq_before, INF)
         problem = _new(QPProblem)
         problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
         problems.append(problem)
         try:
             x = backend._update_solve(problem, H, f, rows_changed)
-            if below and count <= 3 and A.dtype == np.float64:
-                m = A.shape[0]
-                eq_args = [x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, None]
-                for task, J, _ in entries:
-                    weight = task.weight
-                    if J is None:
-                        m += weight.shape[0]
-                        eq_args += (IDENTITY_ROWS, weight)
-                    else:
-                        m += J.shape[0]
-                        eq_args += (J, weight)
+            if below and count <= 3 and A.dtype is _FLOAT64:
                 stack = self._rows_buffer
                 if stack.shape[0] < m or stack.shape[1] != n:
                     stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
-                eq_args[9] = stack
-                accepted, rows, rhs = _CHECK_CLIP_EQUALITIES[count](*eq_args)
+                accepted, rows, rhs = _CHECK_CLIP_EQUALITIES[count](
+                    x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, stack, *eq_tail
+                )
                 if accepted:
                     return x, rows, rhs
             elif check_clip(x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE):

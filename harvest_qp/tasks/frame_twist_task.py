@@ -8,13 +8,15 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.qp_kernels import rotate_twist, rotate_twist_rows
+from harvest_qp.qp_kernels import all_finite, rotate_twist, rotate_twist_rows
 from harvest_qp.tasks.task import Task
 from harvest_qp.validation import as_choice, as_name, as_vector
 
 WEIGHT_FRAMES = ("world", "local")
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _frame_jacobian = pin.getFrameJacobian
+_FLOAT64 = np.dtype(np.float64)
+_SHAPE6 = (6,)
 
 
 class FrameTwistTask(Task):
@@ -81,11 +83,16 @@ class FrameTwistTask(Task):
 
     @reference.setter
     def reference(self, twist: np.ndarray | Sequence[float]) -> None:
-        self._reference = as_vector(twist, 6, f"{self._label()} reference twist")
+        self.set_reference(twist)
 
     def set_reference(self, twist: np.ndarray | Sequence[float]) -> None:
         """Set the reference twist ``[v; w]`` [m/s, rad/s], world-aligned at the frame origin."""
-        self.reference = twist
+        # The control loop sets three references every tick: a finite float64 6-vector is
+        # copied as as_vector would copy it, without building the error message's name first.
+        if type(twist) is np.ndarray and twist.dtype is _FLOAT64 and twist.shape == _SHAPE6 and all_finite(twist):
+            self._reference = twist.copy()
+        else:
+            self._reference = as_vector(twist, 6, f"{self._label()} reference twist")
 
     def check_configuration(self, configuration: Configuration) -> None:
         super().check_configuration(configuration)

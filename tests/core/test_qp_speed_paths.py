@@ -503,10 +503,14 @@ def _three_level_problem(config, rng):
     return [camera, gripper, roll, posture, damping2, damping3], [limit]
 
 
+class _GeneralDaqp(DaqpBackend):
+    """DAQP's backend as a subclass: the solver gives it the general path (its own ``solve``)."""
+
+
 def test_fused_daqp_levels_equal_the_general_path_bit_for_bit(rng):
     """Oracles: the general path of the same solver class (each level through
-    ``DaqpBackend.solve``, the separate check, clip and equality kernels), forced by reporting
-    the backends as not set up; and quadprog (another QP solver) on the deepest level's problem.
+    ``DaqpBackend.solve``, the separate check, clip and equality kernels), forced by making the
+    backends a subclass; and quadprog (another QP solver) on the deepest level's problem.
     Over random states and previous commands, three levels with collision rows: the same
     command and the same H, f, A, b of every level, bit for bit, and DAQP's buffers alike.
 
@@ -523,15 +527,17 @@ def test_fused_daqp_levels_equal_the_general_path_bit_for_bit(rng):
     # (with 1e-10 DAQP and quadprog report such levels infeasible and proxsuite, not bit-for-bit
     # repeatable, answers).
     fused.regularization = general.regularization = 1e-5
-    fused_levels = 0
-    for k in range(12):
+    fused_levels = []  # the levels the fused path solved (a spy: every level from the second step on)
+    inner = fused._daqp_level
+    fused._daqp_level = lambda *args: fused_levels.append(args[1]) or inner(*args)
+    for _ in range(12):
         # States away from the position limits and previous commands within the acceleration
         # box of a feasible QP (an infeasible one goes to the fallback backends, compared below).
         q = HOME_Q + rng.normal(0, 0.15, 12)
         previous = rng.normal(0, 0.005, 12)
         config.update(q)
         for backend in general._backends.values():
-            backend._ready = lambda n, n_in: False  # the general path, every level
+            backend.__class__ = _GeneralDaqp  # the general path, every level
         a = fused.solve(config, tasks, limits, previous_qdot=previous)
         b = general.solve(config, tasks, limits, previous_qdot=previous)
         assert np.array_equal(a.qdot, b.qdot)
@@ -544,7 +550,6 @@ def test_fused_daqp_levels_equal_the_general_path_bit_for_bit(rng):
             other = general._backends[key]
             assert np.array_equal(backend._A, other._A) and np.array_equal(backend._sense, other._sense)
             assert np.array_equal(backend._upper, other._upper) and backend._n_eq == other._n_eq
-        fused_levels += k > 0
         # Level 1 by quadprog: its optimum holds the equalities level 2 was given (the fused
         # level 1 found the same task velocities); the command keeps every level's equalities.
         first = a.problems[0]
@@ -553,7 +558,9 @@ def test_fused_daqp_levels_equal_the_general_path_bit_for_bit(rng):
         x1 = quadprog.solve_qp(first.H, -first.f, np.vstack(rows).T.copy(), np.concatenate(bounds))[0]
         np.testing.assert_allclose(a.problems[1].A @ x1, a.problems[1].b, atol=1e-6)
         np.testing.assert_allclose(a.problems[2].A @ a.qdot, a.problems[2].b, atol=1e-9)
-    assert fused_levels and all(type(b)._ready(b, 12, limits[0]._G.shape[0]) for b in fused._backends.values())
+    assert fused_levels == [1, 2, 3] * 11
+    assert all(type(b) is DaqpBackend and b._shape == (12, limits[0]._G.shape[0])
+                                for b in fused._backends.values())
 
 
 class _Answer:
@@ -593,7 +600,7 @@ def test_fused_daqp_level_recovers_from_a_rejected_answer_like_the_general_path(
         solver.solve(config, tasks, limits)  # sets the DAQP models up
         backend = solver._backends[("daqp", level)]
         if which:
-            backend._ready = lambda n, n_in: False
+            backend.__class__ = _GeneralDaqp
         backend._model = _Answer(config.velocity_limits + offset, flag)
         results.append(solver.solve(config, tasks, limits))
         assert (backend._model is None) == (flag < 0)
@@ -650,3 +657,43 @@ def test_reused_q_is_taken_only_for_the_same_bits_of_a_native_float64_vector():
     bad[0] = np.nan
     result = controller._step(bad, reuse_kinematics=True)
     assert result.status.startswith("fallback") and "finite" in result.status
+
+
+def test_reference_fast_path_copies_and_checks_like_as_vector(rng):
+    """Oracle: ``as_vector`` (the checked path). A float64 6-vector is stored as a copy with the
+    same bits; NaN, a wrong length, a float32 or byte-swapped array and a list take the checked
+    path (the same errors and messages naming the task). Bug caught (planted and seen failing):
+    the fast path storing the caller's array itself (a later in-place change of the caller's
+    array moved the reference)."""
+    from harvest_qp.exceptions import InvalidInputError
+    from harvest_qp.validation import as_vector
+
+    task = FrameTwistTask("camera", weight_frame="local")
+    twist = rng.normal(size=6)
+    task.set_reference(twist)
+    stored = task.reference
+    assert stored is not twist and np.array_equal(stored, as_vector(twist, 6, "x"))
+    twist[0] += 1.0
+    assert not np.array_equal(task.reference, twist)
+    for other in (twist.astype(np.float32), twist.astype(">f8"), list(twist)):
+        task.reference = other
+        assert task.reference.dtype == np.float64 and np.array_equal(task.reference, as_vector(other, 6, "x"))
+    bad = twist.copy()
+    bad[2] = np.nan
+    with pytest.raises(InvalidInputError, match=r"FrameTwistTask\('camera'\) reference twist must be finite"):
+        task.set_reference(bad)
+    with pytest.raises(InvalidInputError, match=r"reference twist must have shape \(6,\)"):
+        task.set_reference(np.zeros(5))
+
+
+def test_posture_rows_equal_the_numpy_formula_bit_for_bit(configuration, rng):
+    """Oracle: numpy's ``gain * (target - q)``. The compiled posture rows give the same bits
+    and a fresh array each call. Bug caught (planted and seen failing): the difference taken
+    the other way round (``q - target``: the posture pushed away from its target)."""
+    task = PostureTask(HOME_Q + rng.normal(0, 0.2, 12), weight=1e-3, gain=0.7)
+    configuration.update(HOME_Q + rng.normal(0, 0.2, 12))
+    J, v = task.compute_rows(configuration, 0.002)
+    assert J is None
+    assert np.array_equal(v, 0.7 * (task.target - configuration.q))
+    _, again = task.compute_rows(configuration, 0.002)
+    assert again is not v and np.array_equal(again, v)
