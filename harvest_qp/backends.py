@@ -121,14 +121,18 @@ class DaqpBackend:
     def _solve_model(self, problem: QPProblem) -> np.ndarray:
         x, _, flag, _ = self._model.solve()
         if flag < 0:
-            self._model = None  # start from scratch next time: a bad active set is not reused
-            raise self._error(flag)(
-                f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
-                problem=problem,
-                backend=self.name,
-                status=flag,
-            )
+            self._raise_failure(problem, flag)
         return x
+
+    def _raise_failure(self, problem: QPProblem, flag: int) -> None:
+        """Drop the model (start from scratch next time: a bad active set is not reused) and raise."""
+        self._model = None
+        raise self._error(flag)(
+            f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
+            problem=problem,
+            backend=self.name,
+            status=flag,
+        )
 
     def solve(self, problem: QPProblem) -> np.ndarray:
         H, f, A_eq, G, h = problem.H, problem.f, problem.A, problem.G, problem.h

@@ -419,6 +419,7 @@ class Solver:
             self._box_rows = [(limit, self._lowers[i], self._uppers[i]) for i, limit in enumerate(self._box_list)]
             self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
             self._row_limits = [limit for limit in limits if not limit.has_box]
+            self._conflict = np.empty(n, dtype=np.int64)
             self._no_equalities = (np.zeros((0, n)), np.zeros(0))
             self._builtin_trio = tuple(map(type, self._box_list)) == (
                 JointVelocityLimit, JointPositionLimit, JointAccelerationLimit
@@ -436,8 +437,8 @@ class Solver:
         if velocity._model is not model or position._model is not model or acceleration._model is not model:
             return None
         n = configuration.nv
-        lower, upper = np.empty(n), np.empty(n)
-        conflict = np.empty(n, dtype=np.int64)
+        lower, upper = np.empty(n), np.empty(n)  # fresh: the solution and its problems keep them
+        conflict = self._conflict  # scratch, read only below
         count = builtin_boxes(
             configuration.q, position.lower, position.upper, position.gain, dt, position._braking,
             velocity.max_velocity, acceleration._zeros if previous_qdot is None else previous_qdot,
@@ -618,7 +619,16 @@ class Solver:
         problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
         problems.append(problem)
         try:
-            x = backend._update_solve(problem, H, f, rows_changed)
+            # DaqpBackend._update_solve inlined (the hot path): update's positional order is
+            # (H, f, A, bupper, blower, sense), the order of the layout tuple after H and f.
+            model = backend._model
+            if rows_changed:
+                model.update(H, f, *backend._layout)
+            else:  # only bounds and cost moved: skip copying the constraint matrix
+                model.update(H, f, None, backend._upper, backend._lower)
+            x, _, flag, _ = model.solve()
+            if flag < 0:
+                backend._raise_failure(problem, flag)
             if below and count <= 3 and A.dtype is _FLOAT64:
                 stack = self._rows_buffer
                 if stack.shape[0] < m or stack.shape[1] != n:

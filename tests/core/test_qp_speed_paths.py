@@ -569,7 +569,7 @@ class _Answer:
     def __init__(self, x, flag=1):
         self.x, self.flag = x, flag
 
-    def update(self, **kwargs):
+    def update(self, *args, **kwargs):
         return 0
 
     def solve(self):
