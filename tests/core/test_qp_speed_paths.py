@@ -697,3 +697,34 @@ def test_posture_rows_equal_the_numpy_formula_bit_for_bit(configuration, rng):
     assert np.array_equal(v, 0.7 * (task.target - configuration.q))
     _, again = task.compute_rows(configuration, 0.002)
     assert again is not v and np.array_equal(again, v)
+
+
+def test_collision_rows_with_the_clamp_fused_equal_the_unclamped_rows_masked(rng):
+    """Oracle: the same limit's rows without approach-only capsules, clamped by a numpy mask
+    (``h = 0`` where the row's pair is (approach-only capsule, obstacle sphere) and ``h < 0``).
+    With obstacle spheres inside ``d_s`` of approach-only capsules, the fused kernel gives the
+    same G bit for bit and the masked h. Bug caught (planted and seen failing): the fused call
+    skipping the clamp (an approach-only capsule pushed away by the map's cells)."""
+    config = Configuration.dual_ur5e(HOME_Q)
+    limit = CollisionAvoidance.dual_ur5e(config, influence_distance=0.2)
+    moving = [limit.capsule_names[i] for i in limit._moving]
+    chosen = [name for name in moving if name.startswith("grasp_")][:3]
+    assert chosen
+    ends = [limit._w0, limit._w1]
+    limit.compute(config, 0.002)  # world end points of the capsules at HOME_Q
+    index = [limit.capsule_names.index(name) for name in chosen]
+    centres = np.array([ends[k % 2][i] for k, i in enumerate(index)]) + rng.normal(0, 1e-3, (len(index), 3))
+    limit.set_obstacle_spheres(centres, 0.0)
+    limit.set_approach_only(())
+    free = limit.compute(config, 0.002)
+    G_free, h_free, n = free.G.copy(), free.h.copy(), limit.num_rows
+    row_pair = limit.row_pairs.copy()
+    limit.set_approach_only(chosen)
+    clamped = limit.compute(config, 0.002)
+    mask = np.zeros_like(h_free, dtype=bool)
+    mask[:n] = limit._approach_pair[row_pair] & (h_free[:n] < 0.0)
+    assert mask.any()
+    expected = h_free.copy()
+    expected[mask] = 0.0
+    assert limit.num_rows == n and np.array_equal(limit.row_pairs, row_pair)
+    assert np.array_equal(clamped.G, G_free) and np.array_equal(clamped.h, expected)
