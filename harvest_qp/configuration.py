@@ -115,8 +115,9 @@ class Configuration:
         # the ``q`` property hands out, so a caller could change it in place).
         self._q_kinematics = q.tobytes()
         # Rows computed from these kinematics and shared between tasks (FrameTwistTask's
-        # frame-axis Jacobians, by frame index): stale once the kinematics change.
-        self._frame_rows: dict[int, np.ndarray] = {}
+        # frame-axis Jacobians and the frame's rotation, by frame index): stale once the
+        # kinematics change.
+        self._frame_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
 

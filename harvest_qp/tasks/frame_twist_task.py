@@ -112,8 +112,9 @@ class FrameTwistTask(Task):
     def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Like :meth:`compute`, into buffers reused at the next call (the solver's fast path).
 
-        Local-axes rows of one frame are computed once per kinematics update and shared by
-        every local task on that frame (the paper episode's camera and roll tasks).
+        Local-axes rows of one frame, and the frame's rotation (pinocchio's ``oMf[i].rotation``,
+        ~1 us a read), are taken once per kinematics update and shared by every local task on
+        that frame (the paper episode's camera and roll tasks).
         """
         if self._model is None or getattr(configuration, "model", None) is not self._model:
             self._ensure_bound(configuration)
@@ -121,18 +122,20 @@ class FrameTwistTask(Task):
         v = self._reference if self._gain == 1.0 else self._gain * self._reference
         if self._local:
             # Rotate rows into the frame's axes so that weights act on local axes.
-            R = configuration.data.oMf[frame_id].rotation
             rows = getattr(configuration, "_frame_rows", None)
             shared = None if rows is None else rows.get(frame_id)
-            if shared is not None and shared.shape == self._J_local.shape:
+            if shared is not None and shared[0].shape == self._J_local.shape:
+                J_shared, R = shared
                 rotate_twist(R, v, self._v_local)
-                return shared, self._v_local
+                return J_shared, self._v_local
+            R = configuration.data.oMf[frame_id].rotation
             J = _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA)
             rotate_twist_rows(R, J, v, self._J_local, self._v_local)
             # A copy is shared: this task's buffer is rewritten at its next call (which may
-            # be on another configuration of the same model).
+            # be on another configuration of the same model). The dict is replaced at every
+            # kinematics update (Configuration._set_q), so neither entry outlives its kinematics.
             if rows is not None:
-                rows[frame_id] = self._J_local.copy()
+                rows[frame_id] = (self._J_local.copy(), R)
             return self._J_local, self._v_local
         # The frame index was checked against this model when the task was bound.
         return _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA), v
