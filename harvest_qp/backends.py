@@ -96,6 +96,8 @@ class DaqpBackend:
         self._lower = np.full(2 * n + n_in, -_INF)
         self._sense = np.zeros(2 * n + n_in, dtype=np.int32)
         self._n_eq = 0
+        #: The four layout buffers in the order the solver's fused kernels take them.
+        self._layout = (self._A, self._upper, self._lower, self._sense)
 
     @staticmethod
     def _error(flag: int) -> type[SolverError]:
@@ -104,6 +106,33 @@ class DaqpBackend:
         if flag in (-2, -4):
             return SolverCyclingError
         return SolverError
+
+    def _update_solve(self, problem: QPProblem, H: np.ndarray, f: np.ndarray, rows_changed: bool) -> np.ndarray:
+        """The set-up model updated with ``H``, ``f`` and the rows already in this backend's buffers
+        (``load_daqp_rows``), then solved; raises on a failure flag (no feasibility check here).
+        The solver's fused levels call it when the model is set up for the problem's size
+        (``_model`` not None, ``_shape == (n, n_in)``)."""
+        if rows_changed:
+            self._model.update(H=H, f=f, A=self._A, bupper=self._upper, blower=self._lower, sense=self._sense)
+        else:  # only bounds and cost moved: skip copying the constraint matrix
+            self._model.update(H=H, f=f, bupper=self._upper, blower=self._lower)
+        return self._solve_model(problem)
+
+    def _solve_model(self, problem: QPProblem) -> np.ndarray:
+        x, _, flag, _ = self._model.solve()
+        if flag < 0:
+            self._raise_failure(problem, flag)
+        return x
+
+    def _raise_failure(self, problem: QPProblem, flag: int) -> None:
+        """Drop the model (start from scratch next time: a bad active set is not reused) and raise."""
+        self._model = None
+        raise self._error(flag)(
+            f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
+            problem=problem,
+            backend=self.name,
+            status=flag,
+        )
 
     def solve(self, problem: QPProblem) -> np.ndarray:
         H, f, A_eq, G, h = problem.H, problem.f, problem.A, problem.G, problem.h
@@ -133,19 +162,9 @@ class DaqpBackend:
                     backend=self.name,
                     status=flag,
                 )
-        elif rows_changed:
-            self._model.update(H=H, f=f, A=A, bupper=upper, blower=lower, sense=sense)
-        else:  # only bounds and cost moved: skip copying the constraint matrix
-            self._model.update(H=H, f=f, bupper=upper, blower=lower)
-        x, _, flag, _ = self._model.solve()
-        if flag < 0:
-            self._model = None  # start from scratch next time: a bad active set is not reused
-            raise self._error(flag)(
-                f"daqp failed: {self._FLAGS.get(flag, 'error')} (exitflag {flag})",
-                problem=problem,
-                backend=self.name,
-                status=flag,
-            )
+            x = self._solve_model(problem)
+        else:
+            x = self._update_solve(problem, H, f, rows_changed)
         # The check of _checked, without its conversions (x is DAQP's own float64 copy).
         violation = max_scaled_violation(x, box_lower, box_upper, A_eq, problem.b, G, h)
         if violation <= FEASIBILITY_TOLERANCE:

@@ -20,6 +20,7 @@ from harvest_qp.exceptions import InvalidInputError, ModelError, UnknownFrameErr
 from harvest_qp.validation import as_scalar, as_vector, describe
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_FLOAT64 = np.dtype(np.float64)
 
 
 class Configuration:
@@ -114,8 +115,9 @@ class Configuration:
         # the ``q`` property hands out, so a caller could change it in place).
         self._q_kinematics = q.tobytes()
         # Rows computed from these kinematics and shared between tasks (FrameTwistTask's
-        # frame-axis Jacobians, by frame index): stale once the kinematics change.
-        self._frame_rows: dict[int, np.ndarray] = {}
+        # frame-axis Jacobians and the frame's rotation, by frame index): stale once the
+        # kinematics change.
+        self._frame_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
 
@@ -131,6 +133,20 @@ class Configuration:
             self._q = q
             return
         self._set_q(q)
+
+    def _reuse_current_q(self, q: object) -> np.ndarray | None:
+        """For the library's own control loop: when ``q`` is a native float64 vector whose bytes
+        equal those of the ``q`` the kinematics were last computed at, store a copy of it as
+        :meth:`_update_if_changed` would and return that copy; else None (nothing changed).
+
+        The bytes of the last checked ``q`` (:func:`as_vector`: finite, size nq) are only equal
+        to ``q``'s when ``q`` passes the same check, so the check is not repeated.
+        """
+        if type(q) is np.ndarray and q.dtype is _FLOAT64 and q.ndim == 1 and q.tobytes() == self._q_kinematics:
+            q = q.copy()
+            self._q = q
+            return q
+        return None
 
     def integrate(self, qdot: np.ndarray | Sequence[float], dt: float) -> np.ndarray:
         """Joint positions [rad] after applying ``qdot`` [rad/s] for ``dt`` [s] (does not update)."""

@@ -177,11 +177,16 @@ class TaskController:
         """
         measured = False
         try:
-            q = as_vector(q, self.configuration.model.nq, "Configuration q")
-            if reuse_kinematics:
-                self.configuration._update_if_changed(q)
-            else:
-                self.configuration._set_q(q)
+            configuration = self.configuration
+            # The loop has just updated the configuration to this very q (checked there): the
+            # copy then needs neither the check nor the kinematics again.
+            current = configuration._reuse_current_q(q) if reuse_kinematics else None
+            if current is None:
+                q = as_vector(q, configuration.model.nq, "Configuration q")
+                if reuse_kinematics:
+                    configuration._update_if_changed(q)
+                else:
+                    configuration._set_q(q)
             measured = True
             # previous_qdot is this controller's own finite output: skip re-validating it.
             solution = self.solver._solve(self.configuration, self.tasks, self.limits, self.dt, self.previous_qdot)

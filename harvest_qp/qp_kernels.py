@@ -503,3 +503,91 @@ def level_equalities_3(A, x, tol, stack, J0, w0, J1, w1, J2, w2):
     r = _weighted_into(J1, w1, stack, r)
     r = _weighted_into(J2, w2, stack, r)
     return _equalities_from_stack(stack, r, x, tol)
+
+
+# DAQP levels of the solver's cascade in two compiled calls each (see ``Solver._cascade``):
+# before the solve, the level's H and f (``assemble_level_*``) and DAQP's fixed layout
+# (``load_daqp_rows``); after it, the feasibility check, the clip to the box and, below a
+# level with others after it, its equalities (``level_equalities_*``). The same operations
+# in the same order as the separate calls.
+@njit(cache=True)
+def assemble_load_1(block, reg, J0, w0, v0, A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper,
+                    n_eq_before, inf):
+    """:func:`assemble_level_1` into ``block`` (rows: H, f, floor), then :func:`load_daqp_rows`; returns its count."""
+    n = block.shape[1]
+    assemble_level_1(block[:n], block[n], block[n + 1], reg, J0, w0, v0)
+    return load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper, n_eq_before, inf)
+
+
+@njit(cache=True)
+def assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, upper, lower, sense, A, b, G, h, box_lower,
+                    box_upper, n_eq_before, inf):
+    """:func:`assemble_load_1` for 2 tasks."""
+    n = block.shape[1]
+    assemble_level_2(block[:n], block[n], block[n + 1], reg, J0, w0, v0, J1, w1, v1)
+    return load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper, n_eq_before, inf)
+
+
+@njit(cache=True)
+def assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, upper, lower, sense, A, b, G, h,
+                    box_lower, box_upper, n_eq_before, inf):
+    """:func:`assemble_load_1` for 3 tasks."""
+    n = block.shape[1]
+    assemble_level_3(block[:n], block[n], block[n + 1], reg, J0, w0, v0, J1, w1, v1, J2, w2, v2)
+    return load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper, n_eq_before, inf)
+
+
+@njit(cache=True)
+def assemble_load_4(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, J3, w3, v3, A_buf, upper, lower, sense, A, b,
+                    G, h, box_lower, box_upper, n_eq_before, inf):
+    """:func:`assemble_load_1` for 4 tasks."""
+    n = block.shape[1]
+    assemble_level_4(block[:n], block[n], block[n + 1], reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, J3, w3, v3)
+    return load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper, n_eq_before, inf)
+
+
+@njit(cache=True)
+def check_clip(x, lower, upper, A, b, G, h, tol):
+    """``max_scaled_violation(x, ...) <= tol``; only then ``x`` is clipped to ``[lower, upper]`` in place
+    (a rejected ``x`` is left as the backend returned it)."""
+    if max_scaled_violation(x, lower, upper, A, b, G, h) <= tol:
+        clip_inplace(x, lower, upper)
+        return True
+    return False
+
+
+@njit(cache=True)
+def check_clip_equalities_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0):
+    """:func:`check_clip`, then (if accepted) :func:`level_equalities_1` at the clipped ``x``:
+    ``(accepted, rows, rhs)`` (empty rows when rejected)."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0)
+    rows, rhs = level_equalities_1(A, x, eq_tol, stack, J0, w0)
+    return True, rows, rhs
+
+
+@njit(cache=True)
+def check_clip_equalities_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1):
+    """:func:`check_clip_equalities_1` for 2 tasks."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0)
+    rows, rhs = level_equalities_2(A, x, eq_tol, stack, J0, w0, J1, w1)
+    return True, rows, rhs
+
+
+@njit(cache=True)
+def check_clip_equalities_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2):
+    """:func:`check_clip_equalities_1` for 3 tasks."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0)
+    rows, rhs = level_equalities_3(A, x, eq_tol, stack, J0, w0, J1, w1, J2, w2)
+    return True, rows, rhs
+
+
+@njit(cache=True)
+def scaled_difference(gain, target, q):
+    """A new array ``gain * (target - q)`` (the posture task's velocity), the same products as numpy's."""
+    out = np.empty(target.shape[0])
+    for i in range(target.shape[0]):
+        out[i] = gain * (target[i] - q[i])
+    return out

@@ -46,7 +46,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harvest_qp.backends import ACCEPTABLE_VIOLATION, Backend, backend_name_problem, make_backend
+from harvest_qp.backends import (
+    ACCEPTABLE_VIOLATION,
+    FEASIBILITY_TOLERANCE,
+    Backend,
+    DaqpBackend,
+    _checked,
+    backend_name_problem,
+    make_backend,
+)
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
 from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
@@ -61,7 +69,15 @@ from harvest_qp.qp_kernels import (
     assemble_level_2,
     assemble_level_3,
     assemble_level_4,
+    assemble_load_1,
+    assemble_load_2,
+    assemble_load_3,
+    assemble_load_4,
     builtin_boxes,
+    check_clip,
+    check_clip_equalities_1,
+    check_clip_equalities_2,
+    check_clip_equalities_3,
     clip_inplace,
     intersect_boxes,
     level_equalities_1,
@@ -78,6 +94,10 @@ from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
 
 _new = object.__new__
+_FLOAT64 = np.dtype(np.float64)
+# The fused DAQP level kernels by the level's task count (see Solver._daqp_level).
+_ASSEMBLE_LOAD = {1: assemble_load_1, 2: assemble_load_2, 3: assemble_load_3, 4: assemble_load_4}
+_CHECK_CLIP_EQUALITIES = {1: check_clip_equalities_1, 2: check_clip_equalities_2, 3: check_clip_equalities_3}
 
 #: Bound magnitude that stands for "no bound" in the QP data.
 INF = 1e30
@@ -399,6 +419,7 @@ class Solver:
             self._box_rows = [(limit, self._lowers[i], self._uppers[i]) for i, limit in enumerate(self._box_list)]
             self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
             self._row_limits = [limit for limit in limits if not limit.has_box]
+            self._conflict = np.empty(n, dtype=np.int64)
             self._no_equalities = (np.zeros((0, n)), np.zeros(0))
             self._builtin_trio = tuple(map(type, self._box_list)) == (
                 JointVelocityLimit, JointPositionLimit, JointAccelerationLimit
@@ -416,8 +437,8 @@ class Solver:
         if velocity._model is not model or position._model is not model or acceleration._model is not model:
             return None
         n = configuration.nv
-        lower, upper = np.empty(n), np.empty(n)
-        conflict = np.empty(n, dtype=np.int64)
+        lower, upper = np.empty(n), np.empty(n)  # fresh: the solution and its problems keep them
+        conflict = self._conflict  # scratch, read only below
         count = builtin_boxes(
             configuration.q, position.lower, position.upper, position.gain, dt, position._braking,
             velocity.max_velocity, acceleration._zeros if previous_qdot is None else previous_qdot,
@@ -443,36 +464,41 @@ class Solver:
         except SolverNotAvailableError:
             raise  # a misconfigured backend is reported, not papered over
         except SolverError as first:
-            first.problem = problem.copy()  # a snapshot: G and h are reused buffers
-            failures = [f"{self.backend_name}: {type(first).__name__}"]
-            reports = int(isinstance(first, InfeasibleProblemError))
-            inaccurate = [(first.violation, first.x, self.backend_name)] if hasattr(first, "violation") else []
-            for name in self.fallback_backends:
-                if name in self._unavailable:
-                    continue
-                if confirm is not None and reports >= confirm:
-                    break
-                try:
-                    x = self._backend(level, name).solve(problem)
-                except SolverNotAvailableError:
-                    self._unavailable.add(name)
-                    continue
-                except SolverError as err:
-                    failures.append(f"{name}: {type(err).__name__}")
-                    reports += isinstance(err, InfeasibleProblemError)
-                    if hasattr(err, "violation"):
-                        inaccurate.append((err.violation, err.x, name))
-                    continue
-                retries.extend(failures)
+            return self._recover(level, problem, retries, confirm, first)
+
+    def _recover(self, level: int, problem: QPProblem, retries: list[str], confirm: int | None,
+                 first: SolverError) -> np.ndarray:
+        """:meth:`_solve_qp` after the chosen backend failed with ``first``: the fallback backends."""
+        first.problem = problem.copy()  # a snapshot: G and h are reused buffers
+        failures = [f"{self.backend_name}: {type(first).__name__}"]
+        reports = int(isinstance(first, InfeasibleProblemError))
+        inaccurate = [(first.violation, first.x, self.backend_name)] if hasattr(first, "violation") else []
+        for name in self.fallback_backends:
+            if name in self._unavailable:
+                continue
+            if confirm is not None and reports >= confirm:
+                break
+            try:
+                x = self._backend(level, name).solve(problem)
+            except SolverNotAvailableError:
+                self._unavailable.add(name)
+                continue
+            except SolverError as err:
+                failures.append(f"{name}: {type(err).__name__}")
+                reports += isinstance(err, InfeasibleProblemError)
+                if hasattr(err, "violation"):
+                    inaccurate.append((err.violation, err.x, name))
+                continue
+            retries.extend(failures)
+            return x
+        if inaccurate:
+            # Last resort before the relaxation and the safe stop: every backend returned a
+            # solution just outside the tolerance; the least violating one is good enough.
+            violation, x, name = min(inaccurate, key=lambda item: item[0])
+            if violation <= ACCEPTABLE_VIOLATION:
+                retries.extend([*failures, f"accepted {name} at {violation:.1e} relative violation"])
                 return x
-            if inaccurate:
-                # Last resort before the relaxation and the safe stop: every backend returned a
-                # solution just outside the tolerance; the least violating one is good enough.
-                violation, x, name = min(inaccurate, key=lambda item: item[0])
-                if violation <= ACCEPTABLE_VIOLATION:
-                    retries.extend([*failures, f"accepted {name} at {violation:.1e} relative violation"])
-                    return x
-            raise first
+        raise first
 
     def _solve_any(self, problem: QPProblem) -> np.ndarray | None:
         """Auxiliary QP (relaxation) with each backend in turn; None when all report failure.
@@ -508,15 +534,27 @@ class Solver:
         levels = sorted(by_level) or [1]
         last = levels[-1]
         regularization = self.regularization
+        # DAQP levels whose model is set up for this size take the fused path (_daqp_level).
+        daqp = self._backends if self.backend_name == "daqp" else None
+        n_in = G.shape[0]
+        shape = (n, n_in)
         for level in levels:
             entries = by_level.get(level, ())
+            count = len(entries)
+            if daqp is not None and 0 < count <= 4:
+                backend = daqp.get(("daqp", level))
+                # Only DAQP's own backend (a replaced or subclassed one keeps its own solve).
+                if type(backend) is DaqpBackend and backend._model is not None and backend._shape == shape:
+                    x, A, b = self._daqp_level(
+                        backend, level, level != last, n, entries, lower, upper, A, b, G, h, retries, confirm, problems
+                    )
+                    continue
             # H, f and the floor (weight joint-space tasks already put on each joint) as rows of
             # one fresh block: one allocation instead of three (H and f stay contiguous).
             block = np.zeros((n + 2, n))
             H, f, floor = block[:n], block[n], block[n + 1]
             # Top the diagonal up to the regularization only where it is missing, so a
             # damped problem stays exactly the damped least-squares problem.
-            count = len(entries)
             if 0 < count <= 4:
                 # One compiled call for the level: each task's kernel in order, then the top-up.
                 args = [H, f, floor, regularization]
@@ -549,6 +587,71 @@ class Solver:
                 A, b = self._level_equalities(A, entries, n, x)
         solution.qdot = x
         return solution
+
+    def _daqp_level(self, backend, level, below, n, entries, lower, upper, A, b, G, h, retries, confirm, problems):
+        """One level of :meth:`_cascade` on a DAQP model already set up for its size: the same
+        operations as the general path (assembly, DAQP's layout, update and solve, the
+        feasibility check, the clip, and with ``below`` the level's equalities) in two compiled
+        calls around DAQP's. Returns ``(x, A, b)``: the level's solution and the equalities
+        for the levels below (``A``, ``b`` unchanged when ``below`` is False).
+        """
+        count = len(entries)
+        block = np.zeros((n + 2, n))  # H, f, floor: fresh, the problem keeps H and f
+        H, f = block[:n], block[n]
+        # One pass over the tasks: the assembly's (J, w, v) and the equalities' (J, w) arguments
+        # and the rows the equalities stack (A's and every task's).
+        args = [block, self.regularization]
+        eq_tail = []
+        m = A.shape[0]
+        for task, J, v in entries:
+            weight = task.weight
+            if J is None:
+                m += weight.shape[0]
+                J = IDENTITY_ROWS
+            else:
+                m += J.shape[0]
+            args += (J, weight, v)
+            eq_tail += (J, weight)
+        n_eq_before = backend._n_eq
+        rows_changed = G.shape[0] > 0 or A.shape[0] > 0 or n_eq_before > 0
+        backend._n_eq = _ASSEMBLE_LOAD[count](*args, *backend._layout, A, b, G, h, lower, upper, n_eq_before, INF)
+        problem = _new(QPProblem)
+        problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
+        problems.append(problem)
+        try:
+            # DaqpBackend._update_solve inlined (the hot path): update's positional order is
+            # (H, f, A, bupper, blower, sense), the order of the layout tuple after H and f.
+            model = backend._model
+            if rows_changed:
+                model.update(H, f, *backend._layout)
+            else:  # only bounds and cost moved: skip copying the constraint matrix
+                model.update(H, f, None, backend._upper, backend._lower)
+            x, _, flag, _ = model.solve()
+            if flag < 0:
+                backend._raise_failure(problem, flag)
+            if below and count <= 3 and A.dtype is _FLOAT64:
+                stack = self._rows_buffer
+                if stack.shape[0] < m or stack.shape[1] != n:
+                    stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
+                accepted, rows, rhs = _CHECK_CLIP_EQUALITIES[count](
+                    x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, stack, *eq_tail
+                )
+                if accepted:
+                    return x, rows, rhs
+            elif check_clip(x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE):
+                if below:
+                    A, b = self._level_equalities(A, entries, n, x)
+                return x, A, b
+            # Rejected by the check (x as DAQP returned it): raises as DaqpBackend.solve does.
+            x = _checked(x, problem, backend.name)
+        except SolverNotAvailableError:
+            raise
+        except SolverError as first:
+            x = self._recover(level, problem, retries, confirm, first)
+        x = clip_inplace(x, lower, upper)
+        if below:
+            A, b = self._level_equalities(A, entries, n, x)
+        return x, A, b
 
     def _level_rows(self, A: np.ndarray, entries, n: int) -> np.ndarray:
         """``A`` stacked over each task's rows ``sqrt(w_r) J_r`` with ``w_r > 0`` (``J = I`` for

@@ -376,3 +376,23 @@ def clamp_approach_rows(h, approach_pair, row_pair, n_rows):
     for r in range(n_rows):
         if approach_pair[row_pair[r]] and h[r] < 0.0:
             h[r] = 0.0
+
+
+@njit(cache=True)
+def collision_step_clamped(
+    q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p,
+    cap_joint, cap_p0, cap_p1, cap_radius, w0, w1, pair_a, pair_b, dist, s_arr, t_arr,
+    support, safety, influence, gain, recovery_time, max_rows, max_extra, min_offset,
+    G, h, normals, selected, row_pair, row_s, row_t, row_d, approach_pair, clamp,
+):
+    """:func:`collision_step`, then (with ``clamp``) :func:`clamp_approach_rows` on its rows: the
+    collision limit's two compiled calls in one."""
+    n, n_rows = collision_step(
+        q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p,
+        cap_joint, cap_p0, cap_p1, cap_radius, w0, w1, pair_a, pair_b, dist, s_arr, t_arr,
+        support, safety, influence, gain, recovery_time, max_rows, max_extra, min_offset,
+        G, h, normals, selected, row_pair, row_s, row_t, row_d,
+    )
+    if clamp and n_rows:
+        clamp_approach_rows(h, approach_pair, row_pair, n_rows)
+    return n, n_rows

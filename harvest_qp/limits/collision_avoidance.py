@@ -361,21 +361,21 @@ class CollisionAvoidance(Limit):
 
     def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
         tree = self.tree
-        n_pairs, n_rows = kernels.collision_step(
+        # One compiled call: the rows, then (with approach-only capsules) "no further approach"
+        # for those capsules against obstacle spheres: a negative bound (inside d_s) would push
+        # the capsule away (kernels.clamp_approach_rows).
+        n_pairs, n_rows = kernels.collision_step_clamped(
             configuration.q, tree.parent, tree.idx_v, tree.joint_type, tree.axis, tree.place_R, tree.place_p,
             tree.joint_R, tree.joint_p, self.cap_joint, self.cap_p0, self.cap_p1, self.cap_radius,
             self._w0, self._w1, self.pair_a, self.pair_b, self._dist, self._s, self._t,
             tree.support, self.safety_distance, self.influence_distance, self.gain, self.recovery_time,
             self.max_pairs, self.max_extra_rows, self.end_point_offset,
             self._G, self._h, self.normals, self._selected, self._row_pair, self._row_s, self._row_t, self._row_d,
+            self._approach_pair, self._any_approach_only,
         )
         # Rows 0..n_pairs-1 belong to active_pairs in order; end-point rows follow.
         self.active_pairs = self._selected[:n_pairs]
         self.num_rows = n_rows
-        if self._any_approach_only and n_rows:
-            # "No further approach" for approach-only capsules against obstacle spheres:
-            # a negative bound (inside d_s) would push the capsule away.
-            kernels.clamp_approach_rows(self._h, self._approach_pair, self._row_pair, n_rows)
         return self._limit_rows
 
     def active_pair_distances(self) -> list[tuple[str, str, float]]:

@@ -8,13 +8,15 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.qp_kernels import rotate_twist, rotate_twist_rows
+from harvest_qp.qp_kernels import all_finite, rotate_twist, rotate_twist_rows
 from harvest_qp.tasks.task import Task
 from harvest_qp.validation import as_choice, as_name, as_vector
 
 WEIGHT_FRAMES = ("world", "local")
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _frame_jacobian = pin.getFrameJacobian
+_FLOAT64 = np.dtype(np.float64)
+_SHAPE6 = (6,)
 
 
 class FrameTwistTask(Task):
@@ -81,11 +83,16 @@ class FrameTwistTask(Task):
 
     @reference.setter
     def reference(self, twist: np.ndarray | Sequence[float]) -> None:
-        self._reference = as_vector(twist, 6, f"{self._label()} reference twist")
+        self.set_reference(twist)
 
     def set_reference(self, twist: np.ndarray | Sequence[float]) -> None:
         """Set the reference twist ``[v; w]`` [m/s, rad/s], world-aligned at the frame origin."""
-        self.reference = twist
+        # The control loop sets three references every tick: a finite float64 6-vector is
+        # copied as as_vector would copy it, without building the error message's name first.
+        if type(twist) is np.ndarray and twist.dtype is _FLOAT64 and twist.shape == _SHAPE6 and all_finite(twist):
+            self._reference = twist.copy()
+        else:
+            self._reference = as_vector(twist, 6, f"{self._label()} reference twist")
 
     def check_configuration(self, configuration: Configuration) -> None:
         super().check_configuration(configuration)
@@ -105,8 +112,9 @@ class FrameTwistTask(Task):
     def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Like :meth:`compute`, into buffers reused at the next call (the solver's fast path).
 
-        Local-axes rows of one frame are computed once per kinematics update and shared by
-        every local task on that frame (the paper episode's camera and roll tasks).
+        Local-axes rows of one frame, and the frame's rotation (pinocchio's ``oMf[i].rotation``,
+        ~1 us a read), are taken once per kinematics update and shared by every local task on
+        that frame (the paper episode's camera and roll tasks).
         """
         if self._model is None or getattr(configuration, "model", None) is not self._model:
             self._ensure_bound(configuration)
@@ -114,18 +122,20 @@ class FrameTwistTask(Task):
         v = self._reference if self._gain == 1.0 else self._gain * self._reference
         if self._local:
             # Rotate rows into the frame's axes so that weights act on local axes.
-            R = configuration.data.oMf[frame_id].rotation
             rows = getattr(configuration, "_frame_rows", None)
             shared = None if rows is None else rows.get(frame_id)
-            if shared is not None and shared.shape == self._J_local.shape:
+            if shared is not None and shared[0].shape == self._J_local.shape:
+                J_shared, R = shared
                 rotate_twist(R, v, self._v_local)
-                return shared, self._v_local
+                return J_shared, self._v_local
+            R = configuration.data.oMf[frame_id].rotation
             J = _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA)
             rotate_twist_rows(R, J, v, self._J_local, self._v_local)
             # A copy is shared: this task's buffer is rewritten at its next call (which may
-            # be on another configuration of the same model).
+            # be on another configuration of the same model). The dict is replaced at every
+            # kinematics update (Configuration._set_q), so neither entry outlives its kinematics.
             if rows is not None:
-                rows[frame_id] = self._J_local.copy()
+                rows[frame_id] = (self._J_local.copy(), R)
             return self._J_local, self._v_local
         # The frame index was checked against this model when the task was bound.
         return _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA), v

@@ -299,8 +299,9 @@ def test_builtin_boxes_in_one_call_equal_each_limits_own_fill(rng):
         b = checked.solve(config, tasks, checked_limits, previous_qdot=previous)
         assert fused._builtin_trio and not checked._builtin_trio
         assert np.array_equal(a.lower, b.lower) and np.array_equal(a.upper, b.upper)
-        assert [(c.joint, c.limit) for c in a.conflicts] == [(c.joint, c.limit.replace("Velocity", "JointVelocityLimit")
-                                                             if c.limit == "Velocity" else c.limit) for c in b.conflicts]
+        expected = [(c.joint, c.limit.replace("Velocity", "JointVelocityLimit") if c.limit == "Velocity" else c.limit)
+                    for c in b.conflicts]
+        assert [(c.joint, c.limit) for c in a.conflicts] == expected
         assert np.array_equal(a.qdot, b.qdot)
         assert np.array_equal(fused._lowers, checked._lowers) and np.array_equal(fused._uppers, checked._uppers)
         seen_conflict |= bool(a.conflicts)
@@ -358,7 +359,8 @@ def test_level_equalities_in_one_call_equal_the_stacked_rows_path(rng, count):
     stack), right-hand side to round-off (the product is summed in another order), and the
     level's solution satisfies them. Bug caught: a task's rows left out of the stack or the
     previous levels' rows ``A`` dropped (a lower level could then undo a higher one)."""
-    from harvest_qp import Solver, qp_kernels as K
+    from harvest_qp import Solver
+    from harvest_qp import qp_kernels as K
 
     n = 12
     A = np.linalg.qr(rng.normal(size=(n, 3)))[0].T  # earlier levels' orthonormal rows
@@ -483,3 +485,246 @@ def test_broadphase_keeps_every_pair_within_the_influence_distance(rng):
         skipped = np.isinf(d)
         assert np.all(exact[skipped] >= influence)
     assert checked > 20
+
+
+def _three_level_problem(config, rng):
+    """Tasks on three levels (1, 4 and 1 tasks, joint-space rows with zero weights) and limits with
+    collision rows: every branch of the fused DAQP levels (equalities fused, general, none)."""
+    camera = FrameTwistTask("camera", weight=np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]))
+    camera.set_reference(rng.normal(0, 0.05, 6))
+    gripper = FrameTwistTask("gripper", weight=np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]), level=2)
+    gripper.set_reference(rng.normal(0, 0.05, 6))
+    roll = FrameTwistTask("camera", weight=np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0]), weight_frame="local", level=2)
+    roll.set_reference(rng.normal(0, 0.1, 6))
+    posture = PostureTask(HOME_Q, weight=np.r_[1e-3, 1e-3, np.zeros(10)], level=2)
+    damping2 = DampingTask(12, weight=np.r_[np.zeros(11), 1e-4], level=2)
+    damping3 = DampingTask(12, weight=1e-4, level=3)
+    limit = CollisionAvoidance.dual_ur5e(config, influence_distance=0.3)
+    return [camera, gripper, roll, posture, damping2, damping3], [limit]
+
+
+class _GeneralDaqp(DaqpBackend):
+    """DAQP's backend as a subclass: the solver gives it the general path (its own ``solve``)."""
+
+
+def test_fused_daqp_levels_equal_the_general_path_bit_for_bit(rng):
+    """Oracles: the general path of the same solver class (each level through
+    ``DaqpBackend.solve``, the separate check, clip and equality kernels), forced by making the
+    backends a subclass; and quadprog (another QP solver) on the deepest level's problem.
+    Over random states and previous commands, three levels with collision rows: the same
+    command and the same H, f, A, b of every level, bit for bit, and DAQP's buffers alike.
+
+    Bugs caught (planted and seen failing): the fused check-and-clip skipping the clip; the
+    last level returned without the check and clip."""
+    import quadprog
+
+    config = Configuration.dual_ur5e(HOME_Q)
+    tasks, limits = _three_level_problem(config, rng)
+    fused, general = TaskController(config, tasks, limits).solver, TaskController(config, tasks, limits).solver
+    controller = TaskController(config, tasks, limits)
+    limits = controller.limits
+    # Levels 2 and 3 leave joints free: a diagonal of 1e-5 keeps their Hessians well conditioned
+    # (with 1e-10 DAQP and quadprog report such levels infeasible and proxsuite, not bit-for-bit
+    # repeatable, answers).
+    fused.regularization = general.regularization = 1e-5
+    fused_levels = []  # the levels the fused path solved (a spy: every level from the second step on)
+    inner = fused._daqp_level
+    fused._daqp_level = lambda *args: fused_levels.append(args[1]) or inner(*args)
+    for _ in range(12):
+        # States away from the position limits and previous commands within the acceleration
+        # box of a feasible QP (an infeasible one goes to the fallback backends, compared below).
+        q = HOME_Q + rng.normal(0, 0.15, 12)
+        previous = rng.normal(0, 0.005, 12)
+        config.update(q)
+        for backend in general._backends.values():
+            backend.__class__ = _GeneralDaqp  # the general path, every level
+        a = fused.solve(config, tasks, limits, previous_qdot=previous)
+        b = general.solve(config, tasks, limits, previous_qdot=previous)
+        assert np.array_equal(a.qdot, b.qdot)
+        assert a.retries == b.retries == []
+        assert [p.level for p in a.problems] == [1, 2, 3]
+        for pa, pb in zip(a.problems, b.problems):
+            for name in ("H", "f", "A", "b", "lower", "upper", "G", "h"):
+                assert np.array_equal(getattr(pa, name), getattr(pb, name)), name
+        for key, backend in fused._backends.items():
+            other = general._backends[key]
+            assert np.array_equal(backend._A, other._A) and np.array_equal(backend._sense, other._sense)
+            assert np.array_equal(backend._upper, other._upper) and backend._n_eq == other._n_eq
+        # Level 1 by quadprog: its optimum holds the equalities level 2 was given (the fused
+        # level 1 found the same task velocities); the command keeps every level's equalities.
+        first = a.problems[0]
+        rows = [-first.G[first.h < 1e29], -np.eye(12), np.eye(12)]
+        bounds = [-first.h[first.h < 1e29], -first.upper, first.lower]
+        x1 = quadprog.solve_qp(first.H, -first.f, np.vstack(rows).T.copy(), np.concatenate(bounds))[0]
+        np.testing.assert_allclose(a.problems[1].A @ x1, a.problems[1].b, atol=1e-6)
+        np.testing.assert_allclose(a.problems[2].A @ a.qdot, a.problems[2].b, atol=1e-9)
+    assert fused_levels == [1, 2, 3] * 11
+    assert all(type(b) is DaqpBackend and b._shape == (12, limits[0]._G.shape[0])
+                                for b in fused._backends.values())
+
+
+class _Answer:
+    """Stands in for ``daqp.Model``: returns a given x and exit flag."""
+
+    def __init__(self, x, flag=1):
+        self.x, self.flag = x, flag
+
+    def update(self, *args, **kwargs):
+        return 0
+
+    def solve(self):
+        return self.x.copy(), 0.0, self.flag, {}
+
+
+@pytest.mark.parametrize("level", [1, 2, 3])
+@pytest.mark.parametrize("flag, offset", [(1, 1.0), (-2, 0.0), (-1, 0.0)])
+def test_fused_daqp_level_recovers_from_a_rejected_answer_like_the_general_path(rng, flag, offset, level):
+    """Oracle: the general path (``DaqpBackend.solve`` inside ``_solve_qp``) given the same wrong
+    answer. A DAQP answer far outside the constraints (SolverAccuracyError), a cycling flag or an
+    infeasibility flag on any level (fused equalities, general equalities, last level) is handed
+    to the fallback backends: the same retries, the same command bit for bit, and after a
+    failure flag the DAQP model is dropped in both.
+
+    Bug caught (planted and seen failing): the last level accepting x without the check (the
+    answer 1 rad/s outside the box became the command after the clip)."""
+    config = Configuration.dual_ur5e(HOME_Q)
+    tasks, limits = _three_level_problem(config, rng)
+    limits = TaskController(config, tasks, limits).limits
+    solvers = [TaskController(config, tasks, limits).solver for _ in range(2)]
+    for solver in solvers:
+        solver.regularization = 1e-5  # see test_fused_daqp_levels_equal_the_general_path_bit_for_bit
+    q = np.clip(HOME_Q + rng.normal(0, 0.2, 12), config.lower_limits, config.upper_limits)
+    config.update(q)
+    results = []
+    for which, solver in enumerate(solvers):
+        solver.solve(config, tasks, limits)  # sets the DAQP models up
+        backend = solver._backends[("daqp", level)]
+        if which:
+            backend.__class__ = _GeneralDaqp
+        backend._model = _Answer(config.velocity_limits + offset, flag)
+        results.append(solver.solve(config, tasks, limits))
+        assert (backend._model is None) == (flag < 0)
+    a, b = results
+    assert a.retries == b.retries and a.retries and a.retries[0].startswith("daqp: ")
+    assert np.array_equal(a.qdot, b.qdot)
+    assert np.all(np.abs(a.qdot) <= config.velocity_limits)
+
+
+def test_check_clip_leaves_a_rejected_answer_untouched(rng):
+    """Oracle: ``max_scaled_violation`` and ``np.clip``. Accepted: x clipped in place exactly as
+    ``np.clip``; rejected: x unchanged (the error keeps DAQP's own answer) and no equality rows.
+    Bug caught: clipping before the check (a rejected answer made to look feasible)."""
+    from harvest_qp import qp_kernels as K
+
+    n = 4
+    lower, upper = -np.ones(n), np.ones(n)
+    A, b = np.zeros((0, n)), np.zeros(0)
+    G, h = np.array([[1.0, 1.0, 0.0, 0.0]]), np.array([0.5])
+    inside = np.array([0.2, 0.3 - 1e-9, 1.0 + 1e-12, -1.0 - 1e-12])
+    assert K.max_scaled_violation(inside, lower, upper, A, b, G, h) <= 1e-7
+    expected = np.clip(inside, lower, upper)
+    assert K.check_clip(inside, lower, upper, A, b, G, h, 1e-7) and np.array_equal(inside, expected)
+    outside = np.array([0.4, 0.4, 2.0, 0.0])
+    kept = outside.copy()
+    accepted, rows, rhs = K.check_clip_equalities_1(outside, lower, upper, A, b, G, h, 1e-7, 1e-9,
+                                                    np.empty((n, n)), K.IDENTITY_ROWS, np.ones(n))
+    assert not accepted and rows.shape == (0, n) and rhs.shape == (0,)
+    assert np.array_equal(outside, kept)
+
+
+def test_reused_q_is_taken_only_for_the_same_bits_of_a_native_float64_vector():
+    """Oracle: ``as_vector`` (the check the loop's q passed at its update). ``_reuse_current_q``
+    takes a q only when its bytes equal the last checked q's: then the stored q is a copy with
+    those values; any other q (other bits, -0.0, float32, another length, a list) returns None
+    and the caller checks it. Bug caught: a float32 or short q taken (the kernels would read
+    past its end) or the stored q aliasing the caller's array."""
+    q = np.array(HOME_Q, float)
+    config = Configuration.dual_ur5e(q)
+    same = q.copy()
+    stored = config._reuse_current_q(same)
+    assert stored is not None and stored is not same and config.q is stored and np.array_equal(stored, q)
+    minus = q.copy()
+    minus[q == 0.0] = -0.0
+    assert (q == 0.0).any() and config._reuse_current_q(minus) is None
+    assert config._reuse_current_q(q.astype(np.float32)) is None
+    assert config._reuse_current_q(q.astype(">f8")) is None
+    assert config._reuse_current_q(q[:11]) is None
+    assert config._reuse_current_q(list(q)) is None
+    assert config._reuse_current_q(np.r_[q, q][::2]) is None  # other values (every other entry)
+    # The loop's path: a NaN q is not the last checked one, so the step checks it and falls back.
+    controller = TaskController(config, [DampingTask(12)])
+    bad = q.copy()
+    bad[0] = np.nan
+    result = controller._step(bad, reuse_kinematics=True)
+    assert result.status.startswith("fallback") and "finite" in result.status
+
+
+def test_reference_fast_path_copies_and_checks_like_as_vector(rng):
+    """Oracle: ``as_vector`` (the checked path). A float64 6-vector is stored as a copy with the
+    same bits; NaN, a wrong length, a float32 or byte-swapped array and a list take the checked
+    path (the same errors and messages naming the task). Bug caught (planted and seen failing):
+    the fast path storing the caller's array itself (a later in-place change of the caller's
+    array moved the reference)."""
+    from harvest_qp.exceptions import InvalidInputError
+    from harvest_qp.validation import as_vector
+
+    task = FrameTwistTask("camera", weight_frame="local")
+    twist = rng.normal(size=6)
+    task.set_reference(twist)
+    stored = task.reference
+    assert stored is not twist and np.array_equal(stored, as_vector(twist, 6, "x"))
+    twist[0] += 1.0
+    assert not np.array_equal(task.reference, twist)
+    for other in (twist.astype(np.float32), twist.astype(">f8"), list(twist)):
+        task.reference = other
+        assert task.reference.dtype == np.float64 and np.array_equal(task.reference, as_vector(other, 6, "x"))
+    bad = twist.copy()
+    bad[2] = np.nan
+    with pytest.raises(InvalidInputError, match=r"FrameTwistTask\('camera'\) reference twist must be finite"):
+        task.set_reference(bad)
+    with pytest.raises(InvalidInputError, match=r"reference twist must have shape \(6,\)"):
+        task.set_reference(np.zeros(5))
+
+
+def test_posture_rows_equal_the_numpy_formula_bit_for_bit(configuration, rng):
+    """Oracle: numpy's ``gain * (target - q)``. The compiled posture rows give the same bits
+    and a fresh array each call. Bug caught (planted and seen failing): the difference taken
+    the other way round (``q - target``: the posture pushed away from its target)."""
+    task = PostureTask(HOME_Q + rng.normal(0, 0.2, 12), weight=1e-3, gain=0.7)
+    configuration.update(HOME_Q + rng.normal(0, 0.2, 12))
+    J, v = task.compute_rows(configuration, 0.002)
+    assert J is None
+    assert np.array_equal(v, 0.7 * (task.target - configuration.q))
+    _, again = task.compute_rows(configuration, 0.002)
+    assert again is not v and np.array_equal(again, v)
+
+
+def test_collision_rows_with_the_clamp_fused_equal_the_unclamped_rows_masked(rng):
+    """Oracle: the same limit's rows without approach-only capsules, clamped by a numpy mask
+    (``h = 0`` where the row's pair is (approach-only capsule, obstacle sphere) and ``h < 0``).
+    With obstacle spheres inside ``d_s`` of approach-only capsules, the fused kernel gives the
+    same G bit for bit and the masked h. Bug caught (planted and seen failing): the fused call
+    skipping the clamp (an approach-only capsule pushed away by the map's cells)."""
+    config = Configuration.dual_ur5e(HOME_Q)
+    limit = CollisionAvoidance.dual_ur5e(config, influence_distance=0.2)
+    moving = [limit.capsule_names[i] for i in limit._moving]
+    chosen = [name for name in moving if name.startswith("grasp_")][:3]
+    assert chosen
+    ends = [limit._w0, limit._w1]
+    limit.compute(config, 0.002)  # world end points of the capsules at HOME_Q
+    index = [limit.capsule_names.index(name) for name in chosen]
+    centres = np.array([ends[k % 2][i] for k, i in enumerate(index)]) + rng.normal(0, 1e-3, (len(index), 3))
+    limit.set_obstacle_spheres(centres, 0.0)
+    limit.set_approach_only(())
+    free = limit.compute(config, 0.002)
+    G_free, h_free, n = free.G.copy(), free.h.copy(), limit.num_rows
+    row_pair = limit.row_pairs.copy()
+    limit.set_approach_only(chosen)
+    clamped = limit.compute(config, 0.002)
+    mask = np.zeros_like(h_free, dtype=bool)
+    mask[:n] = limit._approach_pair[row_pair] & (h_free[:n] < 0.0)
+    assert mask.any()
+    expected = h_free.copy()
+    expected[mask] = 0.0
+    assert limit.num_rows == n and np.array_equal(limit.row_pairs, row_pair)
+    assert np.array_equal(clamped.G, G_free) and np.array_equal(clamped.h, expected)
