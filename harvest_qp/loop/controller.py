@@ -950,56 +950,63 @@ class HarvestController:
         return self._linear_speed(T_c, start), self._angular_speed(T_c, start)
 
     def _record_camera(self, t: float, T_c: np.ndarray) -> tuple | None:
-        """Add this tick's camera pose to the window; its first entry (t0, T0, z0) once the
+        """Add this tick's camera pose to the window; (t, t0, T0) of its first entry once the
         window spans ``switch.window``, else None."""
         history = self.state.camera_history
-        # T_c is this tick's own new array (never modified): kept whole, p_c read from it later.
-        history.append((t, T_c, T_c[:3, 2].copy()))
+        # T_c is this tick's own new array (never modified): kept whole, p_c and z_c read
+        # from it when a speed is computed.
+        history.append((t, T_c))
         window = self.settings["switch"]["window"]
         while len(history) > 1 and history[1][0] <= t - window + 1e-12:
             history.popleft()
-        start = history[0]
-        return None if t - start[0] < window - 1e-9 else (t, *start)
+        t0, T0 = history[0]
+        return None if t - t0 < window - 1e-9 else (t, t0, T0)
 
     @staticmethod
     def _linear_speed(T_c: np.ndarray, start: tuple) -> float:
-        t, t0, T0, _ = start
+        t, t0, T0 = start
         moved = T_c[:3, 3] - T0[:3, 3]
         return math.sqrt(float(moved.dot(moved))) / (t - t0)  # = np.linalg.norm, bit for bit
 
     @staticmethod
     def _angular_speed(T_c: np.ndarray, start: tuple) -> float:
-        t, t0, _, z0 = start
+        t, t0, T0 = start
+        z0 = T0[:3, 2]
         # np.arccos, not math.acos: the two differ in the last bit on ~10 % of arguments.
         return float(np.arccos(min(max(float(z0.dot(T_c[:3, 2])), -1.0), 1.0))) / (t - t0)
 
-    def _camera_twist(self, T_c: np.ndarray, dt: float) -> list[float]:
+    def _camera_twist(self, T_c: np.ndarray, dt: float, rows: list | None = None) -> list[float]:
         """V_cr + keep-out + V_cu of this tick as 6 Python floats [m/s; rad/s] (advances the
         p_r and V_cu filters).
 
         Speed (every tick): element-wise steps on Python floats, each the IEEE operation of the
         numpy expression it replaces (``reaching.update(T_c, dt) + self._keep_out(T_c) +
         unveiling.update(dt)``), in the same order, and numpy's own dot products: the same
-        bits (tests/loop/test_fast_paths.py) at a fraction of the cost.
+        bits (tests/loop/test_fast_paths.py) at a fraction of the cost. ``rows``:
+        ``T_c[:3].tolist()`` if the caller has it.
         """
         s = self.settings
         reaching = self.reaching
-        V = reaching._update_unchecked(T_c, dt).tolist()  # V_cr
+        if rows is None:
+            rows = T_c[:3].tolist()
+        V = reaching._update_floats(T_c, dt, rows)  # V_cr
         # The keep-out term (_keep_out); |p_c - p_r| is bit for bit reaching's |p_r - p_c|.
         distance = reaching.distance
         r = s["reaching"]
         minimum = r["min_distance_factor"] * r["radius"]
         if minimum > 0 and 1e-9 < distance < minimum:
             gain = r["k_keep_out"] * (minimum - distance)
-            (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = T_c[:3].tolist()
+            (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = rows
             p0, p1, p2 = reaching.roi_centre.tolist()
             V = [V[0] + gain * (c0 - p0) / distance, V[1] + gain * (c1 - p1) / distance,
                  V[2] + gain * (c2 - p2) / distance, V[3] + 0.0, V[4] + 0.0, V[5] + 0.0]
-        else:
-            V = [v + 0.0 for v in V]  # V_cr + zeros, as the numpy sum did (-0.0 becomes 0.0)
+            if s["unveiling"]["enabled"]:
+                return [v + u for v, u in zip(V, self.unveiling._update_list(dt))]
+            return [v + 0.0 for v in V]
+        # V_cr + zeros (as the numpy sum did: -0.0 becomes 0.0), then + V_cu or + zeros.
         if s["unveiling"]["enabled"]:
-            return [v + u for v, u in zip(V, self.unveiling._update_list(dt))]
-        return [v + 0.0 for v in V]
+            return [(v + 0.0) + u for v, u in zip(V, self.unveiling._update_list(dt))]
+        return [(v + 0.0) + 0.0 for v in V]
 
     def _hold_twist(self, T_g: np.ndarray) -> np.ndarray:
         """V_g of the approach: the grasping arm held at its initial pose (gain ``grasping.k_hold``).
@@ -1030,15 +1037,17 @@ class HarvestController:
             twist[:3] = r["k_keep_out"] * (minimum - distance) * offset / distance
         return twist
 
-    def _roll_reference(self, T_c: np.ndarray, direction: np.ndarray | None) -> tuple[np.ndarray, float]:
+    def _roll_reference(self, T_c: np.ndarray, direction: np.ndarray | None,
+                        rows: list | None = None) -> tuple[np.ndarray, float]:
         """World twist turning the camera about z_c so that the blade (x_c) is across the stem.
 
         Python floats for the element-wise steps, numpy for the dot products and arctan2: the
-        same bits as the numpy formula (tests/loop/test_fast_paths.py)."""
+        same bits as the numpy formula (tests/loop/test_fast_paths.py). ``rows``:
+        ``T_c[:3].tolist()`` if the caller has it."""
         if direction is None:
             return np.zeros(6), float("nan")
         z, y = T_c[:3, 2], T_c[:3, 1]
-        (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = T_c[:3].tolist()
+        (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = T_c[:3].tolist() if rows is None else rows
         along = direction.dot(z)
         u0, u1, u2 = direction.tolist()
         d0, d1, d2 = u0 - along * z0, u1 - along * z1, u2 - along * z2  # direction - (direction @ z) z
@@ -1067,6 +1076,7 @@ class HarvestController:
         oMf = config.data.oMf
         T_c = _pose_matrix(oMf[self._camera_id])
         T_g = _pose_matrix(oMf[self._gripper_id])
+        rows_c = T_c[:3].tolist()  # the camera pose's first three rows as floats, read by several laws
         timing = self.timing
         if obs.new_cloud and obs.cloud is not None:
             t0 = time.perf_counter()
@@ -1101,6 +1111,7 @@ class HarvestController:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
         roll_error = None  # logged as value/roll_error when the references ran
+        V_c_floats = None  # V_c as Python floats (when the references ran)
         map_cells = None  # logged as value/map_cells when the map fed the QP
         V_c = _ZEROS6
         V_g = _ZEROS6
@@ -1109,7 +1120,7 @@ class HarvestController:
         roi_distance = None
         if st.phase != Phase.ABORT:
             dt = self.dt
-            V = self._camera_twist(T_c, dt)  # V_cr + keep-out + V_cu, 6 floats
+            V = self._camera_twist(T_c, dt, rows_c)  # V_cr + keep-out + V_cu, 6 floats
             roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
             if st.phase == Phase.APPROACH:
                 V_g = self._hold_twist(T_g)
@@ -1121,7 +1132,7 @@ class HarvestController:
                 V_g = stretching._update_unchecked(T_g, force, dt)
                 force_nc = stretching.force_along_nc  # float(n_c @ force)
                 if s["grasping"]["feed_forward"]:
-                    (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = T_c[:3].tolist()
+                    (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = rows_c
                     b0, b1, b2 = st.p_sb.tolist()
                     terms = self.feed_forward._terms(V_g[:3].tolist(), [c0 - b0, c1 - b1, c2 - b2])
                     V = [v + w for v, w in zip(V, terms)]
@@ -1138,7 +1149,8 @@ class HarvestController:
                         st.force_filtered += self._force_filter_fraction(dt, tau) * (force_nc - st.force_filtered)
                     self._check_precut(t, st.force_filtered)
             V_c = np.array(V)
-            roll, roll_error = self._roll_reference(T_c, direction)
+            V_c_floats = V
+            roll, roll_error = self._roll_reference(T_c, direction, rows_c)
 
         t_map = time.perf_counter()
         if st.phase == Phase.ABORT:
@@ -1186,7 +1198,8 @@ class HarvestController:
         st.previous_qdot = qdot
 
         if self._row_log:
-            values = self._log_row(T_c, V_c, V_g, force_nc, roi_distance, roll_error, map_cells)
+            values = self._log_row(T_c, V_c if V_c_floats is None else V_c_floats, V_g, force_nc, roi_distance,
+                                   roll_error, map_cells, rows=rows_c)
             pairs = self._active_pair_columns()
         else:  # the generic protocol: a dict of values, a list of pair tuples
             values = {}
@@ -1287,7 +1300,8 @@ class HarvestController:
         return list(zip(map(lookup, first), map(lookup, second), gaps))
 
     def _log_row(self, T_c: np.ndarray, V_c: np.ndarray, V_g: np.ndarray, force_nc: float,
-                 roi_distance: float | None, roll_error: float | None, map_cells: float | None) -> _ValueRow:
+                 roi_distance: float | None, roll_error: float | None, map_cells: float | None, *,
+                 rows: list | None = None) -> _ValueRow:
         """:meth:`_log_values` (after ``roll_error`` and ``map_cells``, each given when not None) as
         one float64 row for the runner (``runner._ValueRow``; it reads as the same mapping).
 
@@ -1304,7 +1318,7 @@ class HarvestController:
         if roi_distance is None:
             offset = reaching.roi_centre - T_c[:3, 3]
             roi_distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
-        (x0, _, z0, c0), (x1, _, z1, c1), (x2, _, z2, c2) = T_c[:3].tolist()
+        (x0, _, z0, c0), (x1, _, z1, c1), (x2, _, z2, c2) = T_c[:3].tolist() if rows is None else rows
         nan = math.nan
         with_map = self.map_feed is not None
         row = [nan if roll_error is None else roll_error]
@@ -1314,7 +1328,7 @@ class HarvestController:
         row += _NAN3_LIST if st.p_sb is None else st.p_sb.tolist()
         row += _NAN3_LIST if st.p_gd is None else st.p_gd.tolist()
         row += stretching.n_c.tolist() if bimanual else _NAN3_LIST
-        row += V_c.tolist()
+        row += V_c if type(V_c) is list else V_c.tolist()  # the loop hands its V_c floats
         row += V_g.tolist()
         row += (force_nc, reaching.theta, roi_distance, stretching.position_error if bimanual else nan,
                 stretching.alignment if bimanual else nan, float(self.unveiling.n_pairs))
