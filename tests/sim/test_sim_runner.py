@@ -336,3 +336,24 @@ def test_value_rows_and_pair_columns_read_as_mappings_and_sequences():
         _PairColumns(["a"], ["c", "d"], np.array([0.5, 0.25]))
     with pytest.raises(InvalidInputError):
         _PairColumns(["a", "b"], ["c", "d"], [0.5, 0.25])
+
+
+def test_the_runners_observation_is_the_dataclasss():
+    """The runner builds each tick's Observation without the frozen dataclass's ``__init__``:
+    the same class, attributes (in order), repr and frozenness as ``Observation(...)``, and
+    no ``__post_init__`` it would skip. Catches: a field left out or swapped, a check added to
+    Observation that the runner's construction would bypass."""
+    import dataclasses
+
+    q, qdot, force = np.arange(12.0), -np.arange(12.0), np.ones(3)
+
+    def tare() -> None:
+        pass
+
+    obs = _runner._observation(0.25, q, qdot, force, None, True, tare)
+    expected = Observation(time=0.25, q=q, qdot=qdot, force=force, cloud=None, new_cloud=True, tare_force=tare)
+    assert type(obs) is Observation and not hasattr(Observation, "__post_init__")
+    assert list(vars(obs).items()) == list(vars(expected).items()) and repr(obs) == repr(expected)
+    assert [f.name for f in dataclasses.fields(Observation)] == list(vars(obs))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        obs.time = 1.0
