@@ -1048,7 +1048,7 @@ class HarvestController:
             return np.zeros(6), float("nan")
         z, y = T_c[:3, 2], T_c[:3, 1]
         (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = T_c[:3].tolist() if rows is None else rows
-        along = direction.dot(z)
+        along = float(direction.dot(z))  # a Python float: the element-wise steps below on floats
         u0, u1, u2 = direction.tolist()
         d0, d1, d2 = u0 - along * z0, u1 - along * z1, u2 - along * z2  # direction - (direction @ z) z
         d = np.array((d0, d1, d2))

@@ -357,3 +357,38 @@ def test_the_runners_observation_is_the_dataclasss():
     assert [f.name for f in dataclasses.fields(Observation)] == list(vars(obs))
     with pytest.raises(dataclasses.FrozenInstanceError):
         obs.time = 1.0
+
+
+def test_pair_arrays_cut_at_k_match_a_per_event_loop():
+    """The log's pair arrays for the first k ticks when later ticks have events too (the
+    event table is built by a row-major boolean mask). Oracle: one event at a time into its
+    tick's row; the width is the most events of any logged tick (as before).
+    Catches: events of ticks >= k shifted into the table, events placed in the wrong row."""
+    rng = np.random.default_rng(9)
+    log = _runner._Log(60, None, False, False)
+    names = ["p", "q", "r", "s", "t"]
+    events = []
+    for k in range(60):
+        if k % 7 == 3:
+            continue  # a tick without pairs
+        n = int(rng.integers(1, 6))
+        pairs = _PairColumns([names[i] for i in rng.integers(0, 5, n)], [names[i] for i in rng.integers(0, 5, n)],
+                             rng.random(n))
+        log.pairs(k, pairs)
+        events.extend((k, f"{a}|{b}", d) for a, b, d in pairs)
+    order = list(dict.fromkeys(name for _, name, _ in events))
+    width = max(sum(1 for e in events if e[0] == k) for k in range(60))
+    for cut in (60, 41, 1, 0):
+        got = log.pair_arrays(cut)
+        index = np.full((cut, width), -1, np.int32)
+        distance = np.full((cut, width), np.nan, np.float32)
+        fill = [0] * 60
+        for k, name, d in events:
+            if k < cut:
+                index[k, fill[k]] = order.index(name)
+                distance[k, fill[k]] = d
+                fill[k] += 1
+        assert list(got["collision/pair_names"]) == order
+        np.testing.assert_array_equal(got["collision/active_pair"], index)
+        np.testing.assert_array_equal(got["collision/active_distance"], distance)
+    assert log.pair_events == [(k, order.index(name), d) for k, name, d in events]
