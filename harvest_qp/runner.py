@@ -136,6 +136,17 @@ class Command:
     done: bool = False
 
 
+def _command(qdot: NDArray[np.float64], status: str, values: Mapping[str, Any],
+             collision_pairs: Sequence[tuple[str, str, float]], done: bool) -> Command:
+    """``Command(qdot=..., status=..., values=..., collision_pairs=..., done=...)`` (no task
+    errors) for the library's own controller: the same attributes in the same order, set
+    without the dataclass's ``__init__`` (tests/sim/test_sim_runner.py compares the two)."""
+    command = _new_object(Command)
+    command.__dict__.update(qdot=qdot, status=status, task_errors={}, values=values,
+                            collision_pairs=collision_pairs, done=done)
+    return command
+
+
 @runtime_checkable
 class Controller(Protocol):
     """A controller the runner can drive."""
@@ -379,6 +390,11 @@ def _as_command_fast(out: Any) -> Command:
     tuples is returned with the same contents as :func:`_as_command` gives (qdot, values
     and pairs are passed through, as ``np.asarray`` would pass them); anything else goes
     through :func:`_as_command`, which raises the same errors as before.
+
+    The library's own controller hands its values as a :class:`_ValueRow` and its pairs as
+    :class:`_PairColumns`: the row's dtype and length are checked here and the command is
+    passed through as it is (nothing to normalise); the log checks a pair's names when it
+    first meets them. Any controller may hand plain dicts and tuples: same log.
     """
     if type(out) is not Command:
         return _as_command(out)

@@ -73,7 +73,7 @@ from harvest_qp.references import (
     predicted_stem_points,
 )
 from harvest_qp.references._checks import as_position
-from harvest_qp.runner import Command, Observation, _PairColumns, _ValueLayout, _ValueRow
+from harvest_qp.runner import Command, Observation, _command, _PairColumns, _ValueLayout, _ValueRow
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 
 __all__ = ["Phase", "HarvestController", "FrameSnapshot", "SwitchSnapshot"]
@@ -1085,7 +1085,7 @@ class HarvestController:
                 self.obstacle_map.update(obs.cloud, exclude=self.map_exclusions(T_g))
             if timing is not None:
                 timing.setdefault("perception", []).append(time.perf_counter() - t0)
-        t_ref = time.perf_counter()
+        t_ref = time.perf_counter() if timing is not None else 0.0
 
         phase = st.phase
         if phase == Phase.APPROACH:
@@ -1152,7 +1152,7 @@ class HarvestController:
             V_c_floats = V
             roll, roll_error = self._roll_reference(T_c, direction, rows_c)
 
-        t_map = time.perf_counter()
+        t_map = time.perf_counter() if timing is not None else 0.0
         if st.phase == Phase.ABORT:
             qdot = self._safe_stop()
             status = f"abort: {st.abort_reason}"
@@ -1215,7 +1215,7 @@ class HarvestController:
             done = end_after is not None and t - st.t_precut >= end_after
         elif st.phase == Phase.ABORT:
             done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
-        return Command(qdot=qdot, status=status, values=values, collision_pairs=pairs, done=done)
+        return _command(qdot, status, values, pairs, done)
 
     def _force_filter_fraction(self, dt: float, tau: float) -> np.float64:
         """-expm1(-dt / tau), the pre-cut force filter's step fraction: numpy's expm1 (as

@@ -392,3 +392,19 @@ def test_pair_arrays_cut_at_k_match_a_per_event_loop():
         np.testing.assert_array_equal(got["collision/active_pair"], index)
         np.testing.assert_array_equal(got["collision/active_distance"], distance)
     assert log.pair_events == [(k, order.index(name), d) for k, name, d in events]
+
+
+def test_the_controllers_command_is_the_dataclasss():
+    """``runner._command`` (the library controller's per-tick Command) equals ``Command(...)``:
+    same class, attributes in order, a fresh task-error dict, no ``__post_init__`` skipped.
+    Catches: a field left out or swapped, a shared task-error dict."""
+    import dataclasses
+
+    qdot, values, pairs = np.arange(12.0), {"v": 1.0}, [("a", "b", 0.1)]
+    got = _runner._command(qdot, "ok", values, pairs, True)
+    expected = Command(qdot=qdot, status="ok", values=values, collision_pairs=pairs, done=True)
+    assert type(got) is Command and not hasattr(Command, "__post_init__")
+    assert list(vars(got)) == [f.name for f in dataclasses.fields(Command)] == list(vars(expected))
+    assert all(getattr(got, name) is getattr(expected, name) for name in ("qdot", "status", "values", "collision_pairs"))
+    assert got.task_errors == {} and got.done is True
+    assert _runner._command(qdot, "ok", values, pairs, False).task_errors is not got.task_errors
