@@ -73,7 +73,7 @@ from harvest_qp.references import (
     predicted_stem_points,
 )
 from harvest_qp.references._checks import as_position
-from harvest_qp.runner import Command, Observation
+from harvest_qp.runner import Command, Observation, _command, _PairColumns, _ValueLayout, _ValueRow
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 
 __all__ = ["Phase", "HarvestController", "FrameSnapshot", "SwitchSnapshot"]
@@ -214,6 +214,19 @@ _NAN3 = np.full(3, np.nan)
 _NAN3.setflags(write=False)
 _ZEROS6 = np.zeros(6)
 _ZEROS6.setflags(write=False)
+
+
+#: The values logged every tick (``value/<name>``) after the tick's own ``roll_error`` and
+#: ``map_cells``, in :meth:`HarvestController._log_values`'s order, with their shapes.
+_LOGGED_VALUES = (
+    ("phase", ()), ("p_r", (3,)), ("p_c", (3,)), ("z_c", (3,)), ("x_c", (3,)), ("p_sb", (3,)), ("p_gd", (3,)),
+    ("n_c", (3,)), ("V_c", (6,)), ("V_g", (6,)), ("force_nc", ()), ("theta", ()), ("roi_distance", ()),
+    ("position_error", ()), ("alignment", ()), ("unveiling_pairs", ()),
+)
+#: The tick's values as one row for the runner (runner._ValueRow), with and without the map's cell count.
+_LAYOUT_WITH_MAP = _ValueLayout((("roll_error", ()), ("map_cells", ()), *_LOGGED_VALUES))
+_LAYOUT_WITHOUT_MAP = _ValueLayout((("roll_error", ()), *_LOGGED_VALUES))
+_NAN3_LIST = [math.nan] * 3
 
 
 _ROW = np.dtype((np.void, 24))
@@ -480,6 +493,10 @@ class HarvestController:
         self._force_fraction = np.float64(0.0)
         self.snapshots: dict[str, FrameSnapshot] = {}
         self.switch_snapshot: SwitchSnapshot | None = None
+        #: Hand the runner the tick's values as one row and the active pairs as columns (its
+        #: fast path); False: a dict and a list of tuples (the generic protocol, the same log).
+        self._row_log = True
+        self._last_pair_names: tuple | None = None  # _active_pair_columns' last names (reused while unchanged)
         #: Set to a dict to collect wall-clock times [s] per tick: "perception" (per new
         #: frame), "references" and "mapper" (the QP step or the pseudo-inverse).
         self.timing: dict[str, list[float]] | None = None
@@ -933,56 +950,63 @@ class HarvestController:
         return self._linear_speed(T_c, start), self._angular_speed(T_c, start)
 
     def _record_camera(self, t: float, T_c: np.ndarray) -> tuple | None:
-        """Add this tick's camera pose to the window; its first entry (t0, T0, z0) once the
+        """Add this tick's camera pose to the window; (t, t0, T0) of its first entry once the
         window spans ``switch.window``, else None."""
         history = self.state.camera_history
-        # T_c is this tick's own new array (never modified): kept whole, p_c read from it later.
-        history.append((t, T_c, T_c[:3, 2].copy()))
+        # T_c is this tick's own new array (never modified): kept whole, p_c and z_c read
+        # from it when a speed is computed.
+        history.append((t, T_c))
         window = self.settings["switch"]["window"]
         while len(history) > 1 and history[1][0] <= t - window + 1e-12:
             history.popleft()
-        start = history[0]
-        return None if t - start[0] < window - 1e-9 else (t, *start)
+        t0, T0 = history[0]
+        return None if t - t0 < window - 1e-9 else (t, t0, T0)
 
     @staticmethod
     def _linear_speed(T_c: np.ndarray, start: tuple) -> float:
-        t, t0, T0, _ = start
+        t, t0, T0 = start
         moved = T_c[:3, 3] - T0[:3, 3]
         return math.sqrt(float(moved.dot(moved))) / (t - t0)  # = np.linalg.norm, bit for bit
 
     @staticmethod
     def _angular_speed(T_c: np.ndarray, start: tuple) -> float:
-        t, t0, _, z0 = start
+        t, t0, T0 = start
+        z0 = T0[:3, 2]
         # np.arccos, not math.acos: the two differ in the last bit on ~10 % of arguments.
         return float(np.arccos(min(max(float(z0.dot(T_c[:3, 2])), -1.0), 1.0))) / (t - t0)
 
-    def _camera_twist(self, T_c: np.ndarray, dt: float) -> list[float]:
+    def _camera_twist(self, T_c: np.ndarray, dt: float, rows: list | None = None) -> list[float]:
         """V_cr + keep-out + V_cu of this tick as 6 Python floats [m/s; rad/s] (advances the
         p_r and V_cu filters).
 
         Speed (every tick): element-wise steps on Python floats, each the IEEE operation of the
         numpy expression it replaces (``reaching.update(T_c, dt) + self._keep_out(T_c) +
         unveiling.update(dt)``), in the same order, and numpy's own dot products: the same
-        bits (tests/loop/test_fast_paths.py) at a fraction of the cost.
+        bits (tests/loop/test_fast_paths.py) at a fraction of the cost. ``rows``:
+        ``T_c[:3].tolist()`` if the caller has it.
         """
         s = self.settings
         reaching = self.reaching
-        V = reaching._update_unchecked(T_c, dt).tolist()  # V_cr
+        if rows is None:
+            rows = T_c[:3].tolist()
+        V = reaching._update_floats(T_c, dt, rows)  # V_cr
         # The keep-out term (_keep_out); |p_c - p_r| is bit for bit reaching's |p_r - p_c|.
         distance = reaching.distance
         r = s["reaching"]
         minimum = r["min_distance_factor"] * r["radius"]
         if minimum > 0 and 1e-9 < distance < minimum:
             gain = r["k_keep_out"] * (minimum - distance)
-            (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = T_c[:3].tolist()
+            (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = rows
             p0, p1, p2 = reaching.roi_centre.tolist()
             V = [V[0] + gain * (c0 - p0) / distance, V[1] + gain * (c1 - p1) / distance,
                  V[2] + gain * (c2 - p2) / distance, V[3] + 0.0, V[4] + 0.0, V[5] + 0.0]
-        else:
-            V = [v + 0.0 for v in V]  # V_cr + zeros, as the numpy sum did (-0.0 becomes 0.0)
+            if s["unveiling"]["enabled"]:
+                return [v + u for v, u in zip(V, self.unveiling._update_list(dt))]
+            return [v + 0.0 for v in V]
+        # V_cr + zeros (as the numpy sum did: -0.0 becomes 0.0), then + V_cu or + zeros.
         if s["unveiling"]["enabled"]:
-            return [v + u for v, u in zip(V, self.unveiling._update_list(dt))]
-        return [v + 0.0 for v in V]
+            return [(v + 0.0) + u for v, u in zip(V, self.unveiling._update_list(dt))]
+        return [(v + 0.0) + 0.0 for v in V]
 
     def _hold_twist(self, T_g: np.ndarray) -> np.ndarray:
         """V_g of the approach: the grasping arm held at its initial pose (gain ``grasping.k_hold``).
@@ -1013,16 +1037,18 @@ class HarvestController:
             twist[:3] = r["k_keep_out"] * (minimum - distance) * offset / distance
         return twist
 
-    def _roll_reference(self, T_c: np.ndarray, direction: np.ndarray | None) -> tuple[np.ndarray, float]:
+    def _roll_reference(self, T_c: np.ndarray, direction: np.ndarray | None,
+                        rows: list | None = None) -> tuple[np.ndarray, float]:
         """World twist turning the camera about z_c so that the blade (x_c) is across the stem.
 
         Python floats for the element-wise steps, numpy for the dot products and arctan2: the
-        same bits as the numpy formula (tests/loop/test_fast_paths.py)."""
+        same bits as the numpy formula (tests/loop/test_fast_paths.py). ``rows``:
+        ``T_c[:3].tolist()`` if the caller has it."""
         if direction is None:
             return np.zeros(6), float("nan")
         z, y = T_c[:3, 2], T_c[:3, 1]
-        (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = T_c[:3].tolist()
-        along = direction.dot(z)
+        (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = T_c[:3].tolist() if rows is None else rows
+        along = float(direction.dot(z))  # a Python float: the element-wise steps below on floats
         u0, u1, u2 = direction.tolist()
         d0, d1, d2 = u0 - along * z0, u1 - along * z1, u2 - along * z2  # direction - (direction @ z) z
         d = np.array((d0, d1, d2))
@@ -1050,6 +1076,7 @@ class HarvestController:
         oMf = config.data.oMf
         T_c = _pose_matrix(oMf[self._camera_id])
         T_g = _pose_matrix(oMf[self._gripper_id])
+        rows_c = T_c[:3].tolist()  # the camera pose's first three rows as floats, read by several laws
         timing = self.timing
         if obs.new_cloud and obs.cloud is not None:
             t0 = time.perf_counter()
@@ -1058,7 +1085,7 @@ class HarvestController:
                 self.obstacle_map.update(obs.cloud, exclude=self.map_exclusions(T_g))
             if timing is not None:
                 timing.setdefault("perception", []).append(time.perf_counter() - t0)
-        t_ref = time.perf_counter()
+        t_ref = time.perf_counter() if timing is not None else 0.0
 
         phase = st.phase
         if phase == Phase.APPROACH:
@@ -1083,7 +1110,9 @@ class HarvestController:
             if t - st.last_stem_time > s["safety"]["stem_lost_timeout"]:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
-        values: dict[str, Any] = {}
+        roll_error = None  # logged as value/roll_error when the references ran
+        V_c_floats = None  # V_c as Python floats (when the references ran)
+        map_cells = None  # logged as value/map_cells when the map fed the QP
         V_c = _ZEROS6
         V_g = _ZEROS6
         roll = None
@@ -1091,7 +1120,7 @@ class HarvestController:
         roi_distance = None
         if st.phase != Phase.ABORT:
             dt = self.dt
-            V = self._camera_twist(T_c, dt)  # V_cr + keep-out + V_cu, 6 floats
+            V = self._camera_twist(T_c, dt, rows_c)  # V_cr + keep-out + V_cu, 6 floats
             roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
             if st.phase == Phase.APPROACH:
                 V_g = self._hold_twist(T_g)
@@ -1103,7 +1132,7 @@ class HarvestController:
                 V_g = stretching._update_unchecked(T_g, force, dt)
                 force_nc = stretching.force_along_nc  # float(n_c @ force)
                 if s["grasping"]["feed_forward"]:
-                    (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = T_c[:3].tolist()
+                    (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = rows_c
                     b0, b1, b2 = st.p_sb.tolist()
                     terms = self.feed_forward._terms(V_g[:3].tolist(), [c0 - b0, c1 - b1, c2 - b2])
                     V = [v + w for v, w in zip(V, terms)]
@@ -1120,10 +1149,10 @@ class HarvestController:
                         st.force_filtered += self._force_filter_fraction(dt, tau) * (force_nc - st.force_filtered)
                     self._check_precut(t, st.force_filtered)
             V_c = np.array(V)
-            roll, roll_angle = self._roll_reference(T_c, direction)
-            values["roll_error"] = roll_angle
+            V_c_floats = V
+            roll, roll_error = self._roll_reference(T_c, direction, rows_c)
 
-        t_map = time.perf_counter()
+        t_map = time.perf_counter() if timing is not None else 0.0
         if st.phase == Phase.ABORT:
             qdot = self._safe_stop()
             status = f"abort: {st.abort_reason}"
@@ -1137,7 +1166,7 @@ class HarvestController:
             self.gripper_task.set_reference(V_g)
             self.roll_task.set_reference(roll)
             if self.map_feed is not None:
-                values["map_cells"] = float(self.map_feed.update(obs.q))
+                map_cells = float(self.map_feed.update(obs.q))
             backup_solver = self.qp_backup
             previous = self.qp.previous_qdot.copy() if backup_solver is not None else None
             result = self.qp._step(obs.q, reuse_kinematics=True)
@@ -1168,14 +1197,25 @@ class HarvestController:
             self.qp.previous_qdot = qdot
         st.previous_qdot = qdot
 
-        self._log_values(T_c, V_c, V_g, force_nc, into=values, roi_distance=roi_distance)
+        if self._row_log:
+            values = self._log_row(T_c, V_c if V_c_floats is None else V_c_floats, V_g, force_nc, roi_distance,
+                                   roll_error, map_cells, rows=rows_c)
+            pairs = self._active_pair_columns()
+        else:  # the generic protocol: a dict of values, a list of pair tuples
+            values = {}
+            if roll_error is not None:
+                values["roll_error"] = roll_error
+            if map_cells is not None:
+                values["map_cells"] = map_cells
+            self._log_values(T_c, V_c, V_g, force_nc, into=values, roi_distance=roi_distance)
+            pairs = self._active_pairs()
         done = False
         if st.phase == Phase.PRECUT:
             end_after = s["episode"]["end_after_precut"]
             done = end_after is not None and t - st.t_precut >= end_after
         elif st.phase == Phase.ABORT:
             done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
-        return Command(qdot=qdot, status=status, values=values, collision_pairs=self._active_pairs(), done=done)
+        return _command(qdot, status, values, pairs, done)
 
     def _force_filter_fraction(self, dt: float, tau: float) -> np.float64:
         """-expm1(-dt / tau), the pre-cut force filter's step fraction: numpy's expm1 (as
@@ -1258,6 +1298,78 @@ class HarvestController:
         gaps = distances[active].tolist() if distances is not None else [float("nan")] * len(first)
         lookup = names.__getitem__
         return list(zip(map(lookup, first), map(lookup, second), gaps))
+
+    def _log_row(self, T_c: np.ndarray, V_c: np.ndarray, V_g: np.ndarray, force_nc: float,
+                 roi_distance: float | None, roll_error: float | None, map_cells: float | None, *,
+                 rows: list | None = None) -> _ValueRow:
+        """:meth:`_log_values` (after ``roll_error`` and ``map_cells``, each given when not None) as
+        one float64 row for the runner (``runner._ValueRow``; it reads as the same mapping).
+
+        Speed (every tick): one array built from a list of Python floats (the same float64
+        values: conversions between float64 and Python floats are exact), which the runner
+        copies into its log in one assignment, instead of ~18 entries checked and copied one
+        by one (tests/loop/test_tick_paths.py compares it with :meth:`_log_values`, and whole
+        episodes' logs with the generic protocol).
+        """
+        st = self.state
+        phase = st.phase
+        bimanual = phase == Phase.BIMANUAL or phase == Phase.PRECUT or st.t_switch is not None
+        reaching, stretching = self.reaching, self.stretching
+        if roi_distance is None:
+            offset = reaching.roi_centre - T_c[:3, 3]
+            roi_distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+        (x0, _, z0, c0), (x1, _, z1, c1), (x2, _, z2, c2) = T_c[:3].tolist() if rows is None else rows
+        nan = math.nan
+        with_map = self.map_feed is not None
+        row = [nan if roll_error is None else roll_error]
+        if with_map:
+            row.append(nan if map_cells is None else map_cells)
+        row += [float(phase), *reaching.roi_centre.tolist(), c0, c1, c2, z0, z1, z2, x0, x1, x2]
+        row += _NAN3_LIST if st.p_sb is None else st.p_sb.tolist()
+        row += _NAN3_LIST if st.p_gd is None else st.p_gd.tolist()
+        row += stretching.n_c.tolist() if bimanual else _NAN3_LIST
+        row += V_c if type(V_c) is list else V_c.tolist()  # the loop hands its V_c floats
+        row += V_g.tolist()
+        row += (force_nc, reaching.theta, roi_distance, stretching.position_error if bimanual else nan,
+                stretching.alignment if bimanual else nan, float(self.unveiling.n_pairs))
+        missing = ()
+        if roll_error is None:
+            missing = ("roll_error", "map_cells") if with_map and map_cells is None else ("roll_error",)
+        elif with_map and map_cells is None:
+            missing = ("map_cells",)
+        layout = _LAYOUT_WITH_MAP if with_map else _LAYOUT_WITHOUT_MAP
+        # np.fromiter: each Python float to float64 exactly, half the time of np.array(row).
+        return _ValueRow(layout, np.fromiter(row, np.float64, layout.width), missing)
+
+    def _active_pair_columns(self) -> _PairColumns | list:
+        """:meth:`_active_pairs` as three columns (``runner._PairColumns``, read as the same
+        tuples): no tuple built per pair here, none checked by the runner."""
+        lim = self.collision
+        if lim is None or self.mapper_kind != "qp":
+            return []
+        active = getattr(lim, "active_pairs", ())
+        if type(active) is not np.ndarray or active.dtype != np.int64:
+            active = np.asarray(active, dtype=np.int64)
+        if active.size == 0:
+            return []
+        distances = getattr(lim, "_dist", None)
+        distances = (np.asarray(distances[active], dtype=np.float64) if distances is not None
+                     else np.full(active.size, np.nan))
+        names = lim.capsule_names
+        a = lim.pair_a[active].tolist()
+        b = lim.pair_b[active].tolist()
+        last = self._last_pair_names
+        # Most ticks keep the last tick's pairs and names: the same name lists then (the
+        # runner's log also reuses its indices for them). Capsule indices and names compared
+        # by value (the map's feed renames obstacle slots in place).
+        if last is not None and last[0] == a and last[1] == b and last[2] == names:
+            first, second = last[3], last[4]
+        else:
+            lookup = names.__getitem__
+            first = list(map(lookup, a))
+            second = list(map(lookup, b))
+            self._last_pair_names = (a, b, list(names), first, second)
+        return _PairColumns(first, second, distances)
 
     # ------------------------------------------------------------------ summary
 

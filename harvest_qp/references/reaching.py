@@ -145,6 +145,11 @@ class ReachingCentering:
         bit): the result equals :meth:`update`'s bit for bit
         (``tests/references/test_unchecked_paths.py``) at about a third of the cost.
         """
+        return np.array(self._update_floats(pose, dt))
+
+    def _update_floats(self, pose: NDArray[np.float64], dt: float, rows: list | None = None) -> list[float]:
+        """:meth:`_update_unchecked` with V_cr as 6 Python floats (the control loop adds them
+        to its other terms on floats); ``rows``: ``pose[:3].tolist()`` if the caller has it."""
         if self.roi_time_constant == 0.0:
             self.roi_centre = self._roi_target.copy()
             p_r0, p_r1, p_r2 = self.roi_centre.tolist()
@@ -154,7 +159,7 @@ class ReachingCentering:
             g0, g1, g2 = self._roi_target.tolist()
             p_r0, p_r1, p_r2 = r0 + fraction * (g0 - r0), r1 + fraction * (g1 - r1), r2 + fraction * (g2 - r2)
             self.roi_centre = np.array((p_r0, p_r1, p_r2))
-        (_, _, z0, c0), (_, _, z1, c1), (_, _, z2, c2) = pose[:3].tolist()
+        (_, _, z0, c0), (_, _, z1, c1), (_, _, z2, c2) = pose[:3].tolist() if rows is None else rows
         e0, e1, e2 = p_r0 - c0, p_r1 - c1, p_r2 - c2
         e_pc = np.array((e0, e1, e2))
         squared = float(e_pc.dot(e_pc))
@@ -172,7 +177,7 @@ class ReachingCentering:
             a0, a1, a2 = x0 / sine, x1 / sine, x2 / sine
         gain = self.k_cp * max(0.0, squared - self.radius**2)
         turn = self.k_co * self.theta
-        return np.array((gain * e0, gain * e1, gain * e2, turn * a0, turn * a1, turn * a2))
+        return [gain * e0, gain * e1, gain * e2, turn * a0, turn * a1, turn * a2]
 
     def velocity(self, camera_pose: ArrayLike, roi_centre: ArrayLike) -> NDArray[np.float64]:
         """V_cr of ``eq:control_signal_rr_world`` for a given p_r [m], without touching the filter."""

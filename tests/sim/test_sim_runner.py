@@ -230,3 +230,181 @@ def test_command_done_ends_the_episode():
 
     result = run_episode(SimRobot(camera=None), Quitter(), duration=1.0)
     assert result.ok and result.n_ticks == 6
+
+
+# ---------------------------------------------------------------- the library's own log protocol
+
+from harvest_qp import runner as _runner  # noqa: E402
+from harvest_qp.runner import _PairColumns, _ValueLayout, _ValueRow  # noqa: E402
+
+_LAYOUT_A = _ValueLayout((("late", ()), ("never", (2,)), ("s", ()), ("v", (3,)), ("m", (2, 2))))
+_LAYOUT_B = _ValueLayout((("s", ()), ("w", (2,))))
+
+
+class _Rows:
+    """Values as rows of a layout and pairs as columns, with entries missing on some ticks;
+    ``as_dicts``: the same values and pairs as a dict and a list of tuples (the oracle).
+    ``switch_at``: from that tick on, ``other`` gives the values (another layout, or a dict)."""
+
+    def __init__(self, as_dicts: bool, switch_at: int | None = None, other: str = "layout") -> None:
+        self.as_dicts, self.switch_at, self.other = as_dicts, switch_at, other
+
+    def reset(self, robot) -> None:
+        self.k = 0
+
+    def step(self, obs) -> Command:
+        k, self.k = self.k, self.k + 1
+        t = float(obs.time)
+        if self.switch_at is not None and k >= self.switch_at:
+            if self.other == "dict":
+                values = {"s": -t, "v": np.array([t, 2 * t, -0.0])}
+            else:
+                values = _ValueRow(_LAYOUT_B, np.array([t, np.nan, -t]), ("w",) if k % 2 else ())
+        else:
+            row = np.array([k, 9.0, 9.0, t, 1.0 + t, -0.0, np.inf, 1.0, 2.0, 3.0, 4.0 * t])
+            missing = ("never",) + (("late",) if k < 3 else ()) + (("v",) if k % 4 == 1 else ())
+            values = _ValueRow(_LAYOUT_A, row, missing)
+        # The same first names with other second names (c|d, c|5), and 5 / "5" (one name in the log).
+        first, second = ["a", "b", "c"], ["b", "c", ("d", 5, "5")[k % 3]]
+        n = 3 if k % 4 else 2
+        pairs = _PairColumns(first[:n], second[:n], np.array([0.01 * k + i for i in range(n)]))
+        if self.as_dicts:
+            values = dict(values) if isinstance(values, _ValueRow) else values
+            pairs = [(str(a), str(b), d) for a, b, d in pairs]
+        return Command(qdot=np.zeros(12), values=values, collision_pairs=pairs)
+
+
+@pytest.mark.parametrize(("switch_at", "other"), [(None, ""), (6, "layout"), (6, "dict"), (0, "dict")])
+def test_value_rows_and_pair_columns_log_what_dicts_and_tuples_log(switch_at, other):
+    """The runner's row log (one copy per tick, split into columns at the end) and its pair
+    columns give the log of the same values as a dict and the pairs as tuples: same keys in
+    the same order (a column is created when its name is first given), NaN where a value is
+    missing, no column for a name never given, the same pair indices; also when another
+    layout or a dict takes over mid-episode (the rows become columns then).
+    Catches: columns ordered by the layout instead of first use, a missing value logged
+    from its slot, the row log not handed over at the switch, pair indices reused for other
+    names, a non-str name logged differently from its str."""
+    fast = run_episode(SimRobot(camera=None), _Rows(False, switch_at, other), duration=0.03)
+    oracle = run_episode(SimRobot(camera=None), _Rows(True, switch_at, other), duration=0.03)
+    assert fast.ok and oracle.ok
+    assert list(fast.log) == list(oracle.log)
+    for key, value in oracle.log.items():
+        assert fast.log[key].dtype == value.dtype and fast.log[key].shape == value.shape, key
+        assert fast.log[key].tobytes() == value.tobytes(), key
+    assert "value/never" not in fast.log
+    if switch_at is None:
+        assert [k for k in fast.log if k.startswith("value/")] == ["value/s", "value/v", "value/m", "value/late"]
+    assert list(fast.log["collision/pair_names"]) == ["a|b", "b|c", "c|5", "c|d"]
+
+
+def test_fast_finiteness_check_refuses_every_non_finite_entry():
+    """The fast command check (math.isfinite on each float) refuses NaN, inf and -inf in every
+    position and passes every finite command, 1e308 and -0.0 included, as the full check does.
+    Catches: a check by a sum (1e308 overflows), or one that misses a position."""
+    for i in range(12):
+        for bad in (np.nan, np.inf, -np.inf):
+            qdot = np.zeros(12)
+            qdot[i] = bad
+            with pytest.raises(InvalidInputError, match="finite"):
+                _runner._as_command_fast(Command(qdot=qdot))
+    for qdot in (np.full(12, 1e308), np.full(12, -1e308), np.full(12, -0.0), np.full(12, 5e-324)):
+        cmd = _runner._as_command_fast(Command(qdot=qdot))
+        assert cmd.qdot is qdot
+
+
+def test_value_rows_and_pair_columns_read_as_mappings_and_sequences():
+    """What a viewer or a wrapper reads from a command: the row as a mapping (floats for
+    scalars, shaped views, missing names absent) and the columns as (a, b, distance) tuples.
+    Catches: a missing name still readable, a slot read at the wrong offset, a bad row or
+    bad columns accepted."""
+    row = _ValueRow(_LAYOUT_A, np.arange(11.0), ("never",))
+    assert list(row) == ["late", "s", "v", "m"] and len(row) == 4 and "never" not in row
+    assert row["late"] == 0.0 and type(row["s"]) is float and row["s"] == 3.0
+    np.testing.assert_array_equal(row["v"], [4.0, 5.0, 6.0])
+    np.testing.assert_array_equal(row["m"], [[7.0, 8.0], [9.0, 10.0]])
+    assert np.isnan(row.row[1:3]).all()  # a missing entry's slots are NaN, as the log holds it
+    with pytest.raises(KeyError):
+        row["never"]
+    with pytest.raises(InvalidInputError):
+        _ValueRow(_LAYOUT_A, np.arange(10.0))
+    with pytest.raises(InvalidInputError):
+        _ValueRow(_LAYOUT_A, np.arange(11, dtype=np.float32))
+    pairs = _PairColumns(["a", "b"], ["c", "d"], np.array([0.5, 0.25]))
+    assert list(pairs) == [("a", "c", 0.5), ("b", "d", 0.25)] and pairs[1] == ("b", "d", 0.25)
+    assert pairs == [("a", "c", 0.5), ("b", "d", 0.25)] and min(pairs, key=lambda p: p[2])[0] == "b"
+    with pytest.raises(InvalidInputError):
+        _PairColumns(["a"], ["c", "d"], np.array([0.5, 0.25]))
+    with pytest.raises(InvalidInputError):
+        _PairColumns(["a", "b"], ["c", "d"], [0.5, 0.25])
+
+
+def test_the_runners_observation_is_the_dataclasss():
+    """The runner builds each tick's Observation without the frozen dataclass's ``__init__``:
+    the same class, attributes (in order), repr and frozenness as ``Observation(...)``, and
+    no ``__post_init__`` it would skip. Catches: a field left out or swapped, a check added to
+    Observation that the runner's construction would bypass."""
+    import dataclasses
+
+    q, qdot, force = np.arange(12.0), -np.arange(12.0), np.ones(3)
+
+    def tare() -> None:
+        pass
+
+    obs = _runner._observation(0.25, q, qdot, force, None, True, tare)
+    expected = Observation(time=0.25, q=q, qdot=qdot, force=force, cloud=None, new_cloud=True, tare_force=tare)
+    assert type(obs) is Observation and not hasattr(Observation, "__post_init__")
+    assert list(vars(obs).items()) == list(vars(expected).items()) and repr(obs) == repr(expected)
+    assert [f.name for f in dataclasses.fields(Observation)] == list(vars(obs))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        obs.time = 1.0
+
+
+def test_pair_arrays_cut_at_k_match_a_per_event_loop():
+    """The log's pair arrays for the first k ticks when later ticks have events too (the
+    event table is built by a row-major boolean mask). Oracle: one event at a time into its
+    tick's row; the width is the most events of any logged tick (as before).
+    Catches: events of ticks >= k shifted into the table, events placed in the wrong row."""
+    rng = np.random.default_rng(9)
+    log = _runner._Log(60, None, False, False)
+    names = ["p", "q", "r", "s", "t"]
+    events = []
+    for k in range(60):
+        if k % 7 == 3:
+            continue  # a tick without pairs
+        n = int(rng.integers(1, 6))
+        pairs = _PairColumns([names[i] for i in rng.integers(0, 5, n)], [names[i] for i in rng.integers(0, 5, n)],
+                             rng.random(n))
+        log.pairs(k, pairs)
+        events.extend((k, f"{a}|{b}", d) for a, b, d in pairs)
+    order = list(dict.fromkeys(name for _, name, _ in events))
+    width = max(sum(1 for e in events if e[0] == k) for k in range(60))
+    for cut in (60, 41, 1, 0):
+        got = log.pair_arrays(cut)
+        index = np.full((cut, width), -1, np.int32)
+        distance = np.full((cut, width), np.nan, np.float32)
+        fill = [0] * 60
+        for k, name, d in events:
+            if k < cut:
+                index[k, fill[k]] = order.index(name)
+                distance[k, fill[k]] = d
+                fill[k] += 1
+        assert list(got["collision/pair_names"]) == order
+        np.testing.assert_array_equal(got["collision/active_pair"], index)
+        np.testing.assert_array_equal(got["collision/active_distance"], distance)
+    assert log.pair_events == [(k, order.index(name), d) for k, name, d in events]
+
+
+def test_the_controllers_command_is_the_dataclasss():
+    """``runner._command`` (the library controller's per-tick Command) equals ``Command(...)``:
+    same class, attributes in order, a fresh task-error dict, no ``__post_init__`` skipped.
+    Catches: a field left out or swapped, a shared task-error dict."""
+    import dataclasses
+
+    qdot, values, pairs = np.arange(12.0), {"v": 1.0}, [("a", "b", 0.1)]
+    got = _runner._command(qdot, "ok", values, pairs, True)
+    expected = Command(qdot=qdot, status="ok", values=values, collision_pairs=pairs, done=True)
+    assert type(got) is Command and not hasattr(Command, "__post_init__")
+    assert list(vars(got)) == [f.name for f in dataclasses.fields(Command)] == list(vars(expected))
+    assert all(getattr(got, name) is getattr(expected, name) for name in ("qdot", "status", "values", "collision_pairs"))
+    assert got.task_errors == {} and got.done is True
+    assert _runner._command(qdot, "ok", values, pairs, False).task_errors is not got.task_errors
