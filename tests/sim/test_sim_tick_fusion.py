@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from harvest_qp.sim import SimRobot
+from harvest_qp.sim import SimRobot, VineSceneParams, build_vine_scene
 from harvest_qp.sim.actuation import _servo_step
 from harvest_qp.sim.robot import SimulationError, _add_payload_torque, _payload_jacobian
 
@@ -105,12 +105,32 @@ def test_fused_step_equals_the_unfused_step_bit_for_bit(robots):
     np.testing.assert_array_equal(fused.wrist_force(), reference.wrist_force())
 
 
+def test_fused_tear_check_tears_on_the_same_tick():
+    """Bug caught: the fused tension measured on a stale state, or the tear applied a tick late.
+
+    Oracle: the unfused reference step on a twin robot whose stem tears at 0.5 N: both tear
+    on the same tick, at the same time, with the same maximum tension, and stay equal after.
+    """
+    scene = build_vine_scene(VineSceneParams(stem_break_force=0.5))
+    fused, reference = SimRobot(scene, camera=None), SimRobot(scene, camera=None)
+    qdot = np.r_[np.zeros(6), 0.3, -0.3, 0.3, 0.0, 0.0, 0.0]
+    fused.send_joint_velocities(qdot)
+    reference.send_joint_velocities(qdot)
+    for _ in range(400):
+        fused.step()
+        _reference_tick(reference)
+        assert fused.stem_torn == reference.stem_torn
+        assert fused._max_tension == reference._max_tension
+        np.testing.assert_array_equal(fused.data.qpos, reference.data.qpos)
+    assert fused.stem_torn and fused.stem_tear_time == reference.stem_tear_time
+
+
 def test_fused_step_still_refuses_a_diverged_state(default_scene):
     """Bug caught: the fused divergence check lost (a NaN velocity would be stepped on silently).
 
     Oracle: a non-finite joint velocity must raise SimulationError, and the wrist sensor
     must not take a sample from the diverged state. Planted and caught: ``_finish_tick``
-    returning False always.
+    without its ``_diverged`` test.
     """
     robot = SimRobot(default_scene, camera=None)
     robot.step()
