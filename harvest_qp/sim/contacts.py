@@ -244,9 +244,16 @@ def _capsule_bounds(xpos, xmat, ints, floats, na, nv, n_exact, n_bounded, max_di
         if lower[j] < best:
             candidates[n] = j
             n += 1
-    if n > 1:
-        order = np.argsort(lower[candidates[:n]], kind="mergesort")
-        candidates[:n] = candidates[:n][order]
+    # Nearest first: a stable insertion sort (the order of a stable argsort, ties kept in
+    # pair order) in place; there are a handful of candidates, argsort's arrays cost more.
+    for a in range(1, n):
+        j = candidates[a]
+        key = lower[j]
+        b = a - 1
+        while b >= 0 and lower[candidates[b]] > key:
+            candidates[b + 1] = candidates[b]
+            b -= 1
+        candidates[b + 1] = j
     return best, best_k, n
 
 
