@@ -70,6 +70,10 @@ class SensorFaults:
                 raise InvalidInputError(f"SensorFaults.{name} must be None or a finite number >= 0, got {value!r}")
 
 
+#: The methods :meth:`SimRobot.ground_truth` reports; overriding one makes it call them one by one.
+_TRUTH_PARTS = frozenset(("stem_tension", "stem_force", "velocity_reference", "contact_counts", "min_vine_distance"))
+
+
 class SimRobot(RobotInterface):
     """MuJoCo simulation of the dual-UR5e in the vine scene.
 
@@ -223,11 +227,8 @@ class SimRobot(RobotInterface):
         self._cdof, self._subtree_com, self._qpos, self._ctrl, self._qvel = d.cdof, d.subtree_com, d.qpos, d.ctrl, d.qvel
         self._force.bind(d)
         self._pack_servo_operands()
-        # ground_truth() inlines its parts unless a subclass overrides one of them.
-        self._plain_truth = all(
-            getattr(type(self), name) is getattr(SimRobot, name)
-            for name in ("stem_tension", "stem_force", "velocity_reference", "contact_counts", "min_vine_distance")
-        )
+        # ground_truth() inlines its parts unless a subclass (or the instance) overrides one.
+        self._plain_truth = all(getattr(type(self), name) is getattr(SimRobot, name) for name in _TRUTH_PARTS)
         # site_force_world's operands for the stem force (the stem end's rotation, the sensor).
         adr = self._stem_force_adr
         self._stem_force_operands = (d.site_xmat[self._stem_end_site].reshape(3, 3), d.sensordata[adr : adr + 3])
@@ -512,7 +513,7 @@ class SimRobot(RobotInterface):
             min_vine_distance_so_far: smallest ``min_vine_distance`` measured since the reset [m].
             frames_lost: camera frames lost to ``faults.frame_loss`` since the reset.
         """
-        if not self._plain_truth:  # a subclass overrides a part: ask each part
+        if not self._plain_truth or not _TRUTH_PARTS.isdisjoint(self.__dict__):  # a part is overridden: ask each
             out: dict[str, float | NDArray[np.float64]] = {
                 "stem_tension": self.stem_tension(),
                 "stem_force": self.stem_force(),

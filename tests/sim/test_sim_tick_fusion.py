@@ -149,3 +149,44 @@ def test_fused_step_still_refuses_a_diverged_state(default_scene):
     finally:
         mujoco.mj_step1 = original
     assert robot._force._count == count
+
+
+def test_inlined_ground_truth_equals_its_parts_and_honours_overrides(default_scene):
+    """Bug caught: the inlined ground truth reporting another value than the public method of
+    that quantity, dropping or reordering a key, or ignoring a subclass's or an instance's override.
+
+    Oracle: the robot's public per-quantity methods (``stem_tension``, ``stem_force``,
+    ``velocity_reference``, ``contact_counts``, ``min_vine_distance``) on the same state.
+    Planted and caught: ``"stem_tension_max": self._max_tension`` replaced by the tension now.
+    """
+    robot = SimRobot(default_scene, camera=None)
+    pull = np.r_[np.zeros(6), 0.2, -0.2, 0.2, 0.0, 0.0, 0.0]
+    for k in range(120):
+        if k % 60 == 0:
+            robot.send_joint_velocities(pull if k == 0 else -pull)  # pull, then ease off
+        robot.step()
+        got = robot.ground_truth()
+        expected = {
+            "stem_tension": robot.stem_tension(),
+            "stem_force": robot.stem_force(),
+            "qdot_ref": robot.velocity_reference(),
+            "stem_torn": float(robot.stem_torn),
+            "stem_tension_max": robot._max_tension,
+            **{f"contacts_{kind}": float(n) for kind, n in robot.contact_counts().items()},
+            "min_vine_distance": robot.min_vine_distance(),
+            "min_vine_distance_so_far": robot._min_vine_distance,
+            "frames_lost": float(robot.frames_lost),
+        }
+        assert list(got) == list(expected)
+        for key, value in expected.items():
+            np.testing.assert_array_equal(got[key], value, err_msg=key)
+    assert robot._max_tension > robot.stem_tension()  # the maximum is not the value now
+
+    class Shifted(SimRobot):
+        def stem_tension(self) -> float:
+            return 123.0
+
+    shifted = Shifted(default_scene, camera=None)
+    assert shifted.ground_truth()["stem_tension"] == 123.0
+    robot.contact_counts = lambda: {"arm_arm": 7, "arm_vine": 0, "arm_stand": 0, "arm_floor": 0}
+    assert robot.ground_truth()["contacts_arm_arm"] == 7.0
