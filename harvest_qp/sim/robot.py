@@ -227,6 +227,7 @@ class SimRobot(RobotInterface):
         self._cdof, self._subtree_com, self._qpos, self._ctrl, self._qvel = d.cdof, d.subtree_com, d.qpos, d.ctrl, d.qvel
         self._force.bind(d)
         self._pack_servo_operands()
+        self._break_force = self.scene.params.stem_break_force  # VineSceneParams is frozen
         # ground_truth() inlines its parts unless a subclass (or the instance) overrides one.
         self._plain_truth = all(getattr(type(self), name) is getattr(SimRobot, name) for name in _TRUTH_PARTS)
         # site_force_world's operands for the stem force (the stem end's rotation, the sensor).
@@ -403,7 +404,10 @@ class SimRobot(RobotInterface):
                 self._stem_base_array,
             )  # fmt: skip
             if not torn:
-                self._check_tear(tension)
+                # _check_tear(tension) inlined for the usual case (no tear); it runs to tear.
+                self._max_tension = max(self._max_tension, tension)
+                if tension > self._break_force:
+                    self._check_tear(tension)
             if diverged:
                 self._check_physics()  # raises with MuJoCo's warnings
             force._count += 1
