@@ -77,10 +77,19 @@ def episode_ground_truth(robot) -> callable:
 
     # Whether the robot counts its contacts itself is fixed: look once, not every tick.
     counts_contacts = any(key.startswith("contacts_") for key in base())
+    # SimRobot.ground_truth builds a new dict per call: it can be extended in place (a
+    # robot's own method might return a dict it keeps, so any other one is copied).
+    from harvest_qp.sim.robot import SimRobot
+
+    fresh = (
+        isinstance(robot, SimRobot) and type(robot).ground_truth is SimRobot.ground_truth
+        and "ground_truth" not in vars(robot)
+    )
+    stem_end_position = data.site_xpos[stem_end]  # a live view of the site's position
 
     def truth() -> dict[str, Any]:
-        out = dict(base())
-        out["stem_end"] = data.site_xpos[stem_end].copy()
+        out = base() if fresh else dict(base())
+        out["stem_end"] = stem_end_position.copy()
         if not counts_contacts:
             count = 0
             for i in range(data.ncon):

@@ -98,6 +98,18 @@ class WristForceSensor:
         self._count = 0
         self._adr = int(model.sensor_adr[self.sensor_id])
         self._bound: tuple[mujoco.MjData, NDArray[np.float64], NDArray[np.float64]] | None = None
+        # No noise, no filter: a sample is the world force plus the tool's weight, which
+        # SimRobot.step takes in one compiled call on views bound by bind() (_plain).
+        self._plain = False
+        self._rotation: NDArray[np.float64] | None = None
+        self._site_force: NDArray[np.float64] | None = None
+
+    def bind(self, data: mujoco.MjData) -> None:
+        """Bind views of ``data``'s buffers for SimRobot's fused sample (``_plain`` says whether it applies)."""
+        adr = self._adr
+        self._rotation = data.site_xmat[self.site_id].reshape(3, 3)
+        self._site_force = data.sensordata[adr : adr + 3]
+        self._plain = self.config.noise_std == 0 and self.config.filter_time_constant == 0
 
     def reset(self, *, seed: int | None = None) -> None:
         """Clear the tare offset and the filter; optionally reseed the noise."""

@@ -227,8 +227,7 @@ def test_pruned_vine_distance_search_equals_every_pair():
         want_candidates = [j for j in range(cm._bounded_pairs.size) if flat[cm._bounded_pairs[j]] < want_best]
         for h in (hint, -1):
             best, k, n = contacts_module._capsule_bounds(
-                d.geom_xpos, d.geom_xmat, cm._static, cm._radius_sum, cm._exact_pairs, cm._bounded_pairs,
-                cm.max_distance, cm._lower, cm._candidates, h,
+                d.geom_xpos, d.geom_xmat, cm._ints, cm._floats, *cm._sizes, cm.max_distance, h,
             )  # fmt: skip
             assert best == pytest.approx(want_best, abs=1e-15) and k == want_k
             assert sorted(cm._candidates[:n].tolist()) == want_candidates
