@@ -165,7 +165,7 @@ def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> 
     # update for the reference laws comes first and is counted in "runner").
     controller.qp._step_unwrapped = controller.qp._step
     timers.wrap(controller.qp, "_step", "qp")
-    for name in ("_log_values", "_active_pairs"):
+    for name in ("_log_values", "_active_pairs", "_log_row", "_active_pair_columns"):
         if hasattr(controller, name):
             timers.wrap(controller, name, "logged_values")
     controller.timing = {}
