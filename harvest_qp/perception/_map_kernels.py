@@ -9,14 +9,6 @@ before misses, as OctoMap's ``insertPointCloud``).
 
 Cell keys are OctoMap's without the 2^15 offset: ``key = floor(x / resolution)``, cell
 centre ``(key + 0.5) * resolution``; ``ix = key - lo_key`` indexes the grid.
-
-Beside the log-odds, one bit per cell (``live``, uint64 words, bit ``idx & 63`` of word
-``idx >> 6``) tells whether the cell's log-odds is above ``clamp_min``: a miss changes
-nothing else. In the paper episode ~96 % of the clearing rays' steps land on cells already
-at ``clamp_min``; the rays test their bit (a block's 512 bits are one cache line) and
-read the log-odds and frame stamp (42x the bytes) only of the others. Every kernel that
-writes log-odds keeps the bits exact (:func:`integrate_frame`; the erases only set
-occupied cells, above 0 > clamp_min, to 0, so their bits stay 1).
 """
 
 from __future__ import annotations
@@ -44,7 +36,7 @@ N_EXCLUDED = 3  # obstacle points inside an exclusion region
 N_OUTSIDE = 4  # obstacle points outside the grid
 N_STEM_ERASED = 5  # occupied cells forgotten because a stem point fell in them
 N_RAYS = 6  # clearing rays traced
-N_CELLS_CLEARED = 7  # cells whose log-odds a miss lowered (cells already at clamp_min are not counted)
+N_CELLS_CLEARED = 7  # cells that got a miss
 N_NO_RETURN_RAYS = 8  # clearing rays traced for pixels without a return
 N_COUNTERS = 9
 
@@ -179,26 +171,10 @@ def _mark_dirty(block, dirty, dirty_list, n_dirty):
         n_dirty[0] += 1
 
 
-@njit(cache=True, inline="always")
-def _is_live(live, idx):
-    """Whether cell ``idx``'s live bit is set (its log-odds above clamp_min)."""
-    return (live[idx >> 6] >> np.uint64(idx & 63)) & np.uint64(1) != np.uint64(0)
-
-
-@njit(cache=True, inline="always")
-def _set_live(live, idx):
-    live[idx >> 6] |= np.uint64(1) << np.uint64(idx & 63)
-
-
-@njit(cache=True, inline="always")
-def _clear_live(live, idx):
-    live[idx >> 6] &= ~(np.uint64(1) << np.uint64(idx & 63))
-
-
 @njit(cache=True)
 def _trace_ray(
     ox, oy, oz, ex, ey, ez, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
-    dirty, dirty_list, n_dirty, live,
+    dirty, dirty_list, n_dirty,
 ):
     """Apply a miss to every cell the segment origin -> end crosses, the end's own cell excluded.
 
@@ -206,15 +182,8 @@ def _trace_ray(
     then each cell entered before the end's cell or before the segment ends. The origin
     must lie in the grid; the walk stops when it leaves the grid. The linear index is
     stepped incrementally (within a block or across to the next block) rather than
-    recomputed: this loop is the map update's main cost. Returns the number of cells whose
-    log-odds the miss lowered.
-
-    A cell already at ``clamp_min`` (live bit 0) is left alone: the miss would not change its
-    log-odds, and it is not stamped either. Its stamp is read only by later misses of this
-    frame (passes 1 and 2, the hits and the stem, ran before), which leave it at clamp_min
-    all the same; earlier frames' stamps are never equal to this frame's id (the ids grow,
-    and all stamps are zeroed when they wrap). So the map is the same as with the stamp
-    tested first, bit for bit.
+    recomputed: this loop is the map update's main cost. Returns the number of cells that
+    got a miss.
     """
     inv = 1.0 / res
     kox = int(np.floor(ox * inv))
@@ -256,18 +225,17 @@ def _trace_ray(
     idx = cell_index(ix, iy, iz, nby, nbz)
     count = 0
     while True:
-        if _is_live(live, idx) and stamp[idx] != frame:
+        if stamp[idx] != frame:
             stamp[idx] = frame
             old = log_odds[idx]
             if old > clamp_min:
                 new = old + miss
-                if new <= clamp_min:
+                if new < clamp_min:
                     new = clamp_min
-                    _clear_live(live, idx)
                 log_odds[idx] = new
                 if old > 0.0 and new <= 0.0:
                     _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
-                count += 1
+            count += 1
         if tmx < tmy:
             if tmx < tmz:
                 if sx > 0:
@@ -337,7 +305,7 @@ def integrate_frame(
     points, labels, pixels, image_size, origin, rotation, regions, stride, phase_row, phase_col, near_skip, min_range, max_range,
     no_return, nr_stride, nr_phase_row, nr_phase_col, intrinsics, returned, res, lo_key, dims, nby, nbz,
     log_odds, stamp, frame, hit, miss,
-    clamp_min, clamp_max, dirty, dirty_list, n_dirty, counters, live,
+    clamp_min, clamp_max, dirty, dirty_list, n_dirty, counters,
 ):
     """One camera frame into the map (see ``ObstacleMap.update`` for the rules); ``image_size``: (h, w).
 
@@ -348,7 +316,6 @@ def integrate_frame(
     ``no_return[1] > no_return[0]``, traces the pixels of the ``nr_stride`` grid without any point from
     ``no_return[0]`` to ``no_return[1]`` [m] along the pinhole rays of ``intrinsics``
     ``(f, cx, cy)`` [pixels] (camera rotation ``rotation``; ``returned`` is an (h, w) scratch).
-    ``live``: the cells' live bits (see the module docstring), kept exact.
     """
     n = points.shape[0]
     ox, oy, oz = origin[0], origin[1], origin[2]
@@ -448,8 +415,6 @@ def integrate_frame(
         if new > clamp_max:
             new = clamp_max
         log_odds[idx] = new
-        if new > clamp_min:
-            _set_live(live, idx)
         counters[N_INSERTED] += 1
         if old <= 0.0 and new > 0.0:
             _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
@@ -468,7 +433,7 @@ def integrate_frame(
             continue
         stamp[idx] = frame
         if log_odds[idx] > 0.0:
-            log_odds[idx] = 0.0  # 0 > clamp_min: the live bit stays set
+            log_odds[idx] = 0.0
             counters[N_STEM_ERASED] += 1
             _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
     for j in range(n_ray):
@@ -490,7 +455,7 @@ def integrate_frame(
         counters[N_RAYS] += 1
         counters[N_CELLS_CLEARED] += _trace_ray(
             sx, sy, sz, px, py, pz, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
-            dirty, dirty_list, n_dirty, live,
+            dirty, dirty_list, n_dirty,
         )
     if no_return[1] <= no_return[0]:
         return
@@ -524,7 +489,7 @@ def integrate_frame(
             counters[N_NO_RETURN_RAYS] += 1
             counters[N_CELLS_CLEARED] += _trace_ray(
                 ax, ay, az, bx, by, bz, res, lo_key, dims, nby, nbz, log_odds, stamp, frame, miss, clamp_min,
-                dirty, dirty_list, n_dirty, live,
+                dirty, dirty_list, n_dirty,
             )
 
 

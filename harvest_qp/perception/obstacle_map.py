@@ -159,8 +159,7 @@ class MapUpdateStats:
     no_return_rays: int
     """Clearing rays traced for pixels without a return (``no_return_range``)."""
     cells_cleared: int
-    """Cells whose log-odds a miss lowered (a miss on a cell already at ``clamp_min`` changes
-    nothing and is not counted)."""
+    """Cells that got a miss."""
     region_erased: int
     """Occupied cells forgotten because they lie in an exclusion region."""
 
@@ -383,10 +382,6 @@ class ObstacleMap:
         n_total = int(np.prod(self.dims))
         self.log_odds = np.zeros(n_total, dtype=np.float32)
         self._stamp = np.zeros(n_total, dtype=np.uint16)
-        # One bit per cell: log-odds above clamp_min (all: unknown is 0). The clearing rays
-        # read the log-odds only of those cells (see _map_kernels); kept exact by the kernels,
-        # so ``log_odds`` must only be changed through this class's methods.
-        self._live = np.full(n_total // 64, np.iinfo(np.uint64).max, dtype=np.uint64)
         nb = int(np.prod(n_blocks))
         self._dirty = np.zeros(nb, dtype=np.bool_)
         self._dirty_list = np.zeros(nb, dtype=np.int64)
@@ -423,7 +418,6 @@ class ObstacleMap:
         """Forget everything (all cells unknown, i.e. free)."""
         self.log_odds[:] = 0.0
         self._stamp[:] = 0
-        self._live[:] = np.iinfo(np.uint64).max
         self._block_count[:] = 0
         self._version += 1
         self._block_stamp[:] = self._version
@@ -538,7 +532,7 @@ class ObstacleMap:
             nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
             self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
             self._stamp, self._frame, self.hit, self.miss, self.clamp_min, self.clamp_max,
-            self._dirty, self._dirty_list, self._n_dirty, counters, self._live,
+            self._dirty, self._dirty_list, self._n_dirty, counters,
         )  # fmt: skip
         self.frames += 1
         self._finish_update()
