@@ -227,7 +227,6 @@ class SimRobot(RobotInterface):
         self._cdof, self._subtree_com, self._qpos, self._ctrl, self._qvel = d.cdof, d.subtree_com, d.qpos, d.ctrl, d.qvel
         self._force.bind(d)
         self._pack_servo_operands()
-        self._break_force = self.scene.params.stem_break_force  # VineSceneParams is frozen
         # ground_truth() inlines its parts unless a subclass (or the instance) overrides one.
         self._plain_truth = all(getattr(type(self), name) is getattr(SimRobot, name) for name in _TRUTH_PARTS)
         # site_force_world's operands for the stem force (the stem end's rotation, the sensor).
@@ -406,7 +405,10 @@ class SimRobot(RobotInterface):
             if not torn:
                 # _check_tear(tension) inlined for the usual case (no tear); it runs to tear.
                 self._max_tension = max(self._max_tension, tension)
-                if tension > self._break_force:
+                # Read per tick (one attribute chain): ``scene`` may be replaced after
+                # construction, and _check_tear reads it too (an audit found a cached value
+                # that tore on one sensor path and not on the other).
+                if tension > self.scene.params.stem_break_force:
                     self._check_tear(tension)
             if diverged:
                 self._check_physics()  # raises with MuJoCo's warnings

@@ -125,6 +125,35 @@ def test_fused_tear_check_tears_on_the_same_tick():
     assert fused.stem_torn and fused.stem_tear_time == reference.stem_tear_time
 
 
+def test_break_force_of_a_scene_replaced_after_construction_is_honoured():
+    """Bug caught (audit): the fused tick compared the tension with a break force cached at
+    construction, so after ``robot.scene`` was replaced by one with a lower break force the
+    plain-sensor robot never tore while a noisy-sensor robot (the unfused path) did.
+
+    Oracle: the unfused path (a robot with a force-noise fault takes it) and the scene's own
+    break force: both tear, on the same tick, once the replaced scene's 0.5 N is exceeded.
+    """
+    import dataclasses
+
+    from harvest_qp.sim.robot import SensorFaults
+
+    scene = build_vine_scene()  # break force far above what this pull reaches
+    lowered = dataclasses.replace(scene, params=dataclasses.replace(scene.params, stem_break_force=0.5))
+    ticks = []
+    for faults in (None, SensorFaults(force_noise_std=1e-9)):
+        robot = SimRobot(scene, camera=None, **({"faults": faults} if faults else {}))
+        robot.scene = lowered
+        robot.send_joint_velocities(np.r_[np.zeros(6), 0.3, -0.3, 0.3, 0.0, 0.0, 0.0])
+        torn_at = None
+        for k in range(400):
+            robot.step()
+            if robot.stem_torn:
+                torn_at = k
+                break
+        ticks.append(torn_at)
+    assert ticks[0] is not None and ticks[0] == ticks[1]
+
+
 def test_fused_step_still_refuses_a_diverged_state(default_scene):
     """Bug caught: the fused divergence check lost (a NaN velocity would be stepped on silently).
 
