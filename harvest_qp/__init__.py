@@ -10,6 +10,7 @@ from harvest_qp.controller import ControlStep, TaskController
 from harvest_qp.exceptions import (
     ConfigError,
     DimensionError,
+    EpisodeError,
     HarvestQPError,
     InfeasibleProblemError,
     InvalidInputError,
@@ -27,6 +28,7 @@ __all__ = [
     "Configuration",
     "ControlStep",
     "DimensionError",
+    "EpisodeError",
     "HarvestQPError",
     "InfeasibleProblemError",
     "InvalidInputError",

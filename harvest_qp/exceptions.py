@@ -63,5 +63,13 @@ class SolverNotAvailableError(SolverError):
     """The requested QP backend is unknown or not installed."""
 
 
+class EpisodeError(HarvestQPError):
+    """An episode ended before its controller logged a single tick, so it has nothing to score.
+
+    The message gives the runner's ``episode_status`` and the first line of its error (the
+    full traceback is in the log's ``error`` entry).
+    """
+
+
 class ConfigError(HarvestQPError, ValueError):
     """A YAML task configuration is malformed; the message names the key."""

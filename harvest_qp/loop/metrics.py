@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from harvest_qp.configuration import Configuration
+from harvest_qp.exceptions import EpisodeError
 from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.loop.controller import Phase
 
@@ -69,6 +70,13 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
     f_d, radius = float(g["f_d"]), float(settings["reaching"]["radius"])
     t = log["t"]
     n = len(t)
+    if n == 0 or "value/phase" not in log:
+        # Nothing to score: the controller (or a wrapper around it) or the robot failed
+        # before the first tick was logged. Say what the runner saw instead of a KeyError.
+        status = str(log.get("episode_status", "unknown"))
+        lines = str(log.get("error", "")).strip().splitlines()
+        reason = lines[0] if lines else "no error message"
+        raise EpisodeError(f"the episode ended with status {status!r} before the controller logged a tick: {reason}")
     phase = log["value/phase"]
     st = controller.state
     # --- camera, from the true stem base
