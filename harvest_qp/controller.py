@@ -189,9 +189,17 @@ class TaskController:
                     configuration._set_q(q)
             measured = True
             # previous_qdot is this controller's own finite output: skip re-validating it.
-            solution = self.solver._solve(self.configuration, self.tasks, self.limits, self.dt, self.previous_qdot)
+            previous = self.previous_qdot
+            if reuse_kinematics:
+                # The loop's path: the same solve in fewer frames and compiled calls, with the
+                # acceleration computed in its last compiled call (None: not computed there).
+                solution, accel = self.solver._solve_step(configuration, self.tasks, self.limits, self.dt, previous)
+                if accel is None:
+                    accel = (solution.qdot - previous) / self.dt
+            else:
+                solution = self.solver._solve(configuration, self.tasks, self.limits, self.dt, previous)
+                accel = (solution.qdot - previous) / self.dt
             self.solver_solution = solution
-            accel = (solution.qdot - self.previous_qdot) / self.dt
             status = OK
             if solution.relaxed:
                 peak = float(np.max(np.abs(accel)))

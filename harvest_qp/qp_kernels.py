@@ -591,3 +591,166 @@ def scaled_difference(gain, target, q):
     for i in range(target.shape[0]):
         out[i] = gain * (target[i] - q[i])
     return out
+
+
+# The cascade's step between two DAQP levels in one compiled call (``Solver._solve_step``): the
+# upper level's ``check_clip_equalities_*`` and, only when its answer is accepted, the lower
+# level's ``assemble_load_*`` on the equalities just computed; the same operations in the same
+# order as the two separate calls. Returns ``(accepted, rows, rhs, n_eq)``; a rejected answer is
+# left as the backend returned it and the lower level untouched (``n_eq`` -1).
+
+@njit(cache=True)
+def handover_1_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block, reg, K0, u0, v0,
+                A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_1`` of the upper level, then ``assemble_load_1`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_1(A, x, eq_tol, stack, J0, w0)
+    n_eq = assemble_load_1(block, reg, K0, u0, v0, A_buf, buf_upper, buf_lower, sense, rows, rhs, G, h, lower,
+        upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_1_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block, reg, K0, u0, v0,
+                K1, u1, v1, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_1`` of the upper level, then ``assemble_load_2`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_1(A, x, eq_tol, stack, J0, w0)
+    n_eq = assemble_load_2(block, reg, K0, u0, v0, K1, u1, v1, A_buf, buf_upper, buf_lower, sense, rows, rhs, G,
+        h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_1_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block, reg, K0, u0, v0,
+                K1, u1, v1, K2, u2, v2, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_1`` of the upper level, then ``assemble_load_3`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_1(A, x, eq_tol, stack, J0, w0)
+    n_eq = assemble_load_3(block, reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, A_buf, buf_upper, buf_lower, sense,
+                           rows, rhs, G, h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_1_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block, reg, K0, u0, v0,
+                K1, u1, v1, K2, u2, v2, K3, u3, v3, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_1`` of the upper level, then ``assemble_load_4`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_1(A, x, eq_tol, stack, J0, w0)
+    n_eq = assemble_load_4(block, reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, K3, u3, v3, A_buf, buf_upper,
+        buf_lower, sense, rows, rhs, G, h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_2_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block, reg, K0,
+                u0, v0, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_2`` of the upper level, then ``assemble_load_1`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_2(A, x, eq_tol, stack, J0, w0, J1, w1)
+    n_eq = assemble_load_1(block, reg, K0, u0, v0, A_buf, buf_upper, buf_lower, sense, rows, rhs, G, h, lower,
+        upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_2_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block, reg, K0,
+                u0, v0, K1, u1, v1, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_2`` of the upper level, then ``assemble_load_2`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_2(A, x, eq_tol, stack, J0, w0, J1, w1)
+    n_eq = assemble_load_2(block, reg, K0, u0, v0, K1, u1, v1, A_buf, buf_upper, buf_lower, sense, rows, rhs, G,
+        h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_2_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block, reg, K0,
+                u0, v0, K1, u1, v1, K2, u2, v2, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_2`` of the upper level, then ``assemble_load_3`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_2(A, x, eq_tol, stack, J0, w0, J1, w1)
+    n_eq = assemble_load_3(block, reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, A_buf, buf_upper, buf_lower, sense,
+                           rows, rhs, G, h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_2_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block, reg, K0,
+                u0, v0, K1, u1, v1, K2, u2, v2, K3, u3, v3, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_2`` of the upper level, then ``assemble_load_4`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_2(A, x, eq_tol, stack, J0, w0, J1, w1)
+    n_eq = assemble_load_4(block, reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, K3, u3, v3, A_buf, buf_upper,
+        buf_lower, sense, rows, rhs, G, h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_3_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2, block,
+                reg, K0, u0, v0, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_3`` of the upper level, then ``assemble_load_1`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_3(A, x, eq_tol, stack, J0, w0, J1, w1, J2, w2)
+    n_eq = assemble_load_1(block, reg, K0, u0, v0, A_buf, buf_upper, buf_lower, sense, rows, rhs, G, h, lower,
+        upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_3_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2, block,
+                reg, K0, u0, v0, K1, u1, v1, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_3`` of the upper level, then ``assemble_load_2`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_3(A, x, eq_tol, stack, J0, w0, J1, w1, J2, w2)
+    n_eq = assemble_load_2(block, reg, K0, u0, v0, K1, u1, v1, A_buf, buf_upper, buf_lower, sense, rows, rhs, G,
+        h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_3_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2, block,
+                reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, A_buf, buf_upper, buf_lower, sense, n_eq_before, inf):
+    """``check_clip_equalities_3`` of the upper level, then ``assemble_load_3`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_3(A, x, eq_tol, stack, J0, w0, J1, w1, J2, w2)
+    n_eq = assemble_load_3(block, reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, A_buf, buf_upper, buf_lower, sense,
+                           rows, rhs, G, h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def handover_3_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2, block,
+                reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, K3, u3, v3, A_buf, buf_upper, buf_lower, sense,
+                n_eq_before, inf):
+    """``check_clip_equalities_3`` of the upper level, then ``assemble_load_4`` of the lower one."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return False, np.empty((0, stack.shape[1])), np.empty(0), -1
+    rows, rhs = level_equalities_3(A, x, eq_tol, stack, J0, w0, J1, w1, J2, w2)
+    n_eq = assemble_load_4(block, reg, K0, u0, v0, K1, u1, v1, K2, u2, v2, K3, u3, v3, A_buf, buf_upper,
+        buf_lower, sense, rows, rhs, G, h, lower, upper, n_eq_before, inf)
+    return True, rows, rhs, n_eq
+
+
+@njit(cache=True)
+def check_clip_rate(x, lower, upper, A, b, G, h, tol, previous, dt):
+    """:func:`check_clip`, then (if accepted) a new array ``(x - previous) / dt`` (the controller's
+    acceleration [rad/s^2], the same operations as numpy's); an empty array when rejected."""
+    if not check_clip(x, lower, upper, A, b, G, h, tol):
+        return np.empty(0)
+    rate = np.empty(x.shape[0])
+    for i in range(x.shape[0]):
+        rate[i] = (x[i] - previous[i]) / dt
+    return rate

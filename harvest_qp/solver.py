@@ -78,7 +78,20 @@ from harvest_qp.qp_kernels import (
     check_clip_equalities_1,
     check_clip_equalities_2,
     check_clip_equalities_3,
+    check_clip_rate,
     clip_inplace,
+    handover_1_1,
+    handover_1_2,
+    handover_1_3,
+    handover_1_4,
+    handover_2_1,
+    handover_2_2,
+    handover_2_3,
+    handover_2_4,
+    handover_3_1,
+    handover_3_2,
+    handover_3_3,
+    handover_3_4,
     intersect_boxes,
     level_equalities_1,
     level_equalities_2,
@@ -98,6 +111,12 @@ _FLOAT64 = np.dtype(np.float64)
 # The fused DAQP level kernels by the level's task count (see Solver._daqp_level).
 _ASSEMBLE_LOAD = {1: assemble_load_1, 2: assemble_load_2, 3: assemble_load_3, 4: assemble_load_4}
 _CHECK_CLIP_EQUALITIES = {1: check_clip_equalities_1, 2: check_clip_equalities_2, 3: check_clip_equalities_3}
+# Two consecutive DAQP levels' hand-over by (upper, lower) task count (see Solver._solve_step).
+_HANDOVER = {
+    (1, 1): handover_1_1, (1, 2): handover_1_2, (1, 3): handover_1_3, (1, 4): handover_1_4,
+    (2, 1): handover_2_1, (2, 2): handover_2_2, (2, 3): handover_2_3, (2, 4): handover_2_4,
+    (3, 1): handover_3_1, (3, 2): handover_3_2, (3, 3): handover_3_3, (3, 4): handover_3_4,
+}
 
 #: Bound magnitude that stands for "no bound" in the QP data.
 INF = 1e30
@@ -349,20 +368,7 @@ class Solver:
             J, v = task.compute_rows(configuration, dt)
             by_level.setdefault(task.level, []).append((task, J, v))
         hard = by_level.pop(HARD, None)
-        if hard:
-            hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in hard]
-            for t, J, v in hard:
-                # A hard task must be met exactly: a non-finite target is an error, not a
-                # problem daqp refuses and a retry quietly drops (an audit found the latter).
-                if not (np.all(np.isfinite(v)) and np.all(np.isfinite(J))):
-                    raise InvalidInputError(
-                        f"hard task {type(t).__name__} (level 0) computed non-finite rows: target {v.tolist()}"
-                    )
-            A, b = _least_squares_rows(
-                np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
-            )
-        else:
-            A, b = self._no_equalities  # empty, so shared between steps
+        A, b = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
         if boxes is None:
             lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
         else:
@@ -373,34 +379,230 @@ class Solver:
         except SolverNotAvailableError:
             raise
         except SolverError as err:
-            # Rows that ask for separation (may be lowered to "no further approach"), per limit.
-            sep = (
-                np.concatenate([
-                    np.full(len(rows_h), bool(getattr(limit, "separation_rows", False))) for limit, rows_h in row_limits
-                ])
-                if row_limits else np.zeros(0, dtype=bool)
+            return self._relaxed(err, n, by_level, box_limits, lower, upper, conflicts, A, b, G, h, row_limits, retries)
+
+    def _solve_step(self, configuration, tasks, limits, dt: float, previous_qdot: np.ndarray):
+        """:meth:`_solve` for the controller's step, with the step's acceleration: ``(solution,
+        (solution.qdot - previous_qdot) / dt)`` [rad/s, rad/s^2], the acceleration None when it
+        was not computed here (the caller then computes it with numpy).
+
+        The same operations in the same order as :meth:`_solve` (bit for bit; tested against it),
+        in fewer Python frames and compiled calls: with the cached built-in trio of box limits and
+        every level a DAQP model already set up for the problem's size, the cascade runs here,
+        two consecutive levels hand over in one compiled call (``handover_*``: the upper level's
+        check, clip and equalities, then the lower level's assembly and DAQP layout) and the last
+        level's check and clip also compute the acceleration (:func:`check_clip_rate`). A
+        rejected answer, a failure or any other case takes :meth:`_solve`'s own code.
+        """
+        n = configuration.nv
+        if (n, *map(id, limits)) != self._box_key or not self._builtin_trio:
+            return self._solve(configuration, tasks, limits, dt, previous_qdot), None
+        box_list = self._box_list
+        velocity, position, acceleration = box_list
+        model = configuration.model
+        if velocity._model is not model or position._model is not model or acceleration._model is not model:
+            return self._solve(configuration, tasks, limits, dt, previous_qdot), None
+        # _builtin_boxes inlined (lower and upper fresh: the solution and its problems keep them)
+        lower, upper = np.empty(n), np.empty(n)
+        conflict = self._conflict
+        count = builtin_boxes(
+            configuration.q, position.lower, position.upper, position.gain, dt, position._braking,
+            velocity.max_velocity, acceleration._zeros if previous_qdot is None else previous_qdot,
+            acceleration.max_acceleration, self._lowers, self._uppers, lower, upper, conflict,
+        )
+        if count < 0:  # the limits' own fill_box (with its checks), in _solve
+            return self._solve(configuration, tasks, limits, dt, previous_qdot), None
+        conflicts = []
+        if count:
+            conflicts = [
+                BoxConflict(int(j), type(box_list[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)
+            ]
+        row_limits: list[tuple[Limit, np.ndarray]] = []
+        G_rows, h_rows = [], []
+        for limit in self._row_limits:
+            rows = limit.compute(configuration, dt, previous_qdot)
+            if rows.lower is not None:
+                raise InvalidInputError(
+                    f"{type(limit).__name__}.compute returned a box: set has_box = True on the class "
+                    "(and override fill_box for speed)"
+                )
+            if rows.G is not None:
+                G_rows.append(rows.G)
+                h_rows.append(rows.h)
+                row_limits.append((limit, rows.h))
+        if len(G_rows) == 1:
+            G, h = G_rows[0], h_rows[0]
+        elif G_rows:
+            G, h = np.vstack(G_rows), np.concatenate(h_rows)
+        else:
+            G, h = np.zeros((0, n)), np.zeros(0)
+        by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
+        for task in tasks:
+            J, v = task.compute_rows(configuration, dt)
+            by_level.setdefault(task.level, []).append((task, J, v))
+        hard = by_level.pop(HARD, None)
+        A0, b0 = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
+        retries: list[str] = []
+        try:
+            # The levels, each a DAQP model set up for this size (else _cascade's own code).
+            levels = sorted(by_level) or [1]
+            plan = []
+            if self.backend_name == "daqp" and A0.dtype is _FLOAT64:
+                backends = self._backends
+                shape = (n, G.shape[0])
+                last = levels[-1]
+                for level in levels:
+                    entries = by_level.get(level, ())
+                    backend = backends.get(("daqp", level))
+                    if not (type(backend) is DaqpBackend and backend._model is not None and backend._shape == shape
+                            and 0 < len(entries) <= (4 if level == last else 3)):
+                        break
+                    plan.append((level, entries, backend))
+            if len(plan) != len(levels):
+                solution = self._cascade(
+                    n, by_level, lower, upper, conflicts, A0, b0, G, h, retries, confirm=CONFIRMING_REPORTS
+                )
+                return solution, None
+            solution = _new(Solution)
+            solution.__dict__.update(
+                qdot=None, problems=[], lower=lower, upper=upper, conflicts=conflicts, relaxed=[],
+                box_relaxation=None, row_relaxation=None, retries=retries,
             )
-            # First ignore a widening below the solvers' noise; if that leaves the QP
-            # infeasible after all, take the widening exactly as computed.
-            for tolerance in (RELAXATION_TOLERANCE, 0.0):
-                relaxed = self._least_relaxation(n, box_limits, lower, upper, A, b, G, h, sep, retries, tolerance)
-                if relaxed is None:
-                    continue
-                lower2, upper2, h2, box_slack, row_slack = relaxed
+            problems = solution.problems
+            regularization = self.regularization
+            A, b = A0, b0
+            block = None  # the level's H, f and floor when the level above assembled them
+            n_in = G.shape[0]
+            final = len(plan) - 1
+            for i, (level, entries, backend) in enumerate(plan):
+                if block is None:  # as in _daqp_level
+                    block = np.zeros((n + 2, n))  # fresh: the problem keeps H and f
+                    args = [block, regularization]
+                    for task, J, v in entries:
+                        args += (IDENTITY_ROWS if J is None else J, task.weight, v)
+                    n_eq_before = backend._n_eq
+                    backend._n_eq = _ASSEMBLE_LOAD[len(entries)](
+                        *args, *backend._layout, A, b, G, h, lower, upper, n_eq_before, INF
+                    )
+                rows_changed = n_in > 0 or A.shape[0] > 0 or n_eq_before > 0
+                H, f = block[:n], block[n]
+                block = None
+                problem = _new(QPProblem)
+                problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
+                problems.append(problem)
                 try:
-                    solution = self._cascade(n, by_level, lower2, upper2, conflicts, A, b, G, h2, retries)
-                    break
-                except SolverError:
-                    continue
-            else:
-                raise err from None
-            if np.any(box_slack > 0):
-                solution.relaxed = [
-                    type(limit).__name__ for limit in box_limits if limit.priority >= RELAXABLE_PRIORITY
-                ]
-            solution.box_relaxation = box_slack
-            solution.row_relaxation = row_slack
-            return solution
+                    model = backend._model
+                    if rows_changed:
+                        model.update(H, f, *backend._layout)
+                    else:  # only bounds and cost moved: skip copying the constraint matrix
+                        model.update(H, f, None, backend._upper, backend._lower)
+                    x, _, flag, _ = model.solve()
+                    if flag < 0:
+                        backend._raise_failure(problem, flag)
+                    if i == final:
+                        rate = check_clip_rate(
+                            x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt
+                        )
+                        if rate.shape[0]:
+                            solution.qdot = x
+                            return solution, rate
+                    elif A.dtype is _FLOAT64:
+                        # This level's check, clip and equalities, then the next level's assembly.
+                        below_entries, below_backend = plan[i + 1][1], plan[i + 1][2]
+                        m = A.shape[0]
+                        eq_tail = []
+                        for task, J, _v in entries:
+                            weight = task.weight
+                            if J is None:
+                                m += weight.shape[0]
+                                J = IDENTITY_ROWS
+                            else:
+                                m += J.shape[0]
+                            eq_tail += (J, weight)
+                        stack = self._rows_buffer
+                        if stack.shape[0] < m or stack.shape[1] != n:
+                            stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
+                        block = np.zeros((n + 2, n))
+                        args = [block, regularization]
+                        for task, J, v in below_entries:
+                            args += (IDENTITY_ROWS if J is None else J, task.weight, v)
+                        n_eq_before = below_backend._n_eq
+                        accepted, rows, rhs, n_eq = _HANDOVER[len(entries), len(below_entries)](
+                            x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, stack, *eq_tail,
+                            *args, *below_backend._layout, n_eq_before, INF,
+                        )
+                        if accepted:
+                            below_backend._n_eq = n_eq
+                            A, b = rows, rhs
+                            continue
+                        block = None  # rejected: the level below was left untouched
+                    elif check_clip(x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE):
+                        A, b = self._level_equalities(A, entries, n, x)
+                        continue
+                    # Rejected by the check (x as DAQP returned it): raises as DaqpBackend.solve does.
+                    x = _checked(x, problem, backend.name)
+                except SolverNotAvailableError:
+                    raise
+                except SolverError as first:
+                    x = self._recover(level, problem, retries, CONFIRMING_REPORTS, first)
+                x = clip_inplace(x, lower, upper)
+                if i != final:
+                    A, b = self._level_equalities(A, entries, n, x)
+            solution.qdot = x
+            return solution, None
+        except SolverNotAvailableError:
+            raise
+        except SolverError as err:
+            solution = self._relaxed(
+                err, n, by_level, box_list, lower, upper, conflicts, A0, b0, G, h, row_limits, retries
+            )
+            return solution, None
+
+
+    def _hard_equalities(self, hard, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Orthonormal equality rows of the hard tasks' ``(task, J, v)`` (``J`` None: ``I``)."""
+        hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in hard]
+        for t, J, v in hard:
+            # A hard task must be met exactly: a non-finite target is an error, not a
+            # problem daqp refuses and a retry quietly drops (an audit found the latter).
+            if not (np.all(np.isfinite(v)) and np.all(np.isfinite(J))):
+                raise InvalidInputError(
+                    f"hard task {type(t).__name__} (level 0) computed non-finite rows: target {v.tolist()}"
+                )
+        return _least_squares_rows(
+            np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
+        )
+
+    def _relaxed(self, err, n, by_level, box_limits, lower, upper, conflicts, A, b, G, h, row_limits, retries):
+        """:meth:`_solve` after the cascade failed with ``err``: the least relaxation, or ``err``."""
+        # Rows that ask for separation (may be lowered to "no further approach"), per limit.
+        sep = (
+            np.concatenate([
+                np.full(len(rows_h), bool(getattr(limit, "separation_rows", False))) for limit, rows_h in row_limits
+            ])
+            if row_limits else np.zeros(0, dtype=bool)
+        )
+        # First ignore a widening below the solvers' noise; if that leaves the QP
+        # infeasible after all, take the widening exactly as computed.
+        for tolerance in (RELAXATION_TOLERANCE, 0.0):
+            relaxed = self._least_relaxation(n, box_limits, lower, upper, A, b, G, h, sep, retries, tolerance)
+            if relaxed is None:
+                continue
+            lower2, upper2, h2, box_slack, row_slack = relaxed
+            try:
+                solution = self._cascade(n, by_level, lower2, upper2, conflicts, A, b, G, h2, retries)
+                break
+            except SolverError:
+                continue
+        else:
+            raise err from None
+        if np.any(box_slack > 0):
+            solution.relaxed = [
+                type(limit).__name__ for limit in box_limits if limit.priority >= RELAXABLE_PRIORITY
+            ]
+        solution.box_relaxation = box_slack
+        solution.row_relaxation = row_slack
+        return solution
 
     def _box_limits(self, limits: Sequence[Limit], n: int) -> list[Limit]:
         """The box limits in priority order, with row buffers for their boxes (cached).

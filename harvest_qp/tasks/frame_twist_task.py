@@ -94,6 +94,15 @@ class FrameTwistTask(Task):
         else:
             self._reference = as_vector(twist, 6, f"{self._label()} reference twist")
 
+    def _set_reference_owned(self, twist: np.ndarray) -> None:
+        """:meth:`set_reference` for a caller that hands over a fresh array it never writes again
+        (the control loop's own per-tick twists): a finite float64 6-vector is kept without the
+        copy; anything else takes :meth:`set_reference` (checks, copy)."""
+        if type(twist) is np.ndarray and twist.dtype is _FLOAT64 and twist.shape == _SHAPE6 and all_finite(twist):
+            self._reference = twist
+        else:
+            self.set_reference(twist)
+
     def check_configuration(self, configuration: Configuration) -> None:
         super().check_configuration(configuration)
         configuration.frame_id(self._frame)  # UnknownFrameError listing the valid names
