@@ -313,6 +313,16 @@ class _ValueRow(Mapping):
         self.row = row
         self.missing = missing
 
+    @classmethod
+    def _unchecked(cls, layout: _ValueLayout, row: NDArray[np.float64]) -> _ValueRow:
+        """A row with nothing missing whose dtype and length the caller guarantees (the
+        library's own builders: a new ``np.empty(layout.width)`` filled in place)."""
+        self = _new_object(cls)
+        self.layout = layout
+        self.row = row
+        self.missing = ()
+        return self
+
     def __getitem__(self, name: str) -> float | NDArray[np.float64]:
         layout = self.layout
         i = layout.index[name]  # KeyError for an unknown name
@@ -495,7 +505,7 @@ class _Log:
         self._last_first: list[Any] | None = None
         self._last_second: list[Any] | None = None
         self._last_ids: list[int] = []
-        self.truth = {k: np.full((n, *np.shape(v)), np.nan) for k, v in (truth or {}).items()}
+        self.truth, self.truth_layout, self.truth_rows = _truth_columns(n, truth)
         self.controller_time = np.full(n, np.nan) if log_timing else None
         # every how many camera frames a cloud is logged (0: none); True = every frame
         self.cloud_every = int(log_clouds)
@@ -705,7 +715,8 @@ class _Log:
                 out[f"value/{name}"] = values
         out.update(self.pair_arrays(k))
         for name, values in self.truth.items():
-            out[f"truth/{name}"] = values[:k]
+            # Views into truth_rows (strided) are copied: the same C-contiguous arrays as the columns give.
+            out[f"truth/{name}"] = values[:k] if self.truth_rows is None else values[:k].copy()
         if self.controller_time is not None:
             out["controller_time"] = self.controller_time[:k]
         f = self.frames
@@ -722,6 +733,31 @@ class _Log:
             out["cloud_labels"] = np.concatenate(self.cloud_labels) if self.cloud_labels else np.zeros(0, np.int8)
             out["cloud_frame"] = np.array(self.cloud_frame, dtype=np.int64)
         return out
+
+
+def _truth_columns(
+    n: int, truth: Mapping[str, Any] | None
+) -> tuple[dict[str, NDArray[np.float64]], _ValueLayout | None, NDArray[np.float64] | None]:
+    """The ground-truth log: ``name -> (n, *shape)`` float64 columns (NaN until written), for
+    the names and shapes of the first tick's ``truth``.
+
+    When ``truth`` is a :class:`_ValueRow` with nothing missing (the paper episode's truth,
+    :func:`harvest_qp.loop.episode.episode_ground_truth`), the columns are views into one
+    ``(n, width)`` array, returned with its layout: a later row of that layout is logged in
+    one assignment, and any other mapping still writes name by name into the same storage
+    (so mixing gives the same log as columns would).
+    """
+    truth = truth or {}
+    layout = truth.layout if type(truth) is _ValueRow and not truth.missing else None
+    if layout is not None and tuple(truth) == layout.names:
+        rows = np.full((n, layout.width), np.nan)
+        columns = {
+            name: rows[:, layout.starts[i]:layout.stops[i]].reshape(n, *layout.shapes[i])
+            for i, name in enumerate(layout.names)
+        }
+        if all(np.shares_memory(column, rows) for column in columns.values()):
+            return columns, layout, rows
+    return {k: np.full((n, *np.shape(v)), np.nan) for k, v in truth.items()}, None, None
 
 
 def _format_error(error: BaseException) -> str:
@@ -793,7 +829,13 @@ def run_episode(
     if getattr(unchecked, "__self__", None) is not robot:
         unchecked = None
     send = (unchecked() if callable(unchecked) else None) or robot.send_joint_velocities
-    truth_log = log.truth
+    truth_log, truth_layout, truth_rows = log.truth, log.truth_layout, log.truth_rows
+    # The log's per-tick arrays and methods, looked up once (the same objects every tick).
+    log_t, log_q, log_qdot, log_force = log.t, log.q, log.qdot, log.force
+    log_qdot_cmd, log_status = log.qdot_cmd, log.status
+    log_stem_points, log_cloud_time, log_controller_time = log.stem_points, log.cloud_time, log.controller_time
+    log_value, log_pairs = log.value, log.pairs
+    perf_counter = time.perf_counter
 
     status, error = "completed", None
     latest: PointCloud | None = None
@@ -812,14 +854,18 @@ def run_episode(
                 log.frame(cloud, latest_stem)
             now, q, qdot, force = robot.time, robot.joint_positions(), robot.joint_velocities(), robot.wrist_force()
             obs = _observation(now, q, qdot, force, latest, cloud is not None, robot.tare_force)
-            log.t[k], log.q[k], log.qdot[k], log.force[k] = now, q, qdot, force
+            log_t[k], log_q[k], log_qdot[k], log_force[k] = now, q, qdot, force
             if latest is not None:
-                log.stem_points[k] = latest_stem
-                log.cloud_time[k] = latest.timestamp
+                log_stem_points[k] = latest_stem
+                log_cloud_time[k] = latest.timestamp
             if truth_fn is not None:
-                for name, value in truth_fn().items():
-                    truth_log[name][k] = value
-            t0 = time.perf_counter()
+                truth = truth_fn()
+                if type(truth) is _ValueRow and truth.layout is truth_layout and not truth.missing:
+                    truth_rows[k] = truth.row  # the episode's truth row: one copy (checked when built)
+                else:
+                    for name, value in truth.items():
+                        truth_log[name][k] = value
+            t0 = perf_counter()
             try:
                 out = controller.step(obs)
             except Exception as exc:
@@ -830,18 +876,18 @@ def run_episode(
                     # The log refuses a value whose shape changes from tick to tick.
                     if cmd.task_errors:
                         log.task(k, cmd.task_errors)
-                    log.value(k, cmd.values)
-                    log.pairs(k, cmd.collision_pairs)  # a new pair's names are checked here
+                    log_value(k, cmd.values)
+                    log_pairs(k, cmd.collision_pairs)  # a new pair's names are checked here
                 except InvalidInputError as exc:
                     status, error = "invalid_command", str(exc)
-            if log.controller_time is not None:
-                log.controller_time[k] = time.perf_counter() - t0
+            if log_controller_time is not None:
+                log_controller_time[k] = perf_counter() - t0
             if status != "completed":
-                log.status[k] = "error"
+                log_status[k] = "error"
                 k += 1
                 break
-            log.qdot_cmd[k] = cmd.qdot
-            log.status[k] = cmd.status
+            log_qdot_cmd[k] = cmd.qdot
+            log_status[k] = cmd.status
             send(cmd.qdot)
             k += 1
             try:

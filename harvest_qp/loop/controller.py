@@ -1013,12 +1013,16 @@ class HarvestController:
 
         -k_hold [p_g - p_hold; log3(R_g R_hold^T)], element-wise on Python floats (bit-identical
         to the numpy expression, tests/loop/test_fast_paths.py)."""
+        return np.array(self._hold_twist_floats(T_g))
+
+    def _hold_twist_floats(self, T_g: np.ndarray) -> list[float]:
+        """:meth:`_hold_twist` as 6 Python floats (the loop logs them without reading the array back)."""
         st = self.state
         k = -self.settings["grasping"]["k_hold"]
-        (_, _, _, g0), (_, _, _, g1), (_, _, _, g2) = T_g[:3].tolist()
+        g0, g1, g2 = T_g[:3, 3].tolist()
         h0, h1, h2 = st.hold_translation.tolist()
         w0, w1, w2 = pin.log3(T_g[:3, :3] @ st.hold_rotation_T).tolist()
-        return np.array((k * (g0 - h0), k * (g1 - h1), k * (g2 - h2), k * w0, k * w1, k * w2))
+        return [k * (g0 - h0), k * (g1 - h1), k * (g2 - h2), k * w0, k * w1, k * w2]
 
     def _keep_out(self, T_c: np.ndarray) -> np.ndarray:
         """Outward speed below the minimum distance from the ROI centre (beyond the paper).
@@ -1112,6 +1116,7 @@ class HarvestController:
 
         roll_error = None  # logged as value/roll_error when the references ran
         V_c_floats = None  # V_c as Python floats (when the references ran)
+        V_g_floats = None  # V_g as Python floats (the approach's hold twist)
         map_cells = None  # logged as value/map_cells when the map fed the QP
         V_c = _ZEROS6
         V_g = _ZEROS6
@@ -1123,7 +1128,8 @@ class HarvestController:
             V = self._camera_twist(T_c, dt, rows_c)  # V_cr + keep-out + V_cu, 6 floats
             roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
             if st.phase == Phase.APPROACH:
-                V_g = self._hold_twist(T_g)
+                V_g_floats = self._hold_twist_floats(T_g)
+                V_g = np.array(V_g_floats)
                 direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
             else:
                 # The wrist force is the robot's reading: checked as StemStretching.update does.
@@ -1198,7 +1204,8 @@ class HarvestController:
         st.previous_qdot = qdot
 
         if self._row_log:
-            values = self._log_row(T_c, V_c if V_c_floats is None else V_c_floats, V_g, force_nc, roi_distance,
+            values = self._log_row(T_c, V_c if V_c_floats is None else V_c_floats,
+                                   V_g if V_g_floats is None else V_g_floats, force_nc, roi_distance,
                                    roll_error, map_cells, rows=rows_c)
             pairs = self._active_pair_columns()
         else:  # the generic protocol: a dict of values, a list of pair tuples
@@ -1329,7 +1336,7 @@ class HarvestController:
         row += _NAN3_LIST if st.p_gd is None else st.p_gd.tolist()
         row += stretching.n_c.tolist() if bimanual else _NAN3_LIST
         row += V_c if type(V_c) is list else V_c.tolist()  # the loop hands its V_c floats
-        row += V_g.tolist()
+        row += V_g if type(V_g) is list else V_g.tolist()  # the hold twist's floats in the approach
         row += (force_nc, reaching.theta, roi_distance, stretching.position_error if bimanual else nan,
                 stretching.alignment if bimanual else nan, float(self.unveiling.n_pairs))
         missing = ()

@@ -779,6 +779,8 @@ class MapCollisionFeed:
         """``q`` [rad] as the compiled kinematics need it (default: the configuration's)."""
         if q is None:
             q = self.configuration.q
+        elif type(q) is np.ndarray and q.dtype == np.float64 and q.shape == (self.configuration.nv,):
+            pass  # already what np.asarray(q, dtype=float) gives (the loop's own q, every tick)
         else:
             # The compiled kinematics index q by joint: a short q would be read past its end.
             try:

@@ -177,8 +177,8 @@ class StemStretching:
         n0, n1, n2 = n.tolist()
         (_, y0, _, p0), (_, y1, _, p1), (_, y2, _, p2) = pose[:3].tolist()
         t0, t1, t2 = self.target.tolist()
-        e_pg = np.array((p0 - t0, p1 - t1, p2 - t2))
-        e0, e1, e2 = e_pg.tolist()
+        e0, e1, e2 = p0 - t0, p1 - t1, p2 - t2  # (floats to float64 and back are exact)
+        e_pg = np.array((e0, e1, e2))
         along = float(n.dot(e_pg))
         q0, q1, q2 = e0 - along * n0, e1 - along * n1, e2 - along * n2  # projected
         projected = np.array((q0, q1, q2))
