@@ -71,12 +71,17 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
     t = log["t"]
     n = len(t)
     if n == 0 or "value/phase" not in log:
-        # Nothing to score: the controller (or a wrapper around it) or the robot failed
-        # before the first tick was logged. Say what the runner saw instead of a KeyError.
+        # Nothing to score: say what the runner saw instead of a KeyError.
         status = str(log.get("episode_status", "unknown"))
         lines = str(log.get("error", "")).strip().splitlines()
-        reason = lines[0] if lines else "no error message"
-        raise EpisodeError(f"the episode ended with status {status!r} before the controller logged a tick: {reason}")
+        if lines:
+            # The controller (or a wrapper around it) or the robot failed before any value was logged.
+            raise EpisodeError(f"the episode ended with status {status!r} before the controller logged its "
+                               f"values: {lines[0]}")
+        raise EpisodeError(
+            f"the episode ({n} ticks, status {status!r}) logged no value/phase: the paper episode's metrics need "
+            "HarvestController's per-tick values; a wrapper must pass the controller's Command values through"
+        )
     phase = log["value/phase"]
     st = controller.state
     # --- camera, from the true stem base
