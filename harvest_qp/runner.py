@@ -313,16 +313,6 @@ class _ValueRow(Mapping):
         self.row = row
         self.missing = missing
 
-    @classmethod
-    def _unchecked(cls, layout: _ValueLayout, row: NDArray[np.float64]) -> _ValueRow:
-        """A row with nothing missing whose dtype and length the caller guarantees (the
-        library's own builders: a new ``np.empty(layout.width)`` filled in place)."""
-        self = _new_object(cls)
-        self.layout = layout
-        self.row = row
-        self.missing = ()
-        return self
-
     def __getitem__(self, name: str) -> float | NDArray[np.float64]:
         layout = self.layout
         i = layout.index[name]  # KeyError for an unknown name
@@ -505,7 +495,7 @@ class _Log:
         self._last_first: list[Any] | None = None
         self._last_second: list[Any] | None = None
         self._last_ids: list[int] = []
-        self.truth, self.truth_layout, self.truth_rows = _truth_columns(n, truth)
+        self.truth = {k: np.full((n, *np.shape(v)), np.nan) for k, v in (truth or {}).items()}
         self.controller_time = np.full(n, np.nan) if log_timing else None
         # every how many camera frames a cloud is logged (0: none); True = every frame
         self.cloud_every = int(log_clouds)
@@ -715,8 +705,7 @@ class _Log:
                 out[f"value/{name}"] = values
         out.update(self.pair_arrays(k))
         for name, values in self.truth.items():
-            # Views into truth_rows (strided) are copied: the same C-contiguous arrays as the columns give.
-            out[f"truth/{name}"] = values[:k] if self.truth_rows is None else values[:k].copy()
+            out[f"truth/{name}"] = values[:k]
         if self.controller_time is not None:
             out["controller_time"] = self.controller_time[:k]
         f = self.frames
@@ -733,31 +722,6 @@ class _Log:
             out["cloud_labels"] = np.concatenate(self.cloud_labels) if self.cloud_labels else np.zeros(0, np.int8)
             out["cloud_frame"] = np.array(self.cloud_frame, dtype=np.int64)
         return out
-
-
-def _truth_columns(
-    n: int, truth: Mapping[str, Any] | None
-) -> tuple[dict[str, NDArray[np.float64]], _ValueLayout | None, NDArray[np.float64] | None]:
-    """The ground-truth log: ``name -> (n, *shape)`` float64 columns (NaN until written), for
-    the names and shapes of the first tick's ``truth``.
-
-    When ``truth`` is a :class:`_ValueRow` with nothing missing (the paper episode's truth,
-    :func:`harvest_qp.loop.episode.episode_ground_truth`), the columns are views into one
-    ``(n, width)`` array, returned with its layout: a later row of that layout is logged in
-    one assignment, and any other mapping still writes name by name into the same storage
-    (so mixing gives the same log as columns would).
-    """
-    truth = truth or {}
-    layout = truth.layout if type(truth) is _ValueRow and not truth.missing else None
-    if layout is not None and tuple(truth) == layout.names:
-        rows = np.full((n, layout.width), np.nan)
-        columns = {
-            name: rows[:, layout.starts[i]:layout.stops[i]].reshape(n, *layout.shapes[i])
-            for i, name in enumerate(layout.names)
-        }
-        if all(np.shares_memory(column, rows) for column in columns.values()):
-            return columns, layout, rows
-    return {k: np.full((n, *np.shape(v)), np.nan) for k, v in truth.items()}, None, None
 
 
 def _format_error(error: BaseException) -> str:
@@ -829,7 +793,7 @@ def run_episode(
     if getattr(unchecked, "__self__", None) is not robot:
         unchecked = None
     send = (unchecked() if callable(unchecked) else None) or robot.send_joint_velocities
-    truth_log, truth_layout, truth_rows = log.truth, log.truth_layout, log.truth_rows
+    truth_log = log.truth
     # The log's per-tick arrays and methods, looked up once (the same objects every tick).
     log_t, log_q, log_qdot, log_force = log.t, log.q, log.qdot, log.force
     log_qdot_cmd, log_status = log.qdot_cmd, log.status
@@ -859,12 +823,8 @@ def run_episode(
                 log_stem_points[k] = latest_stem
                 log_cloud_time[k] = latest.timestamp
             if truth_fn is not None:
-                truth = truth_fn()
-                if type(truth) is _ValueRow and truth.layout is truth_layout and not truth.missing:
-                    truth_rows[k] = truth.row  # the episode's truth row: one copy (checked when built)
-                else:
-                    for name, value in truth.items():
-                        truth_log[name][k] = value
+                for name, value in truth_fn().items():
+                    truth_log[name][k] = value
             t0 = perf_counter()
             try:
                 out = controller.step(obs)

@@ -11,16 +11,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from harvest_qp.exceptions import ConfigError, InvalidInputError
 from harvest_qp.interface import ROBOT
 from harvest_qp.loop.controller import HarvestController, Phase
-from harvest_qp.runner import EpisodeResult, _ValueLayout, _ValueRow, run_episode
+from harvest_qp.runner import EpisodeResult, run_episode
 
 __all__ = ["build_robot", "run_paper_episode", "EpisodeReport", "episode_ground_truth"]
 
@@ -78,8 +76,7 @@ def episode_ground_truth(robot) -> callable:
     base = getattr(robot, "ground_truth", dict)
 
     # Whether the robot counts its contacts itself is fixed: look once, not every tick.
-    first = base()
-    counts_contacts = any(key.startswith("contacts_") for key in first)
+    counts_contacts = any(key.startswith("contacts_") for key in base())
     # SimRobot.ground_truth builds a new dict per call: it can be extended in place (a
     # robot's own method might return a dict it keeps, so any other one is copied).
     from harvest_qp.sim.robot import SimRobot
@@ -89,27 +86,8 @@ def episode_ground_truth(robot) -> callable:
         and "ground_truth" not in vars(robot)
     )
     stem_end_position = data.site_xpos[stem_end]  # a live view of the site's position
-    # The plain SimRobot (none of its truth parts overridden at this tick) writes its values
-    # into one float64 row (runner._ValueRow, read as the same mapping), which the runner logs
-    # in one copy instead of 13 entries one by one (the same log: tests/loop/test_truth_row.py).
-    # Any other robot, or a part overridden on the instance, gets the dict.
-    layout = None
-    if fresh and counts_contacts:
-        first = dict(first)
-        first["stem_end"] = stem_end_position.copy()
-        layout = _ValueLayout([(name, np.shape(value)) for name, value in first.items()])
-        if layout.names != (*SimRobot._PLAIN_TRUTH_KEYS, "stem_end") or layout.width != 28:
-            layout = None  # not the keys _fill_truth_row writes (25 slots), then stem_end
-        fill_truth_row = robot._fill_truth_row
-        empty = np.empty
-        row_of = _ValueRow._unchecked
 
-    def truth() -> Mapping[str, Any]:
-        if layout is not None:
-            row = empty(28)
-            if fill_truth_row(row):
-                row[25:28] = stem_end_position
-                return row_of(layout, row)
+    def truth() -> dict[str, Any]:
         out = base() if fresh else dict(base())
         out["stem_end"] = stem_end_position.copy()
         if not counts_contacts:

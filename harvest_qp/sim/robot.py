@@ -535,30 +535,6 @@ class SimRobot(RobotInterface):
             return out
         # The same values as above (same calls underneath, same key order) without the
         # method layers: this runs every control tick of an episode.
-        (tension, stem_force, qd_ref, torn, tension_max, arm_arm, arm_vine, arm_stand, arm_floor, vine_distance,
-         vine_distance_so_far, frames_lost) = self._plain_truth_values()
-        return {
-            "stem_tension": tension,
-            "stem_force": stem_force,
-            "qdot_ref": qd_ref.copy(),
-            "stem_torn": torn,
-            "stem_tension_max": tension_max,
-            "contacts_arm_arm": arm_arm,
-            "contacts_arm_vine": arm_vine,
-            "contacts_arm_stand": arm_stand,
-            "contacts_arm_floor": arm_floor,
-            "min_vine_distance": vine_distance,
-            "min_vine_distance_so_far": vine_distance_so_far,
-            "frames_lost": frames_lost,
-        }
-
-    def _plain_truth_values(self) -> tuple:
-        """:meth:`ground_truth`'s values in its key order, for a robot none of whose truth
-        parts is overridden (the caller checks ``_plain_truth`` and the instance dict).
-
-        ``qdot_ref`` is the servo's live array (not a copy): :meth:`ground_truth` copies it,
-        :meth:`_truth_floats` reads it as floats. Measures the vine distance when due.
-        """
         d = self.data
         ncon = d.ncon
         if ncon:
@@ -569,48 +545,23 @@ class SimRobot(RobotInterface):
         if self._vine_distance_tick < 0 or self._ticks - self._vine_distance_tick >= self.vine_distance_every:
             self.min_vine_distance()  # measures now (and updates the minimum so far)
         rotation, force = self._stem_force_operands
-        return (
-            _stem_tension(
+        return {
+            "stem_tension": _stem_tension(
                 self._sensordata, self._site_xmat, self._site_xpos, self._stem_force_adr, self._stem_end_site,
                 self._stem_base_array,
-            ),
-            rotation.dot(force),
-            self._servo.qd_ref,
-            float(self._torn),
-            self._max_tension,
-            float(arm_arm),
-            float(arm_vine),
-            float(arm_stand),
-            float(arm_floor),
-            self._vine_distance[0],
-            self._min_vine_distance,
-            float(self._frames_lost),
-        )  # fmt: skip
-
-    #: The keys of :meth:`ground_truth` (plain robot), in order: :meth:`_fill_truth_row`'s slots.
-    _PLAIN_TRUTH_KEYS = (
-        "stem_tension", "stem_force", "qdot_ref", "stem_torn", "stem_tension_max", "contacts_arm_arm",
-        "contacts_arm_vine", "contacts_arm_stand", "contacts_arm_floor", "min_vine_distance",
-        "min_vine_distance_so_far", "frames_lost",
-    )  # fmt: skip
-
-    def _fill_truth_row(self, row: NDArray[np.float64]) -> bool:
-        """Write :meth:`ground_truth`'s values, flattened in key order, into the first 25 slots
-        of the float64 array ``row`` (each value's float64 exactly); False (nothing written)
-        when a truth part is overridden (then ask :meth:`ground_truth`).
-
-        For the episode's per-tick truth row (:func:`harvest_qp.loop.episode.episode_ground_truth`):
-        a few slice copies instead of a dict of arrays the runner copies entry by entry."""
-        if not self._plain_truth or not _TRUTH_PARTS.isdisjoint(self.__dict__):
-            return False
-        (tension, stem_force, qd_ref, torn, tension_max, arm_arm, arm_vine, arm_stand, arm_floor, vine_distance,
-         vine_distance_so_far, frames_lost) = self._plain_truth_values()
-        row[0] = tension
-        row[1:4] = stem_force
-        row[4:16] = qd_ref
-        row[16:25] = (torn, tension_max, arm_arm, arm_vine, arm_stand, arm_floor, vine_distance, vine_distance_so_far,
-                      frames_lost)  # fmt: skip
-        return True
+            ),  # fmt: skip
+            "stem_force": rotation.dot(force),
+            "qdot_ref": self._servo.qd_ref.copy(),
+            "stem_torn": float(self._torn),
+            "stem_tension_max": self._max_tension,
+            "contacts_arm_arm": float(arm_arm),
+            "contacts_arm_vine": float(arm_vine),
+            "contacts_arm_stand": float(arm_stand),
+            "contacts_arm_floor": float(arm_floor),
+            "min_vine_distance": self._vine_distance[0],
+            "min_vine_distance_so_far": self._min_vine_distance,
+            "frames_lost": float(self._frames_lost),
+        }
 
     def contact_counts(self) -> dict[str, int]:
         """Active robot contacts by kind now: ``arm_arm``, ``arm_vine``, ``arm_stand``, ``arm_floor``."""
