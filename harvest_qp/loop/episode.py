@@ -79,12 +79,9 @@ def episode_ground_truth(robot) -> callable:
     counts_contacts = any(key.startswith("contacts_") for key in base())
     # SimRobot.ground_truth builds a new dict per call: it can be extended in place (a
     # robot's own method might return a dict it keeps, so any other one is copied).
-    from harvest_qp.sim.robot import SimRobot
+    from harvest_qp.sim.robot import uses_own_ground_truth
 
-    fresh = (
-        isinstance(robot, SimRobot) and type(robot).ground_truth is SimRobot.ground_truth
-        and "ground_truth" not in vars(robot)
-    )
+    fresh = uses_own_ground_truth(robot)
     stem_end_position = data.site_xpos[stem_end]  # a live view of the site's position
 
     def truth() -> dict[str, Any]:

@@ -228,7 +228,6 @@ class SimRobot(RobotInterface):
         self._force.bind(d)
         self._pack_servo_operands()
         # ground_truth() inlines its parts unless a subclass (or the instance) overrides one.
-        self._plain_truth = all(getattr(type(self), name) is getattr(SimRobot, name) for name in _TRUTH_PARTS)
         # site_force_world's operands for the stem force (the stem end's rotation, the sensor).
         adr = self._stem_force_adr
         self._stem_force_operands = (d.site_xmat[self._stem_end_site].reshape(3, 3), d.sensordata[adr : adr + 3])
@@ -519,7 +518,16 @@ class SimRobot(RobotInterface):
             min_vine_distance_so_far: smallest ``min_vine_distance`` measured since the reset [m].
             frames_lost: camera frames lost to ``faults.frame_loss`` since the reset.
         """
-        if not self._plain_truth or not _TRUTH_PARTS.isdisjoint(self.__dict__):  # a part is overridden: ask each
+        # A part overridden on a subclass, on SimRobot itself (mock.patch.object) or on the
+        # instance: ask each part (checked per call: a class can be patched at any time).
+        cls = type(self)
+        if not (
+            cls.stem_tension is _ORIGINAL_METHODS["stem_tension"]
+            and cls.stem_force is _ORIGINAL_METHODS["stem_force"]
+            and cls.velocity_reference is _ORIGINAL_METHODS["velocity_reference"]
+            and cls.contact_counts is _ORIGINAL_METHODS["contact_counts"]
+            and cls.min_vine_distance is _ORIGINAL_METHODS["min_vine_distance"]
+        ) or not _TRUTH_PARTS.isdisjoint(self.__dict__):
             out: dict[str, float | NDArray[np.float64]] = {
                 "stem_tension": self.stem_tension(),
                 "stem_force": self.stem_force(),
@@ -714,6 +722,22 @@ class SimRobot(RobotInterface):
     def mujoco_warnings(self) -> dict[str, int]:
         """MuJoCo warning counts since the last reset."""
         return {mujoco.mjtWarning(i).name: int(w.number) for i, w in enumerate(self.data.warning)}
+
+
+# SimRobot's own methods as defined here, before anyone patches the class: ground_truth's
+# fast path and episode_ground_truth's in-place extension apply only while these are in place.
+_ORIGINAL_METHODS = {name: SimRobot.__dict__[name] for name in (*_TRUTH_PARTS, "ground_truth")}
+
+
+def uses_own_ground_truth(robot: object) -> bool:
+    """True when ``robot`` is a SimRobot whose ``ground_truth`` is this module's own (not
+    overridden on a subclass, patched on SimRobot or set on the instance): it returns a new
+    dict per call."""
+    return (
+        isinstance(robot, SimRobot)
+        and type(robot).ground_truth is _ORIGINAL_METHODS["ground_truth"]
+        and "ground_truth" not in vars(robot)
+    )
 
 
 def _as_slice(ids: NDArray[np.int64]) -> slice | None:

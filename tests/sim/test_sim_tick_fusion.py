@@ -219,3 +219,26 @@ def test_inlined_ground_truth_equals_its_parts_and_honours_overrides(default_sce
     assert shifted.ground_truth()["stem_tension"] == 123.0
     robot.contact_counts = lambda: {"arm_arm": 7, "arm_vine": 0, "arm_stand": 0, "arm_floor": 0}
     assert robot.ground_truth()["contacts_arm_arm"] == 7.0
+
+
+def test_ground_truth_honours_a_part_patched_on_the_class(default_scene):
+    """Bug caught (audit): the inlined ground truth decided at construction whether a part was
+    overridden, so ``mock.patch.object(SimRobot, "stem_tension", ...)`` (the usual way a test
+    fakes a reading), made before or after the robot was built, was never seen.
+
+    Oracle: the patched method's own value, for a robot built before and one built inside the
+    patch; the real reading again once the patch is gone.
+    """
+    from unittest import mock
+
+    from harvest_qp.loop.episode import episode_ground_truth
+
+    before = SimRobot(default_scene, camera=None)
+    real = before.ground_truth()["stem_tension"]
+    with mock.patch.object(SimRobot, "stem_tension", lambda self: 123.0):
+        assert before.ground_truth()["stem_tension"] == 123.0
+        assert SimRobot(default_scene, camera=None).ground_truth()["stem_tension"] == 123.0
+        assert episode_ground_truth(before)()["stem_tension"] == 123.0
+    assert before.ground_truth()["stem_tension"] == real
+    with mock.patch.object(SimRobot, "ground_truth", lambda self: {"stem_tension": 99.0}):
+        assert episode_ground_truth(before)()["stem_tension"] == 99.0
