@@ -447,7 +447,8 @@ class Solver:
             # The levels, each a DAQP model set up for this size (else _cascade's own code).
             levels = sorted(by_level) or [1]
             plan = []
-            if self.backend_name == "daqp" and A0.dtype is _FLOAT64:
+            # (previous_qdot None: the acceleration kernel needs a vector; the controller always has one)
+            if self.backend_name == "daqp" and A0.dtype is _FLOAT64 and previous_qdot is not None:
                 backends = self._backends
                 shape = (n, G.shape[0])
                 last = levels[-1]

@@ -780,6 +780,7 @@ def test_solve_step_equals_the_general_solve_bit_for_bit(rng, counts):
     fast, general = TaskController(config, tasks, limits).solver, TaskController(config, tasks, limits).solver
     limits = TaskController(config, tasks, limits).limits
     fast.regularization = general.regularization = 1e-5  # see test_fused_daqp_levels_equal_the_general_path
+    fast.fallback_backends = general.fallback_backends = ("quadprog",)  # proxsuite is not bit-for-bit repeatable
     cascades = []
     inner = fast._cascade
     fast._cascade = lambda *args, **kwargs: cascades.append(1) or inner(*args, **kwargs)
@@ -908,6 +909,7 @@ def test_controller_loop_step_equals_the_public_step_bit_for_bit(rng):
         config = Configuration.dual_ur5e(HOME_Q)
         tasks, limits = _levels_problem(config, r, (2, 3))
         controller = TaskController(config, tasks, limits, dt=0.004)
+        controller.solver.fallback_backends = ("quadprog",)  # proxsuite is not bit-for-bit repeatable
         out = []
         for _ in range(8):
             q = HOME_Q + r.normal(0, 0.1, 12)
@@ -950,3 +952,20 @@ def test_owned_reference_is_kept_and_anything_else_is_checked_like_set_reference
         for call in (owned._set_reference_owned, copied.set_reference):
             with pytest.raises(InvalidInputError, match=r"FrameTwistTask\('camera'\) reference twist " + match):
                 call(bad)
+
+
+def test_solve_step_without_a_previous_command_equals_the_general_solve():
+    """Oracle: ``_solve`` with ``previous_qdot=None`` (the acceleration box around zero). The loop's
+    path given None takes the general cascade (no acceleration to compute) with the same result.
+    Bug caught (planted and seen failing): the None guard dropped (the rate kernel given None)."""
+    rng = np.random.default_rng(5)
+    config = Configuration.dual_ur5e(HOME_Q)
+    tasks, limits = _levels_problem(config, rng, (2, 3))
+    limits = TaskController(config, tasks, limits).limits
+    fast, general = (TaskController(config, tasks, limits).solver for _ in range(2))
+    fast.fallback_backends = general.fallback_backends = ("quadprog",)  # proxsuite is not repeatable
+    for _ in range(3):
+        config.update(HOME_Q + rng.normal(0, 0.1, 12))
+        a, accel = fast._solve_step(config, tasks, limits, 0.002, None)
+        _same_solution(a, general._solve(config, tasks, limits, 0.002, None))
+        assert accel is None
