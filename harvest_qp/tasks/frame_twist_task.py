@@ -83,10 +83,6 @@ class FrameTwistTask(Task):
 
     @reference.setter
     def reference(self, twist: np.ndarray | Sequence[float]) -> None:
-        self.set_reference(twist)
-
-    def set_reference(self, twist: np.ndarray | Sequence[float]) -> None:
-        """Set the reference twist ``[v; w]`` [m/s, rad/s], world-aligned at the frame origin."""
         # The control loop sets three references every tick: a finite float64 6-vector is
         # copied as as_vector would copy it, without building the error message's name first.
         if type(twist) is np.ndarray and twist.dtype is _FLOAT64 and twist.shape == _SHAPE6 and all_finite(twist):
@@ -94,14 +90,12 @@ class FrameTwistTask(Task):
         else:
             self._reference = as_vector(twist, 6, f"{self._label()} reference twist")
 
-    def _set_reference_owned(self, twist: np.ndarray) -> None:
-        """:meth:`set_reference` for a caller that hands over a fresh array it never writes again
-        (the control loop's own per-tick twists): a finite float64 6-vector is kept without the
-        copy; anything else takes :meth:`set_reference` (checks, copy)."""
-        if type(twist) is np.ndarray and twist.dtype is _FLOAT64 and twist.shape == _SHAPE6 and all_finite(twist):
-            self._reference = twist
-        else:
-            self.set_reference(twist)
+    def set_reference(self, twist: np.ndarray | Sequence[float]) -> None:
+        """Set the reference twist ``[v; w]`` [m/s, rad/s], world-aligned at the frame origin.
+
+        Goes through the ``reference`` setter (as it always has), so a subclass overriding either
+        one keeps working (an audit found the reversed delegation recursing or bypassing it)."""
+        self.reference = twist
 
     def check_configuration(self, configuration: Configuration) -> None:
         super().check_configuration(configuration)
