@@ -96,6 +96,9 @@ class SimRobot(RobotInterface):
             measurement inside the paper episode on the loaded 2-core machine, ~15 us hot:
             a bounding-sphere broad phase, then MuJoCo's distance for the few pairs whose
             capsule bound beats the best).
+
+    The model's physics options (``model.opt.timestep`` among them), the servo's limits and
+    the substep count are read when the robot is built: build a new robot to change them.
     """
 
     def __init__(
