@@ -126,6 +126,11 @@ class Command:
         collision_pairs: ``(name_a, name_b, distance [m])`` of the collision rows active
             in this tick's QP.
         done: end the episode after this tick (e.g. a controller that has stopped).
+
+    The library's own :class:`~harvest_qp.loop.HarvestController` hands ``values`` and
+    ``collision_pairs`` as read-only views (a row and columns the runner logs in one copy); a
+    wrapper that adds its own builds a new command, e.g.
+    ``dataclasses.replace(command, values={**command.values, "x": 1.0})``.
     """
 
     qdot: ArrayLike
@@ -293,6 +298,12 @@ class _ValueLayout:
         self.index = {name: i for i, name in enumerate(names)}
 
 
+_READ_ONLY_HINT = (
+    "HarvestController's Command.{what} is read-only; to add to it, build a new Command: "
+    "dataclasses.replace(command, {what}={new})"
+)
+
+
 class _ValueRow(Mapping):
     """A tick's named values as one float64 row of a :class:`_ValueLayout` (read as a mapping).
 
@@ -302,6 +313,12 @@ class _ValueRow(Mapping):
     """
 
     __slots__ = ("layout", "row", "missing")
+
+    def __setitem__(self, name: str, value: Any) -> None:
+        # A wrapper extending the command in place (a dict before the row protocol): say how.
+        raise TypeError(_READ_ONLY_HINT.format(what="values", new="{**command.values, name: value}"))
+
+    __delitem__ = __setitem__
 
     def __init__(self, layout: _ValueLayout, row: NDArray[np.float64], missing: tuple[str, ...] = ()) -> None:
         if type(row) is not np.ndarray or row.dtype is not _FLOAT64 or row.shape != (layout.width,):
@@ -344,6 +361,12 @@ class _PairColumns(Sequence):
     """
 
     __slots__ = ("first", "second", "distances")
+
+    def append(self, pair: tuple[str, str, float]) -> None:
+        # A wrapper extending the command in place (a list before the column protocol): say how.
+        raise TypeError(_READ_ONLY_HINT.format(what="collision_pairs", new="[*command.collision_pairs, pair]"))
+
+    extend = append
 
     def __init__(self, first: list[str], second: list[str], distances: NDArray[np.float64]) -> None:
         """``first``, ``second``: the pairs' capsule names; ``distances``: a float64 ``(n,)`` array [m]."""
