@@ -343,6 +343,24 @@ class Solver:
         if boxes is None:
             for limit, lower_row, upper_row in self._box_rows:
                 limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+        G, h, row_limits, by_level = self._rows_and_levels(configuration, tasks, dt, previous_qdot, n)
+        hard = by_level.pop(HARD, None)
+        A, b = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
+        if boxes is None:
+            lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
+        else:
+            lower, upper, conflicts = boxes
+        retries: list[str] = []
+        try:
+            return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=CONFIRMING_REPORTS)
+        except SolverNotAvailableError:
+            raise
+        except SolverError as err:
+            return self._relaxed(err, n, by_level, box_limits, lower, upper, conflicts, A, b, G, h, row_limits, retries)
+
+    def _rows_and_levels(self, configuration, tasks, dt, previous_qdot, n):
+        """The row limits' stacked ``G``, ``h`` with ``(limit, its h)`` per limit that gave rows
+        (which rows may be relaxed), and the tasks' ``(task, J, v)`` grouped by level."""
         row_limits: list[tuple[Limit, np.ndarray]] = []  # (limit, its h): which rows may be relaxed
         G_rows, h_rows = [], []
         for limit in self._row_limits:
@@ -362,24 +380,11 @@ class Solver:
             G, h = np.vstack(G_rows), np.concatenate(h_rows)
         else:
             G, h = np.zeros((0, n)), np.zeros(0)
-
         by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
         for task in tasks:
             J, v = task.compute_rows(configuration, dt)
             by_level.setdefault(task.level, []).append((task, J, v))
-        hard = by_level.pop(HARD, None)
-        A, b = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
-        if boxes is None:
-            lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
-        else:
-            lower, upper, conflicts = boxes
-        retries: list[str] = []
-        try:
-            return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=CONFIRMING_REPORTS)
-        except SolverNotAvailableError:
-            raise
-        except SolverError as err:
-            return self._relaxed(err, n, by_level, box_limits, lower, upper, conflicts, A, b, G, h, row_limits, retries)
+        return G, h, row_limits, by_level
 
     def _solve_step(self, configuration, tasks, limits, dt: float, previous_qdot: np.ndarray):
         """:meth:`_solve` for the controller's step, with the step's acceleration: ``(solution,
@@ -417,29 +422,7 @@ class Solver:
             conflicts = [
                 BoxConflict(int(j), type(box_list[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)
             ]
-        row_limits: list[tuple[Limit, np.ndarray]] = []
-        G_rows, h_rows = [], []
-        for limit in self._row_limits:
-            rows = limit.compute(configuration, dt, previous_qdot)
-            if rows.lower is not None:
-                raise InvalidInputError(
-                    f"{type(limit).__name__}.compute returned a box: set has_box = True on the class "
-                    "(and override fill_box for speed)"
-                )
-            if rows.G is not None:
-                G_rows.append(rows.G)
-                h_rows.append(rows.h)
-                row_limits.append((limit, rows.h))
-        if len(G_rows) == 1:
-            G, h = G_rows[0], h_rows[0]
-        elif G_rows:
-            G, h = np.vstack(G_rows), np.concatenate(h_rows)
-        else:
-            G, h = np.zeros((0, n)), np.zeros(0)
-        by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
-        for task in tasks:
-            J, v = task.compute_rows(configuration, dt)
-            by_level.setdefault(task.level, []).append((task, J, v))
+        G, h, row_limits, by_level = self._rows_and_levels(configuration, tasks, dt, previous_qdot, n)
         hard = by_level.pop(HARD, None)
         A0, b0 = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
         retries: list[str] = []
