@@ -176,6 +176,10 @@ class TaskController:
         with pinocchio in between).
         """
         measured = False
+        if self.previous_qdot is None:
+            # A caller forgetting the last command: at rest, as reset() does (the safe stop
+            # and the acceleration box both need a vector).
+            self.previous_qdot = np.zeros(self.configuration.nv)
         try:
             configuration = self.configuration
             # The loop has just updated the configuration to this very q (checked there): the

@@ -106,3 +106,32 @@ def test_solver_error_carries_a_replayable_problem(configuration):
         from harvest_qp.backends import make_backend
 
         make_backend("proxsuite").solve(problem)
+
+
+def test_previous_qdot_set_to_none_means_at_rest_and_step_never_raises():
+    """Bug caught (audit, pre-existing): ``previous_qdot = None`` made ``step`` (documented
+    "never raises") raise ``TypeError`` on the solve path and in the safe stop.
+
+    Oracle: a fresh controller (previous command zero): the same command and acceleration;
+    a bad ``q`` with ``previous_qdot = None`` takes the safe stop (zeros from rest).
+    """
+    from harvest_qp import Configuration
+    from harvest_qp.limits import JointAccelerationLimit, JointPositionLimit
+
+    def make():
+        config = Configuration.dual_ur5e()
+        camera = FrameTwistTask("camera")
+        camera.set_reference(np.full(6, 0.1))
+        limits = [JointVelocityLimit(config), JointPositionLimit(config), JointAccelerationLimit(config)]
+        return TaskController(config, [camera, DampingTask(12, level=2)], limits)
+
+    fresh, forgetful = make(), make()
+    forgetful.previous_qdot = None
+    a, b = fresh.step(HOME_Q), forgetful.step(HOME_Q)
+    assert a.ok and b.ok
+    assert np.array_equal(a.qdot, b.qdot) and np.array_equal(a.acceleration, b.acceleration)
+    forgetful.previous_qdot = None
+    bad = HOME_Q.copy()
+    bad[0] = np.nan
+    stopped = forgetful.step(bad)
+    assert stopped.status.startswith("fallback") and np.array_equal(stopped.qdot, np.zeros(12))
