@@ -1287,14 +1287,20 @@ class HarvestController:
         })
         return values
 
-    def _active_pairs(self) -> list[tuple[str, str, float]]:
+    def _active_pair_indices(self) -> tuple[Any, np.ndarray | None]:
+        """The collision limit and the indices (int64) of its pairs active in this tick's QP;
+        ``(limit, None)`` when there are none (no limit, the pinv mapper, no active pair)."""
         lim = self.collision
         if lim is None or self.mapper_kind != "qp":
-            return []
+            return lim, None
         active = getattr(lim, "active_pairs", ())
         if type(active) is not np.ndarray or active.dtype != np.int64:
             active = np.asarray(active, dtype=np.int64)
-        if active.size == 0:
+        return lim, (active if active.size else None)
+
+    def _active_pairs(self) -> list[tuple[str, str, float]]:
+        lim, active = self._active_pair_indices()
+        if active is None:
             return []
         names = lim.capsule_names
         distances = getattr(lim, "_dist", None)
@@ -1351,13 +1357,8 @@ class HarvestController:
     def _active_pair_columns(self) -> _PairColumns | list:
         """:meth:`_active_pairs` as three columns (``runner._PairColumns``, read as the same
         tuples): no tuple built per pair here, none checked by the runner."""
-        lim = self.collision
-        if lim is None or self.mapper_kind != "qp":
-            return []
-        active = getattr(lim, "active_pairs", ())
-        if type(active) is not np.ndarray or active.dtype != np.int64:
-            active = np.asarray(active, dtype=np.int64)
-        if active.size == 0:
+        lim, active = self._active_pair_indices()
+        if active is None:
             return []
         distances = getattr(lim, "_dist", None)
         distances = (np.asarray(distances[active], dtype=np.float64) if distances is not None
