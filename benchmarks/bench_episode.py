@@ -40,15 +40,17 @@ one-level QP without map cells; the gap is the episode's two-level hierarchy and
 Usage::
 
     python benchmarks/bench_episode.py [--duration 20] [--settings tasks/paper.yaml] [--set k=v ...]
-                                       [--resolutions 283x160,848x480] [--clock cpu|wall]
+                                       [--resolutions 283x160,848x480] [--clock cpu|wall] [--repeats 3]
 
 The headline real-time factor comes from a separate run without any timer: the episode exactly
 as ``harvest-qp run`` runs it (:func:`harvest_qp.loop.episode.run_paper_episode`, figures off),
-whose ``realtime_factor`` it reports; the timed run that gives the breakdown is slower by its
+whose ``realtime_factor`` it reports: the median of ``--repeats`` such runs (default 3; the
+machine's speed can swing within minutes, so one run says little); the timed run that gives the breakdown is slower by its
 own timers (a wrapper and two clock reads around each timed call) and reports its own factor.
 
 The last line printed is one JSON object with ``episode_rtf_283x160``, ``episode_rtf_848x480``
-(wall clock, uninstrumented), ``episode_rtf_cpu_*`` (CPU time), ``episode_tick_us_*``,
+(wall clock, uninstrumented, median of the repeats; ``episode_rtf_min_*`` / ``episode_rtf_max_*``
+their range), ``episode_rtf_cpu_*`` (CPU time), ``episode_tick_us_*``,
 ``episode_rtf_instrumented_*`` (the timed run), ``qp_tick_us_in_episode`` (median QP step at
 283x160), ``qp_tick_us_replayed``, ``qp_tick_us_bench_qp``, ``perception_ms_283x160`` (median
 per frame, perception plus map update, as the controller's own timer counts it) and the other
@@ -259,6 +261,17 @@ def plain_episode(settings: dict, duration: float) -> dict:
     }
 
 
+def _median_run(runs: list[dict]) -> dict:
+    """Each figure of :func:`plain_episode` as its median over ``runs`` (figure by figure),
+    with the ``rtf``'s and ``rtf_cpu``'s smallest and largest as ``*_min`` / ``*_max``."""
+    out = {key: float(np.median([r[key] for r in runs])) for key in ("rtf", "rtf_cpu", "tick_us", "tick_us_cpu")}
+    for key in ("rtf", "rtf_cpu"):
+        out[f"{key}_min"] = min(r[key] for r in runs)
+        out[f"{key}_max"] = max(r[key] for r in runs)
+    out["phase"] = runs[-1]["phase"]
+    return out
+
+
 def _qp_isolated(controller, log: dict, clock, n: int = 1000) -> float:
     """Median [us] of the episode's own QP step replayed in a tight loop, after the episode.
 
@@ -339,7 +352,11 @@ def main(argv: list[str] | None = None) -> None:
                         help="simulated seconds of the untimed warm-up episode at the first resolution [s]: past the "
                              "switch (~8 s on the default scene), so every numba kernel of the episode is loaded or "
                              "compiled before the timing (a fresh clone compiles them once, ~35 s)")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="untimed episodes per resolution; the headline figures are their medians (>= 1)")
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats: expected an integer >= 1, got {args.repeats}")
     print(_pin())
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     names = [n.strip() for n in args.resolutions.split(",") if n.strip()]
@@ -361,10 +378,20 @@ def main(argv: list[str] | None = None) -> None:
         # The headline figure: the episode as the CLI runs it. The breakdown's timers (a
         # Python wrapper and two clock reads around each timed call, ~8 per tick) slow the
         # instrumented run down; its shares are what it is for.
-        plain[name] = p = plain_episode(settings, args.duration)
-        print(f"{name}: real-time factor {p['rtf']:.2f} wall-clock as `harvest-qp run` measures it "
-              f"({p['tick_us']:.0f} us per tick), {p['rtf_cpu']:.2f} on this thread's CPU time "
-              f"({p['tick_us_cpu']:.0f} us per tick); ended in {p['phase']}", flush=True)
+        # Repeated, and the median run reported: this kind of machine's speed was measured
+        # to swing by up to 2x within minutes with nothing else running (the same code at
+        # 573 and 1,122 us per tick ten minutes apart), so one run says little.
+        runs = []
+        for i in range(args.repeats):
+            runs.append(p := plain_episode(settings, args.duration))
+            print(f"{name} run {i + 1}/{args.repeats}: real-time factor {p['rtf']:.2f} wall-clock as "
+                  f"`harvest-qp run` measures it ({p['tick_us']:.0f} us per tick), {p['rtf_cpu']:.2f} on this "
+                  f"thread's CPU time ({p['tick_us_cpu']:.0f} us per tick); ended in {p['phase']}", flush=True)
+        plain[name] = p = _median_run(runs)
+        if args.repeats > 1:
+            print(f"{name}: median of {args.repeats} runs: real-time factor {p['rtf']:.2f} wall-clock "
+                  f"(range {p['rtf_min']:.2f}-{p['rtf_max']:.2f}), {p['rtf_cpu']:.2f} CPU time "
+                  f"(range {p['rtf_cpu_min']:.2f}-{p['rtf_cpu_max']:.2f})", flush=True)
         r = time_episode(settings, args.duration, clock=clock)
         r["clock"] = "thread CPU time" if args.clock == "cpu" else "wall-clock time"
         print(_report(name, r), flush=True)
@@ -384,6 +411,8 @@ def main(argv: list[str] | None = None) -> None:
         summary[f"episode_rtf_cpu_{name}"] = plain[name]["rtf_cpu"]
         summary[f"episode_tick_us_{name}"] = plain[name]["tick_us"]
         summary[f"episode_tick_us_cpu_{name}"] = plain[name]["tick_us_cpu"]
+        summary[f"episode_rtf_min_{name}"] = plain[name]["rtf_min"]
+        summary[f"episode_rtf_max_{name}"] = plain[name]["rtf_max"]
         summary[f"episode_rtf_instrumented_{name}"] = r["rtf"]
         summary[f"perception_ms_{name}"] = r["frame_ms_median"]
         summary[f"camera_ms_{name}"] = r["camera_ms_median"]
@@ -395,6 +424,7 @@ def main(argv: list[str] | None = None) -> None:
     summary["physics_us"] = first["physics_us_median"]
     summary["ground_truth_us"] = first["ground_truth_us_median"]
     summary["duration_s"] = args.duration
+    summary["repeats"] = args.repeats
     print(json.dumps(summary))
 
 
