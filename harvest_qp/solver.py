@@ -55,6 +55,7 @@ from harvest_qp.backends import (
     backend_name_problem,
     make_backend,
 )
+from harvest_qp._daqp_native import LAYOUT_REFUSED, NativeModel, update_solve, update_solve_check_clip_rate
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
 from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
@@ -476,17 +477,40 @@ class Solver:
                 problems.append(problem)
                 try:
                     model = backend._model
-                    if rows_changed:
-                        model.update(H, f, *backend._layout)
-                    else:  # only bounds and cost moved: skip copying the constraint matrix
-                        model.update(H, f, None, backend._upper, backend._lower)
-                    x, _, flag, _ = model.solve()
+                    rate = None
+                    if rows_changed and type(model) is NativeModel:
+                        # DAQP's update and solve (the same C calls as daqp.Model's) in one compiled
+                        # call, on the last level with its check, clip and acceleration too.
+                        keep = model._keep
+                        keep["H"], keep["f"] = H, f  # DAQP's problem points at them (as daqp.Model's)
+                        layout = backend._layout
+                        if i == final:
+                            x, flag, rate = update_solve_check_clip_rate(
+                                model._work, model._problem, model._result, model._x, model._lam, H, f, *layout,
+                                lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt,
+                            )
+                        else:
+                            x, flag = update_solve(
+                                model._work, model._problem, model._result, model._x, model._lam, H, f, *layout
+                            )
+                        if flag == LAYOUT_REFUSED:  # not the set-up arrays: daqp.Model's own handling
+                            x, flag = model.update_solve(H, f, *layout)
+                            rate = None
+                        else:
+                            model._has_solved = True
+                    else:
+                        if rows_changed:
+                            model.update(H, f, *backend._layout)
+                        else:  # only bounds and cost moved: skip copying the constraint matrix
+                            model.update(H, f, None, backend._upper, backend._lower)
+                        x, _, flag, _ = model.solve()
                     if flag < 0:
                         backend._raise_failure(problem, flag)
                     if i == final:
-                        rate = check_clip_rate(
-                            x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt
-                        )
+                        if rate is None:
+                            rate = check_clip_rate(
+                                x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt
+                            )
                         if rate.shape[0]:
                             solution.qdot = x
                             return solution, rate
@@ -808,11 +832,14 @@ class Solver:
             # DaqpBackend._update_solve inlined (the hot path): update's positional order is
             # (H, f, A, bupper, blower, sense), the order of the layout tuple after H and f.
             model = backend._model
-            if rows_changed:
-                model.update(H, f, *backend._layout)
-            else:  # only bounds and cost moved: skip copying the constraint matrix
-                model.update(H, f, None, backend._upper, backend._lower)
-            x, _, flag, _ = model.solve()
+            if rows_changed and type(model) is NativeModel:  # DAQP's C calls in one compiled call
+                x, flag = model.update_solve(H, f, *backend._layout)
+            else:
+                if rows_changed:
+                    model.update(H, f, *backend._layout)
+                else:  # only bounds and cost moved: skip copying the constraint matrix
+                    model.update(H, f, None, backend._upper, backend._lower)
+                x, _, flag, _ = model.solve()
             if flag < 0:
                 backend._raise_failure(problem, flag)
             if below and count <= 3 and A.dtype is _FLOAT64:
