@@ -41,7 +41,24 @@ from importlib import metadata
 import numpy as np
 from numba import njit, types
 
-from harvest_qp.qp_kernels import check_clip_rate
+from harvest_qp.qp_kernels import (
+    assemble_load_1,
+    assemble_load_2,
+    assemble_load_3,
+    check_clip_rate,
+    handover_1_1,
+    handover_1_2,
+    handover_1_3,
+    handover_1_4,
+    handover_2_1,
+    handover_2_2,
+    handover_2_3,
+    handover_2_4,
+    handover_3_1,
+    handover_3_2,
+    handover_3_3,
+    handover_3_4,
+)
 
 #: The one ``daqp`` version whose C struct layouts this module was written for.
 VALIDATED_VERSION = "0.11.0"
@@ -450,3 +467,367 @@ def _self_test() -> None:
                 raise NativeLayoutError("compiled update_solve returned a wrong shape")
         if reference.solve()[2] >= 0:
             raise NativeLayoutError("the infeasible test QP was not reported infeasible")
+
+
+# ----------------------------------------------------------------- two levels in one call
+# The episode's cascade (two DAQP levels, both NativeModels, inequality rows present) in one
+# compiled call per tick (``Solver._solve_step``): the upper level's ``assemble_load_<k>``, DAQP
+# update + solve, ``handover_<k>_<l>`` (check, clip, equalities, the lower level's assembly),
+# the lower level's DAQP update + solve and ``check_clip_rate``: the same calls in the same
+# order as the level-by-level path. It stops at the first step that path would leave the fast
+# path at; ``stage`` says where (the caller resumes there with the same code):
+#   0: the upper level's DAQP flag < 0 (or LAYOUT_REFUSED: nothing passed to DAQP; the level is
+#      assembled and loaded), 1: the upper answer rejected by the check (the lower level untouched),
+#   2: the lower level's DAQP flag < 0 (or LAYOUT_REFUSED) or its answer rejected, 3: done.
+# Returns (stage, n_eq_upper, x_upper, flag_upper, rows, rhs, n_eq_lower, x_lower, flag_lower, rate).
+
+@njit(cache=True)
+def cascade2_1_1(block, reg, J0, w0, v0,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (1 task(s) above, 1 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_1_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
+                                              block2, reg, K0, u0, y0, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_1_2(block, reg, J0, w0, v0,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (1 task(s) above, 2 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_1_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_1_3(block, reg, J0, w0, v0,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (1 task(s) above, 3 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_1_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_1_4(block, reg, J0, w0, v0,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (1 task(s) above, 4 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_1_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_2_1(block, reg, J0, w0, v0, J1, w1, v1,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (2 task(s) above, 1 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_2_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
+                                              block2, reg, K0, u0, y0, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_2_2(block, reg, J0, w0, v0, J1, w1, v1,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (2 task(s) above, 2 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_2_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_2_3(block, reg, J0, w0, v0, J1, w1, v1,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (2 task(s) above, 3 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_2_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_2_4(block, reg, J0, w0, v0, J1, w1, v1,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (2 task(s) above, 4 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_2_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_3_1(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (3 task(s) above, 1 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_3_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2,
+                                              block2, reg, K0, u0, y0, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_3_2(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (3 task(s) above, 2 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_3_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_3_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (3 task(s) above, 3 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_3_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+@njit(cache=True)
+def cascade2_3_4(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
+                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
+                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3,
+                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
+                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+    """Two DAQP levels (3 task(s) above, 4 below) in one call (see the comment above)."""
+    n = block.shape[1]
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
+                           n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
+                             buf_lower, sense)
+    x = x_buf.copy()
+    if flag < 0:
+        return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
+    accepted, rows, rhs, n_eq2 = handover_3_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2,
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2, buf_lower2, sense2,
+                                              n_eq_before2, inf)
+    if not accepted:
+        return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
+                              buf_upper2, buf_lower2, sense2)
+    x2 = x_buf2.copy()
+    if flag2 < 0:
+        return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
+    rate = check_clip_rate(x2, lower, upper, rows, rhs, G, h, tol, previous, dt)
+    return 3 if rate.shape[0] else 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, rate
+
+
+#: ``cascade2_<k>_<l>`` by (tasks above, tasks below).
+CASCADE2 = {(1, 1): cascade2_1_1, (1, 2): cascade2_1_2, (1, 3): cascade2_1_3, (1, 4): cascade2_1_4, (2, 1): cascade2_2_1, (2, 2): cascade2_2_2, (2, 3): cascade2_2_3, (2, 4): cascade2_2_4, (3, 1): cascade2_3_1, (3, 2): cascade2_3_2, (3, 3): cascade2_3_3, (3, 4): cascade2_3_4}
