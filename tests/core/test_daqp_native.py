@@ -64,9 +64,10 @@ def test_native_model_equals_daqp_model_bit_for_bit(n, n_in):
     read from the workspace) and solved: ``NativeModel``'s answer, cost and exit flag, and the
     compiled ``update_solve``'s on a third model, are the same bits.
 
-    Bugs caught: the update mask without the sense bit (planted: the equality slots of a new QP
-    not activated, answers differ), the exit flag read from the wrong word of the result, the
-    warm sense pointer read from the wrong workspace offset."""
+    Bugs caught: the update mask without the sense bit (planted in ``NativeModel.update`` and seen
+    failing: the equality slots of a new QP not activated; the import self-test refuses it too),
+    the exit flag read from the wrong word of the result, the warm sense pointer read from the
+    wrong workspace offset."""
     assert native.available(), native.disabled_reason()
     rng = np.random.default_rng(n * 100 + n_in)
     qps = [_qp(rng, n, n_in, k % (n + 1), infeasible=(k % 3 == 2)) for k in range(12)]
@@ -96,7 +97,8 @@ def test_compiled_call_refuses_arrays_that_do_not_fit_the_model():
     Hessian view or a short sense vector is refused with LAYOUT_REFUSED and nothing reaches DAQP
     (the next solve equals daqp.Model's, which never saw them); ``NativeModel.update_solve`` then
     does what daqp.Model does with such arrays (ignores them).
-    Bug caught: a missing shape check (DAQP would read past the arrays)."""
+    Bug caught (planted and seen failing): the shape checks bypassed (DAQP would read past the arrays)."""
+    assert native.available(), native.disabled_reason()
     rng = np.random.default_rng(5)
     H, f, A, upper, lower, sense = _qp(rng, 5, 4, 2)
     reference, model = daqp.Model(), native.NativeModel()
@@ -236,9 +238,9 @@ def test_fused_native_cascade_equals_the_python_daqp_path_bit_for_bit(native_sta
     command, acceleration, problems (H, f, A, b, ...), DAQP buffers and equality counts bit for bit
     over 12 states; a spy checks the fused call ran and ended with both levels accepted.
 
-    Bugs caught (planted and seen failing): the lower level checked against the upper level's
-    equalities (``A`` instead of the hand-over's rows) in the fused kernel; the upper level's
-    ``_n_eq`` not stored after the fused call (the next tick clears the wrong slots)."""
+    Bugs caught (planted and seen failing): the lower level solved with the upper level's ``f``
+    in the fused kernel (4 of these tests and the resume test failed); a lower level that DAQP
+    failed resumed with the upper level's answer (the (2, 3) case, where DAQP fails once)."""
     assert native.available(), native.disabled_reason()
     rng = np.random.default_rng(sum(counts) * 7 + counts[0])
     config = Configuration.dual_ur5e(HOME_Q)
@@ -269,8 +271,8 @@ def test_fused_native_cascade_resumes_like_the_python_daqp_path(native_state, mo
     below zero for the fast check only: stages 1 and 2, each then accepted by ``_checked``): the
     same outcome bit for bit, retries and relaxations included, or the same error.
 
-    Bug caught (planted and seen failing): a rejected upper answer resumed with the lower level's
-    block from the fused call (assembled on no equalities) instead of a fresh assembly."""
+    Bug caught (planted and seen failing): an upper answer the fused check rejected handed to the
+    loop as accepted (the lower level then solved on its equalities without the recovery)."""
     assert native.available(), native.disabled_reason()
     rng = np.random.default_rng(11)
     config = Configuration.dual_ur5e(HOME_Q)
