@@ -79,7 +79,9 @@ _SYMBOLS = ("setup_daqp_main", "daqp_update_ldp", "daqp_solve", "allocate_daqp_s
             "free_daqp_workspace", "free_daqp_ldp", "daqp_default_settings")
 _PREFIX = "harvest_qp_"  # the names numba links against (never a bare DAQP name)
 
-_update_ldp_c = types.ExternalFunction(_PREFIX + "daqp_update_ldp", types.int32(types.int32, types.voidptr, types.voidptr))
+_update_ldp_c = types.ExternalFunction(
+    _PREFIX + "daqp_update_ldp", types.int32(types.int32, types.voidptr, types.voidptr)
+)
 _solve_c = types.ExternalFunction(_PREFIX + "daqp_solve", types.void(types.voidptr, types.voidptr))
 
 
@@ -192,6 +194,10 @@ class NativeModel:
         self._has_model = False
         self._has_solved = False
         self._keep: dict[str, np.ndarray] = {}
+
+    def __reduce_ex__(self, protocol):
+        # As daqp.Model: no copy or pickle (a copy would share, and free twice, DAQP's memory).
+        raise TypeError("no default __reduce__ due to non-trivial __cinit__")
 
     # --- the problem struct (ints packed two to a word, little endian)
     def _ints(self) -> np.ndarray:
@@ -481,28 +487,26 @@ def _self_test() -> None:
 #   2: the lower level's DAQP flag < 0 (or LAYOUT_REFUSED) or its answer rejected, 3: done.
 # Returns (stage, n_eq_upper, x_upper, flag_upper, rows, rhs, n_eq_lower, x_lower, flag_lower, rate).
 
+
 @njit(cache=True)
-def cascade2_1_1(block, reg, J0, w0, v0,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_1_1(block, reg, J0, w0, v0, work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense,
+                 n_eq_before, block2, K0, u0, y0, work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2,
+                 buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (1 task(s) above, 1 below) in one call (see the comment above)."""
     n = block.shape[1]
     n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
                            n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_1_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
-                                              block2, reg, K0, u0, y0, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+    accepted, rows, rhs, n_eq2 = handover_1_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block2, reg,
+                                              K0, u0, y0, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -511,27 +515,26 @@ def cascade2_1_1(block, reg, J0, w0, v0,
 
 
 @njit(cache=True)
-def cascade2_1_2(block, reg, J0, w0, v0,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_1_2(block, reg, J0, w0, v0, work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense,
+                 n_eq_before, block2, K0, u0, y0, K1, u1, y1, work2, problem2, result2, x_buf2, lam_buf2, A_buf2,
+                 buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous,
+                 dt, inf):
     """Two DAQP levels (1 task(s) above, 2 below) in one call (see the comment above)."""
     n = block.shape[1]
     n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
                            n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_1_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
+    accepted, rows, rhs, n_eq2 = handover_1_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block2, reg,
+                                              K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
                                               n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -540,27 +543,26 @@ def cascade2_1_2(block, reg, J0, w0, v0,
 
 
 @njit(cache=True)
-def cascade2_1_3(block, reg, J0, w0, v0,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_1_3(block, reg, J0, w0, v0, work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense,
+                 n_eq_before, block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, work2, problem2, result2, x_buf2, lam_buf2,
+                 A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack,
+                 previous, dt, inf):
     """Two DAQP levels (1 task(s) above, 3 below) in one call (see the comment above)."""
     n = block.shape[1]
     n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
                            n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_1_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+    accepted, rows, rhs, n_eq2 = handover_1_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block2, reg,
+                                              K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2,
+                                              sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -569,27 +571,26 @@ def cascade2_1_3(block, reg, J0, w0, v0,
 
 
 @njit(cache=True)
-def cascade2_1_4(block, reg, J0, w0, v0,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_1_4(block, reg, J0, w0, v0, work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense,
+                 n_eq_before, block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, work2, problem2, result2,
+                 x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper,
+                 tol, eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (1 task(s) above, 4 below) in one call (see the comment above)."""
     n = block.shape[1]
     n_eq = assemble_load_1(block, reg, J0, w0, v0, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
                            n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_1_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+    accepted, rows, rhs, n_eq2 = handover_1_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, block2, reg,
+                                              K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2,
+                                              buf_lower2, sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -598,27 +599,26 @@ def cascade2_1_4(block, reg, J0, w0, v0,
 
 
 @njit(cache=True)
-def cascade2_2_1(block, reg, J0, w0, v0, J1, w1, v1,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_2_1(block, reg, J0, w0, v0, J1, w1, v1, work, problem, result, x_buf, lam_buf, A_buf, buf_upper,
+                 buf_lower, sense, n_eq_before, block2, K0, u0, y0, work2, problem2, result2, x_buf2, lam_buf2,
+                 A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack,
+                 previous, dt, inf):
     """Two DAQP levels (2 task(s) above, 1 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower,
+                           upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_2_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
-                                              block2, reg, K0, u0, y0, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+    accepted, rows, rhs, n_eq2 = handover_2_1(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block2,
+                                              reg, K0, u0, y0, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2,
+                                              inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -627,27 +627,26 @@ def cascade2_2_1(block, reg, J0, w0, v0, J1, w1, v1,
 
 
 @njit(cache=True)
-def cascade2_2_2(block, reg, J0, w0, v0, J1, w1, v1,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_2_2(block, reg, J0, w0, v0, J1, w1, v1, work, problem, result, x_buf, lam_buf, A_buf, buf_upper,
+                 buf_lower, sense, n_eq_before, block2, K0, u0, y0, K1, u1, y1, work2, problem2, result2, x_buf2,
+                 lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper, tol,
+                 eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (2 task(s) above, 2 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower,
+                           upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_2_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
+    accepted, rows, rhs, n_eq2 = handover_2_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block2,
+                                              reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
                                               n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -656,27 +655,26 @@ def cascade2_2_2(block, reg, J0, w0, v0, J1, w1, v1,
 
 
 @njit(cache=True)
-def cascade2_2_3(block, reg, J0, w0, v0, J1, w1, v1,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_2_3(block, reg, J0, w0, v0, J1, w1, v1, work, problem, result, x_buf, lam_buf, A_buf, buf_upper,
+                 buf_lower, sense, n_eq_before, block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, work2, problem2, result2,
+                 x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper,
+                 tol, eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (2 task(s) above, 3 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower,
+                           upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_2_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+    accepted, rows, rhs, n_eq2 = handover_2_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block2,
+                                              reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2,
+                                              sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -685,27 +683,26 @@ def cascade2_2_3(block, reg, J0, w0, v0, J1, w1, v1,
 
 
 @njit(cache=True)
-def cascade2_2_4(block, reg, J0, w0, v0, J1, w1, v1,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_2_4(block, reg, J0, w0, v0, J1, w1, v1, work, problem, result, x_buf, lam_buf, A_buf, buf_upper,
+                 buf_lower, sense, n_eq_before, block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, work2,
+                 problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G,
+                 h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (2 task(s) above, 4 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_2(block, reg, J0, w0, v0, J1, w1, v1, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower,
+                           upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
-    accepted, rows, rhs, n_eq2 = handover_2_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+    accepted, rows, rhs, n_eq2 = handover_2_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, block2,
+                                              reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2,
+                                              buf_lower2, sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -714,17 +711,16 @@ def cascade2_2_4(block, reg, J0, w0, v0, J1, w1, v1,
 
 
 @njit(cache=True)
-def cascade2_3_1(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_3_1(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, work, problem, result, x_buf, lam_buf, A_buf,
+                 buf_upper, buf_lower, sense, n_eq_before, block2, K0, u0, y0, work2, problem2, result2, x_buf2,
+                 lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper, tol,
+                 eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (3 task(s) above, 1 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b,
+                           G, h, lower, upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
@@ -733,8 +729,8 @@ def cascade2_3_1(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
                                               n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -743,27 +739,26 @@ def cascade2_3_1(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
 
 
 @njit(cache=True)
-def cascade2_3_2(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_3_2(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, work, problem, result, x_buf, lam_buf, A_buf,
+                 buf_upper, buf_lower, sense, n_eq_before, block2, K0, u0, y0, K1, u1, y1, work2, problem2, result2,
+                 x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G, h, lower, upper,
+                 tol, eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (3 task(s) above, 2 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b,
+                           G, h, lower, upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
     accepted, rows, rhs, n_eq2 = handover_3_2(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+                                              block2, reg, K0, u0, y0, K1, u1, y1, A_buf2, buf_upper2, buf_lower2,
+                                              sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -772,27 +767,26 @@ def cascade2_3_2(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
 
 
 @njit(cache=True)
-def cascade2_3_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_3_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, work, problem, result, x_buf, lam_buf, A_buf,
+                 buf_upper, buf_lower, sense, n_eq_before, block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, work2,
+                 problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A, b, G,
+                 h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (3 task(s) above, 3 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b,
+                           G, h, lower, upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
     accepted, rows, rhs, n_eq2 = handover_3_3(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, A_buf2, buf_upper2,
+                                              buf_lower2, sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -801,27 +795,26 @@ def cascade2_3_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
 
 
 @njit(cache=True)
-def cascade2_3_4(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
-                  work, problem, result, x_buf, lam_buf, A_buf, buf_upper, buf_lower, sense, n_eq_before,
-                  block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3,
-                  work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2,
-                  n_eq_before2, A, b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
+def cascade2_3_4(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, work, problem, result, x_buf, lam_buf, A_buf,
+                 buf_upper, buf_lower, sense, n_eq_before, block2, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3,
+                 work2, problem2, result2, x_buf2, lam_buf2, A_buf2, buf_upper2, buf_lower2, sense2, n_eq_before2, A,
+                 b, G, h, lower, upper, tol, eq_tol, stack, previous, dt, inf):
     """Two DAQP levels (3 task(s) above, 4 below) in one call (see the comment above)."""
     n = block.shape[1]
-    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b, G, h, lower, upper,
-                           n_eq_before, inf)
-    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper,
-                             buf_lower, sense)
+    n_eq = assemble_load_3(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2, A_buf, buf_upper, buf_lower, sense, A, b,
+                           G, h, lower, upper, n_eq_before, inf)
+    flag = _update_solve_raw(work, problem, result, x_buf, lam_buf, block[:n], block[n], A_buf, buf_upper, buf_lower,
+                             sense)
     x = x_buf.copy()
     if flag < 0:
         return 0, n_eq, x, flag, np.empty((0, n)), np.empty(0), -1, x, 0, np.empty(0)
     accepted, rows, rhs, n_eq2 = handover_3_4(x, lower, upper, A, b, G, h, tol, eq_tol, stack, J0, w0, J1, w1, J2, w2,
-                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2, buf_upper2, buf_lower2, sense2,
-                                              n_eq_before2, inf)
+                                              block2, reg, K0, u0, y0, K1, u1, y1, K2, u2, y2, K3, u3, y3, A_buf2,
+                                              buf_upper2, buf_lower2, sense2, n_eq_before2, inf)
     if not accepted:
         return 1, n_eq, x, flag, rows, rhs, -1, x, 0, np.empty(0)
-    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2,
-                              buf_upper2, buf_lower2, sense2)
+    flag2 = _update_solve_raw(work2, problem2, result2, x_buf2, lam_buf2, block2[:n], block2[n], A_buf2, buf_upper2,
+                              buf_lower2, sense2)
     x2 = x_buf2.copy()
     if flag2 < 0:
         return 2, n_eq, x, flag, rows, rhs, n_eq2, x2, flag2, np.empty(0)
@@ -830,4 +823,8 @@ def cascade2_3_4(block, reg, J0, w0, v0, J1, w1, v1, J2, w2, v2,
 
 
 #: ``cascade2_<k>_<l>`` by (tasks above, tasks below).
-CASCADE2 = {(1, 1): cascade2_1_1, (1, 2): cascade2_1_2, (1, 3): cascade2_1_3, (1, 4): cascade2_1_4, (2, 1): cascade2_2_1, (2, 2): cascade2_2_2, (2, 3): cascade2_2_3, (2, 4): cascade2_2_4, (3, 1): cascade2_3_1, (3, 2): cascade2_3_2, (3, 3): cascade2_3_3, (3, 4): cascade2_3_4}
+CASCADE2 = {
+    (1, 1): cascade2_1_1, (1, 2): cascade2_1_2, (1, 3): cascade2_1_3, (1, 4): cascade2_1_4,
+    (2, 1): cascade2_2_1, (2, 2): cascade2_2_2, (2, 3): cascade2_2_3, (2, 4): cascade2_2_4,
+    (3, 1): cascade2_3_1, (3, 2): cascade2_3_2, (3, 3): cascade2_3_3, (3, 4): cascade2_3_4,
+}

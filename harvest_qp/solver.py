@@ -46,6 +46,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harvest_qp._daqp_native import (
+    CASCADE2,
+    LAYOUT_REFUSED,
+    NativeModel,
+    update_solve,
+    update_solve_check_clip_rate,
+)
 from harvest_qp.backends import (
     ACCEPTABLE_VIOLATION,
     FEASIBILITY_TOLERANCE,
@@ -54,13 +61,6 @@ from harvest_qp.backends import (
     _checked,
     backend_name_problem,
     make_backend,
-)
-from harvest_qp._daqp_native import (
-    CASCADE2,
-    LAYOUT_REFUSED,
-    NativeModel,
-    update_solve,
-    update_solve_check_clip_rate,
 )
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError

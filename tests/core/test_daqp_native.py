@@ -6,6 +6,8 @@ replaces) given the same sequence of set-ups, updates and solves, or a whole sol
 models are ``daqp.Model`` (made while the native path is disabled).
 """
 
+import copy
+import pickle
 from importlib import metadata
 
 import daqp
@@ -16,9 +18,9 @@ import harvest_qp.solver as solver_module
 from harvest_qp import Configuration, TaskController
 from harvest_qp import _daqp_native as native
 from harvest_qp.backends import DaqpBackend
+from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.robot.description import HOME_Q
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
-from harvest_qp.limits import CollisionAvoidance
 
 
 @pytest.fixture
@@ -293,3 +295,18 @@ def test_fused_native_cascade_resumes_like_the_python_daqp_path(native_state, mo
         relaxed += not isinstance(a[0], type) and a[0].box_relaxation is not None
     assert relaxed >= 2
     assert {0, 1, 3} <= set(stages), sorted(set(stages))
+
+
+def test_native_model_cannot_be_copied_or_pickled_like_daqp_model():
+    """Oracle: ``daqp.Model`` (copy, deepcopy and pickle raise TypeError). A copied NativeModel
+    would hold the same DAQP pointers as the original and free them twice.
+    Bug caught (planted and seen failing): no ``__reduce_ex__`` guard (copy.copy succeeds)."""
+    assert native.available(), native.disabled_reason()
+    model = native.NativeModel()
+    model.setup(*_qp(np.random.default_rng(3), 3, 2, 1))
+    for action in (copy.copy, copy.deepcopy, pickle.dumps):
+        with pytest.raises(TypeError) as expected:
+            action(daqp.Model())
+        with pytest.raises(TypeError) as got:
+            action(model)
+        assert str(got.value) == str(expected.value)
