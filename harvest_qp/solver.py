@@ -468,7 +468,7 @@ class Solver:
             # Two native DAQP levels (the episode's cascade): every level's assembly, DAQP update and
             # solve, check, clip and hand-over in one compiled call (cascade2_*); where it stops early
             # (a DAQP failure or a rejected answer), the loop below resumes with its results.
-            pre = (None, None)
+            pre = (None,) * len(plan)
             if final == 1 and n_in > 0:
                 pre, fused = self._fused_two_levels(plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt)
                 if pre is None:  # both levels accepted: fused is (qdot, acceleration, the two problems)
