@@ -403,8 +403,11 @@ class Solver:
         every level a DAQP model already set up for the problem's size, the cascade runs here,
         two consecutive levels hand over in one compiled call (``handover_*``: the upper level's
         check, clip and equalities, then the lower level's assembly and DAQP layout) and the last
-        level's check and clip also compute the acceleration (:func:`check_clip_rate`). A
-        rejected answer, a failure or any other case takes :meth:`_solve`'s own code.
+        level's check and clip also compute the acceleration (:func:`check_clip_rate`). With two
+        levels whose models are :class:`~harvest_qp._daqp_native.NativeModel` (DAQP's C API) and
+        inequality rows (the paper episode), the whole cascade is one compiled call
+        (:meth:`_fused_two_levels`); the loop resumes where that call stopped. A rejected answer,
+        a failure or any other case takes :meth:`_solve`'s own code.
         """
         n = configuration.nv
         if (n, *map(id, limits)) != self._box_key or not self._builtin_trio:
