@@ -2,7 +2,9 @@
 
 * ``daqp`` (default): a persistent ``daqp.Model`` set up once and updated each step;
   dimensions are fixed after ``setup``, so equality rows are padded to ``n`` and
-  the model is set up again only when the number of inequality rows changes.
+  the model is set up again only when the number of inequality rows changes. With daqp 0.11.0
+  the model is a :class:`harvest_qp._daqp_native.NativeModel` (DAQP's C API called directly:
+  the same calls on the same data, self-tested bit for bit against ``daqp.Model``).
 * ``proxsuite``: a kept ``proxqp.dense.QP`` with tight absolute tolerances, the
   duality-gap check and ``eps_primal_inf = 1e-12``; its defaults declare feasible
   QPs with near-duplicate collision rows infeasible and return wrong solutions.
@@ -27,6 +29,8 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from harvest_qp._daqp_native import NativeLayoutError, NativeModel, new_model
+from harvest_qp._daqp_native import disable as disable_native
 from harvest_qp.exceptions import InfeasibleProblemError, SolverError, SolverNotAvailableError
 from harvest_qp.qp_kernels import load_daqp_rows, max_scaled_violation
 
@@ -113,6 +117,11 @@ class DaqpBackend:
         The solver's fused levels call it when the model is set up for the problem's size
         (``_model`` not None, ``_shape == (n, n_in)``)."""
         if rows_changed:
+            if type(self._model) is NativeModel:  # update and solve in one compiled call
+                x, flag = self._model.update_solve(H, f, *self._layout)
+                if flag < 0:
+                    self._raise_failure(problem, flag)
+                return x
             self._model.update(H=H, f=f, A=self._A, bupper=self._upper, blower=self._lower, sense=self._sense)
         else:  # only bounds and cost moved: skip copying the constraint matrix
             self._model.update(H=H, f=f, bupper=self._upper, blower=self._lower)
@@ -151,8 +160,14 @@ class DaqpBackend:
             A, upper, lower, sense, A_eq, problem.b, G, h, box_lower, box_upper, n_eq_before, _INF
         )
         if fresh:
-            self._model = self._daqp.Model()
-            flag, _ = self._model.setup(problem.H, problem.f, A, upper, lower, sense)
+            # DAQP's C API called directly when validated for this daqp (bit for bit daqp.Model)
+            self._model = new_model(self._daqp)
+            try:
+                flag, _ = self._model.setup(problem.H, problem.f, A, upper, lower, sense)
+            except NativeLayoutError as err:  # never seen: the self-test checks the same; use daqp.Model
+                disable_native(f"setup: {err}")
+                self._model = self._daqp.Model()
+                flag, _ = self._model.setup(problem.H, problem.f, A, upper, lower, sense)
             self._shape = (n, n_in)
             if flag < 0:
                 self._model = None

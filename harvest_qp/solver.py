@@ -46,6 +46,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harvest_qp._daqp_native import (
+    CASCADE2,
+    LAYOUT_REFUSED,
+    NativeModel,
+    update_solve,
+    update_solve_check_clip_rate,
+)
 from harvest_qp.backends import (
     ACCEPTABLE_VIOLATION,
     FEASIBILITY_TOLERANCE,
@@ -396,8 +403,11 @@ class Solver:
         every level a DAQP model already set up for the problem's size, the cascade runs here,
         two consecutive levels hand over in one compiled call (``handover_*``: the upper level's
         check, clip and equalities, then the lower level's assembly and DAQP layout) and the last
-        level's check and clip also compute the acceleration (:func:`check_clip_rate`). A
-        rejected answer, a failure or any other case takes :meth:`_solve`'s own code.
+        level's check and clip also compute the acceleration (:func:`check_clip_rate`). With two
+        levels whose models are :class:`~harvest_qp._daqp_native.NativeModel` (DAQP's C API) and
+        inequality rows (the paper episode), the whole cascade is one compiled call
+        (:meth:`_fused_two_levels`); the loop resumes where that call stopped. A rejected answer,
+        a failure or any other case takes :meth:`_solve`'s own code.
         """
         n = configuration.nv
         if (n, *map(id, limits)) != self._box_key or not self._builtin_trio:
@@ -458,6 +468,18 @@ class Solver:
             block = None  # the level's H, f and floor when the level above assembled them
             n_in = G.shape[0]
             final = len(plan) - 1
+            # Two native DAQP levels (the episode's cascade): every level's assembly, DAQP update and
+            # solve, check, clip and hand-over in one compiled call (cascade2_*); where it stops early
+            # (a DAQP failure or a rejected answer), the loop below resumes with its results.
+            pre = (None,) * len(plan)
+            if final == 1 and n_in > 0:
+                pre, fused = self._fused_two_levels(plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt)
+                if pre is None:  # both levels accepted: fused is (qdot, acceleration, the two problems)
+                    problems += fused[2]
+                    solution.qdot = fused[0]
+                    return solution, fused[1]
+                block = fused  # the upper level's block when assembled by the fused call, else None
+                n_eq_before = 0  # (rows_changed holds through n_in > 0 here)
             for i, (level, entries, backend) in enumerate(plan):
                 if block is None:  # as in _daqp_level
                     block = np.zeros((n + 2, n))  # fresh: the problem keeps H and f
@@ -476,17 +498,45 @@ class Solver:
                 problems.append(problem)
                 try:
                     model = backend._model
-                    if rows_changed:
-                        model.update(H, f, *backend._layout)
-                    else:  # only bounds and cost moved: skip copying the constraint matrix
-                        model.update(H, f, None, backend._upper, backend._lower)
-                    x, _, flag, _ = model.solve()
+                    rate = None
+                    done = pre[i]
+                    if done is not None:  # solved by the fused call: (x, flag, rate or hand-over)
+                        x, flag = done[0], done[1]
+                        if i == final:
+                            rate = done[2]
+                    elif rows_changed and type(model) is NativeModel:
+                        # DAQP's update and solve (the same C calls as daqp.Model's) in one compiled
+                        # call, on the last level with its check, clip and acceleration too.
+                        keep = model._keep
+                        keep["H"], keep["f"] = H, f  # DAQP's problem points at them (as daqp.Model's)
+                        layout = backend._layout
+                        if i == final:
+                            x, flag, rate = update_solve_check_clip_rate(
+                                model._work, model._problem, model._result, model._x, model._lam, H, f, *layout,
+                                lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt,
+                            )
+                        else:
+                            x, flag = update_solve(
+                                model._work, model._problem, model._result, model._x, model._lam, H, f, *layout
+                            )
+                        if flag == LAYOUT_REFUSED:  # not the set-up arrays: daqp.Model's own handling
+                            x, flag = model.update_solve(H, f, *layout)
+                            rate = None
+                        else:
+                            model._has_solved = True
+                    else:
+                        if rows_changed:
+                            model.update(H, f, *backend._layout)
+                        else:  # only bounds and cost moved: skip copying the constraint matrix
+                            model.update(H, f, None, backend._upper, backend._lower)
+                        x, _, flag, _ = model.solve()
                     if flag < 0:
                         backend._raise_failure(problem, flag)
                     if i == final:
-                        rate = check_clip_rate(
-                            x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt
-                        )
+                        if rate is None:
+                            rate = check_clip_rate(
+                                x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt
+                            )
                         if rate.shape[0]:
                             solution.qdot = x
                             return solution, rate
@@ -511,10 +561,14 @@ class Solver:
                         for task, J, v in below_entries:
                             args += (IDENTITY_ROWS if J is None else J, task.weight, v)
                         n_eq_before = below_backend._n_eq
-                        accepted, rows, rhs, n_eq = _HANDOVER[len(entries), len(below_entries)](
-                            x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, stack, *eq_tail,
-                            *args, *below_backend._layout, n_eq_before, INF,
-                        )
+                        if done is not None:  # the fused call's hand-over (block: its lower level's)
+                            accepted, rows, rhs, n_eq = done[2]
+                            block = done[3]
+                        else:
+                            accepted, rows, rhs, n_eq = _HANDOVER[len(entries), len(below_entries)](
+                                x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, stack, *eq_tail,
+                                *args, *below_backend._layout, n_eq_before, INF,
+                            )
                         if accepted:
                             below_backend._n_eq = n_eq
                             A, b = rows, rhs
@@ -542,6 +596,66 @@ class Solver:
             )
             return solution, None
 
+
+    def _fused_two_levels(self, plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt):
+        """The two levels of ``plan`` (each a :class:`NativeModel` set up for the size, rows present)
+        in one compiled call (``cascade2_*``: the same calls in the same order as the loop of
+        :meth:`_solve_step`). Returns ``(None, (qdot, rate, problems))`` when both levels were
+        accepted, else ``(pre, block)`` for the loop to resume from: per level None (the loop does
+        it) or the fused call's results, and the upper level's assembled block (None: not native)."""
+        (level1, entries1, backend1), (level2, entries2, backend2) = plan
+        model1, model2 = backend1._model, backend2._model
+        if type(model1) is not NativeModel or type(model2) is not NativeModel:
+            return (None, None), None
+        block1 = np.zeros((n + 2, n))  # fresh: the problems keep H and f
+        block2 = np.zeros((n + 2, n))
+        args = [block1, self.regularization]
+        m = A0.shape[0]  # rows the upper level's equalities stack
+        for task, J, v in entries1:
+            weight = task.weight
+            if J is None:
+                m += weight.shape[0]
+                J = IDENTITY_ROWS
+            else:
+                m += J.shape[0]
+            args += (J, weight, v)
+        stack = self._rows_buffer
+        if stack.shape[0] < m or stack.shape[1] != n:
+            stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
+        args += (model1._work, model1._problem, model1._result, model1._x, model1._lam, *backend1._layout,
+                 backend1._n_eq, block2)
+        for task, J, v in entries2:
+            args += (IDENTITY_ROWS if J is None else J, task.weight, v)
+        args += (model2._work, model2._problem, model2._result, model2._x, model2._lam, *backend2._layout,
+                 backend2._n_eq, A0, b0, G, h, lower, upper, FEASIBILITY_TOLERANCE, 1e-9, stack, previous_qdot, dt,
+                 INF)
+        stage, n_eq1, x1, flag1, rows, rhs, n_eq2, x2, flag2, rate = CASCADE2[len(entries1), len(entries2)](*args)
+        backend1._n_eq = n_eq1
+        H1, f1 = block1[:n], block1[n]
+        if flag1 == LAYOUT_REFUSED:  # nothing passed to DAQP: the loop solves the assembled level
+            return (None, None), block1
+        keep = model1._keep
+        keep["H"], keep["f"] = H1, f1  # DAQP's problem points at them (as daqp.Model's)
+        model1._has_solved = True
+        if stage == 0:
+            return ((x1, flag1), None), block1
+        if stage == 1:
+            return ((x1, flag1, (False, rows, rhs, -1), None), None), block1
+        H2, f2 = block2[:n], block2[n]
+        upper_done = (x1, flag1, (True, rows, rhs, n_eq2), block2)
+        if flag2 == LAYOUT_REFUSED:
+            return (upper_done, None), block1
+        keep = model2._keep
+        keep["H"], keep["f"] = H2, f2
+        model2._has_solved = True
+        if stage == 2:
+            return (upper_done, (x2, flag2, rate)), block1
+        backend2._n_eq = n_eq2
+        problem1 = _new(QPProblem)
+        problem1.__dict__.update(H=H1, f=f1, lower=lower, upper=upper, A=A0, b=b0, G=G, h=h, level=level1)
+        problem2 = _new(QPProblem)
+        problem2.__dict__.update(H=H2, f=f2, lower=lower, upper=upper, A=rows, b=rhs, G=G, h=h, level=level2)
+        return None, (x2, rate, [problem1, problem2])
 
     def _hard_equalities(self, hard, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Orthonormal equality rows of the hard tasks' ``(task, J, v)`` (``J`` None: ``I``)."""
@@ -808,11 +922,14 @@ class Solver:
             # DaqpBackend._update_solve inlined (the hot path): update's positional order is
             # (H, f, A, bupper, blower, sense), the order of the layout tuple after H and f.
             model = backend._model
-            if rows_changed:
-                model.update(H, f, *backend._layout)
-            else:  # only bounds and cost moved: skip copying the constraint matrix
-                model.update(H, f, None, backend._upper, backend._lower)
-            x, _, flag, _ = model.solve()
+            if rows_changed and type(model) is NativeModel:  # DAQP's C calls in one compiled call
+                x, flag = model.update_solve(H, f, *backend._layout)
+            else:
+                if rows_changed:
+                    model.update(H, f, *backend._layout)
+                else:  # only bounds and cost moved: skip copying the constraint matrix
+                    model.update(H, f, None, backend._upper, backend._lower)
+                x, _, flag, _ = model.solve()
             if flag < 0:
                 backend._raise_failure(problem, flag)
             if below and count <= 3 and A.dtype is _FLOAT64:
