@@ -64,6 +64,7 @@ from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import ConfigError, HarvestQPError, InvalidInputError
 from harvest_qp.interface import OBSTACLE, STEM, PointCloud, RobotInterface
 from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit
+from harvest_qp.loop import _tick_kernels
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
 from harvest_qp.references import (
     GraspFeedForward,
@@ -497,6 +498,7 @@ class HarvestController:
         #: fast path); False: a dict and a list of tuples (the generic protocol, the same log).
         self._row_log = True
         self._last_pair_names: tuple | None = None  # _active_pair_columns' last names (reused while unchanged)
+        self._references_out = np.empty(_tick_kernels.OUT_SIZE)  # _camera_references' kernel output
         #: Set to a dict to collect wall-clock times [s] per tick: "perception" (per new
         #: frame), "references" and "mapper" (the QP step or the pseudo-inverse).
         self.timing: dict[str, list[float]] | None = None
@@ -1008,6 +1010,56 @@ class HarvestController:
             return [(v + 0.0) + u for v, u in zip(V, self.unveiling._update_list(dt))]
         return [(v + 0.0) + 0.0 for v in V]
 
+    def _camera_references(self, T_c: np.ndarray, dt: float, rows: list,
+                           direction: np.ndarray) -> tuple[list[float], np.ndarray, float]:
+        """:meth:`_camera_twist` and :meth:`_roll_reference` of one tick: (V as 6 Python floats,
+        the roll twist, the roll angle [rad] or NaN), advancing the p_r and V_cu filters.
+
+        Speed (every tick): one compiled call (``_tick_kernels.camera_references``: the same
+        IEEE operations, numpy's dot products reproduced bit for bit) instead of ~20 small
+        numpy calls; np.arctan2 stays numpy's. The two Python methods remain the reference and
+        take over where the kernel does not apply (a zero filter time constant, no ROI centre
+        yet, the degenerate minimum rotation). ``rows``: ``T_c[:3].tolist()``.
+        """
+        reaching, unveiling = self.reaching, self.unveiling
+        s = self.settings
+        unveil = s["unveiling"]["enabled"]
+        tau_r, tau_u = reaching.roi_time_constant, unveiling.time_constant
+        if (
+            tau_r != 0.0
+            and (tau_u != 0.0 or not unveil)
+            and reaching.roi_centre is not None
+            and reaching._roi_target is not None
+        ):
+            r = s["reaching"]
+            out = self._references_out
+            p_r = np.empty(3)
+            value = np.empty(6)
+            u0, u1, u2 = direction.tolist()
+            if _tick_kernels.camera_references(
+                T_c, reaching.roi_centre, reaching._roi_target, -math.expm1(-dt / tau_r), reaching.radius**2,
+                reaching.k_cp, reaching.k_co, r["min_distance_factor"] * r["radius"], r["k_keep_out"],
+                unveil, unveiling.value, unveiling.raw, -math.expm1(-dt / tau_u) if unveil else 0.0,
+                u0, u1, u2, out, p_r, value,
+            ) == 0:
+                v0, v1, v2, v3, v4, v5, theta, distance, valid, roll_y, roll_x = out.tolist()
+                reaching.roi_centre = p_r
+                reaching.theta = theta
+                reaching.distance = distance
+                if unveil:
+                    unveiling.value = value
+                V = [v0, v1, v2, v3, v4, v5]
+                if not valid:
+                    return V, np.zeros(6), float("nan")
+                # np.arctan2 (not math.atan2, which differs in the last bit), as _roll_reference.
+                angle = _wrap_half_turn(float(np.arctan2(roll_y, roll_x)))
+                gain = s["roll"]["k_roll"] * angle
+                (_, _, z0, _), (_, _, z1, _), (_, _, z2, _) = rows
+                return V, np.array((0.0, 0.0, 0.0, gain * z0, gain * z1, gain * z2)), angle
+        V = self._camera_twist(T_c, dt, rows)
+        roll, roll_error = self._roll_reference(T_c, direction, rows)
+        return V, roll, roll_error
+
     def _hold_twist(self, T_g: np.ndarray) -> np.ndarray:
         """V_g of the approach: the grasping arm held at its initial pose (gain ``grasping.k_hold``).
 
@@ -1125,24 +1177,28 @@ class HarvestController:
         roi_distance = None
         if st.phase != Phase.ABORT:
             dt = self.dt
-            V = self._camera_twist(T_c, dt, rows_c)  # V_cr + keep-out + V_cu, 6 floats
+            if st.phase == Phase.APPROACH:
+                direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
+            else:
+                direction = self.stretching.n_c  # set at the switch (StemStretching.set_target)
+            # V_cr + keep-out + V_cu (6 floats) and the roll reference of the blade across the stem.
+            V, roll, roll_error = self._camera_references(T_c, dt, rows_c, direction)
             roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
             if st.phase == Phase.APPROACH:
                 V_g_floats = self._hold_twist_floats(T_g)
                 V_g = np.array(V_g_floats)
-                direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
             else:
                 # The wrist force is the robot's reading: checked as StemStretching.update does.
                 force = as_position(obs.force, "force") if t > st.t_switch else np.zeros(3)
                 stretching = self.stretching
-                V_g = stretching._update_unchecked(T_g, force, dt)
+                V_g_floats = stretching._update_floats(T_g, force, dt)
+                V_g = np.array(V_g_floats)
                 force_nc = stretching.force_along_nc  # float(n_c @ force)
                 if s["grasping"]["feed_forward"]:
                     (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = rows_c
                     b0, b1, b2 = st.p_sb.tolist()
-                    terms = self.feed_forward._terms(V_g[:3].tolist(), [c0 - b0, c1 - b1, c2 - b2])
+                    terms = self.feed_forward._terms(V_g_floats[:3], [c0 - b0, c1 - b1, c2 - b2])
                     V = [v + w for v, w in zip(V, terms)]
-                direction = stretching.n_c
                 if force_nc > self.force_limit:
                     self._abort(t, f"stem force {force_nc:.2f} N above the limit {self.force_limit:.2f} N")
                 else:
@@ -1156,7 +1212,6 @@ class HarvestController:
                     self._check_precut(t, st.force_filtered)
             V_c = np.array(V)
             V_c_floats = V
-            roll, roll_error = self._roll_reference(T_c, direction, rows_c)
 
         t_map = time.perf_counter() if timing is not None else 0.0
         if st.phase == Phase.ABORT:
