@@ -130,3 +130,20 @@ def camera_references(  # pragma: no cover (compiled)
     out[ROLL_Y] = _dot3(w0, w1, w2, z0, z1, z2)
     out[ROLL_X] = _dot3(y0, y1, y2, d0, d1, d2)
     return 0
+
+
+@njit(cache=True)
+def hold_terms(pose, hold_translation, hold_rotation_T, k, linear, rotation):  # pragma: no cover (compiled)
+    """The approach's hold twist before pinocchio's log3: ``linear`` = k (p_g - p_hold) [m/s] and
+    ``rotation`` = R_g R_hold^T, numpy's ``pose[:3, :3] @ hold_rotation_T`` bit for bit (OpenBLAS's
+    3x3 dgemm sums each entry as the same fused chain as its ddot, tests/loop/test_tick_kernels.py).
+
+    ``pose``: the gripper pose, float64 ``(4, 4)``; ``hold_translation`` float64 ``(3,)``;
+    ``hold_rotation_T`` float64 ``(3, 3)``; ``k`` = -k_hold; ``linear`` float64 ``(3,)`` and
+    ``rotation`` float64 ``(3, 3)`` receive the results.
+    """
+    for i in range(3):
+        linear[i] = k * (pose[i, 3] - hold_translation[i])
+        for j in range(3):
+            rotation[i, j] = _dot3(pose[i, 0], pose[i, 1], pose[i, 2],
+                                   hold_rotation_T[0, j], hold_rotation_T[1, j], hold_rotation_T[2, j])

@@ -215,6 +215,9 @@ _NAN3 = np.full(3, np.nan)
 _NAN3.setflags(write=False)
 _ZEROS6 = np.zeros(6)
 _ZEROS6.setflags(write=False)
+_ZEROS3 = np.zeros(3)
+_ZEROS3.setflags(write=False)
+_FLOAT64 = np.dtype(np.float64)
 
 
 #: The values logged every tick (``value/<name>``) after the tick's own ``roll_error`` and
@@ -491,7 +494,7 @@ class HarvestController:
         self.state = _State()
         self.dt = 0.002
         self._force_fraction_key: tuple[float, float] | None = None
-        self._force_fraction = np.float64(0.0)
+        self._force_fraction = 0.0
         self.snapshots: dict[str, FrameSnapshot] = {}
         self.switch_snapshot: SwitchSnapshot | None = None
         #: Hand the runner the tick's values as one row and the active pairs as columns (its
@@ -1071,10 +1074,13 @@ class HarvestController:
         """:meth:`_hold_twist` as 6 Python floats (the loop logs them without reading the array back)."""
         st = self.state
         k = -self.settings["grasping"]["k_hold"]
-        g0, g1, g2 = T_g[:3, 3].tolist()
-        h0, h1, h2 = st.hold_translation.tolist()
-        w0, w1, w2 = pin.log3(T_g[:3, :3] @ st.hold_rotation_T).tolist()
-        return [k * (g0 - h0), k * (g1 - h1), k * (g2 - h2), k * w0, k * w1, k * w2]
+        # k (p_g - p_hold) and R_g R_hold^T in one compiled call (numpy's matrix product bit for
+        # bit, _tick_kernels.hold_terms); log3 stays pinocchio's.
+        linear, rotation = np.empty(3), np.empty((3, 3))
+        _tick_kernels.hold_terms(T_g, st.hold_translation, st.hold_rotation_T, k, linear, rotation)
+        v0, v1, v2 = linear.tolist()
+        w0, w1, w2 = pin.log3(rotation).tolist()
+        return [v0, v1, v2, k * w0, k * w1, k * w2]
 
     def _keep_out(self, T_c: np.ndarray) -> np.ndarray:
         """Outward speed below the minimum distance from the ROI centre (beyond the paper).
@@ -1188,10 +1194,13 @@ class HarvestController:
                 V_g_floats = self._hold_twist_floats(T_g)
                 V_g = np.array(V_g_floats)
             else:
-                # The wrist force is the robot's reading: checked as StemStretching.update does.
-                force = as_position(obs.force, "force") if t > st.t_switch else np.zeros(3)
+                # The wrist force is the robot's reading: checked as StemStretching.update does
+                # (a float64 (3,) array's finiteness by the compiled law, before any state changes).
+                force = obs.force if t > st.t_switch else _ZEROS3
+                if type(force) is not np.ndarray or force.dtype is not _FLOAT64 or force.shape != (3,):
+                    force = as_position(force, "force")
                 stretching = self.stretching
-                V_g_floats = stretching._update_floats(T_g, force, dt)
+                V_g_floats = stretching._update_floats(T_g, force, dt, check_force="force")
                 V_g = np.array(V_g_floats)
                 force_nc = stretching.force_along_nc  # float(n_c @ force)
                 if s["grasping"]["feed_forward"]:
@@ -1279,13 +1288,15 @@ class HarvestController:
             done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
         return _command(qdot, status, values, pairs, done)
 
-    def _force_filter_fraction(self, dt: float, tau: float) -> np.float64:
+    def _force_filter_fraction(self, dt: float, tau: float) -> float:
         """-expm1(-dt / tau), the pre-cut force filter's step fraction: numpy's expm1 (as
         before; libm's may differ in the last bit), computed once per (dt, tau)."""
         key = (dt, tau)
         if self._force_fraction_key != key:
             self._force_fraction_key = key
-            self._force_fraction = -np.expm1(-dt / tau)
+            # A Python float (the same value): the filter and the pre-cut test then run on
+            # Python floats, not numpy scalars (the same IEEE operations, cheaper).
+            self._force_fraction = float(-np.expm1(-dt / tau))
         return self._force_fraction
 
     def _check_precut(self, t: float, force_nc: float) -> None:

@@ -52,7 +52,8 @@ def dot3(a0, a1, a2, b0, b1, b2):  # pragma: no cover (compiled)
 def stretching_terms(pose, n, target, f, k_og, out):  # pragma: no cover (compiled)
     """What :meth:`StemStretching.update` computes before its force command (which is stateful
     Python): into ``out`` n_c^T f [N], the projected position error (I - n n^T)(p_g - p_gd) [m],
-    v_gw [rad/s], its norm and the alignment angle [rad] (slots named in this module).
+    v_gw [rad/s], its norm and the alignment angle [rad] (slots named in this module); returns
+    whether ``f`` is finite.
 
     ``pose``: the gripper pose, float64 ``(4, 4)``; ``n``, ``target``, ``f``: float64 ``(3,)``
     (n_c, p_gd [m], the wrist force [N]); ``k_og`` > 0.
@@ -69,3 +70,4 @@ def stretching_terms(pose, n, target, f, k_og, out):  # pragma: no cover (compil
     out[W0], out[W0 + 1], out[W0 + 2] = w0, w1, w2
     out[POSITION_ERROR] = math.sqrt(dot3(q0, q1, q2, q0, q1, q2))  # np.linalg.norm(projected)
     out[ALIGNMENT] = math.atan2(math.sqrt(dot3(w0, w1, w2, w0, w1, w2)) / k_og, dot3(y0, y1, y2, n0, n1, n2))
+    return math.isfinite(f[0]) and math.isfinite(f[1]) and math.isfinite(f[2])

@@ -176,8 +176,13 @@ class StemStretching:
         """
         return np.array(self._update_floats(pose, f, dt))
 
-    def _update_floats(self, pose: NDArray[np.float64], f: NDArray[np.float64], dt: float) -> list[float]:
+    def _update_floats(self, pose: NDArray[np.float64], f: NDArray[np.float64], dt: float, *,
+                       check_force: str | None = None) -> list[float]:
         """:meth:`_update_unchecked` with V_g as 6 Python floats (the control loop reads them).
+
+        ``check_force``: a name; a non-finite ``f`` then raises ``as_position(f, name)``'s
+        :class:`InvalidInputError` before any state changes (the loop hands the robot's float64
+        ``(3,)`` reading unchecked: its finiteness is tested by the compiled call).
 
         Speed (every bimanual tick): the projections, v_gw and the diagnostics in one compiled
         call (``_kernels.stretching_terms``: :meth:`update`'s IEEE operations in the same order,
@@ -185,7 +190,8 @@ class StemStretching:
         command (stateful) and v_gt on Python floats, as :meth:`update` orders them.
         """
         out = self._kernel_out
-        stretching_terms(pose, self.n_c, self.target, f, self.k_og, out)
+        if not stretching_terms(pose, self.n_c, self.target, f, self.k_og, out) and check_force is not None:
+            as_position(f, check_force)  # raises, naming the argument
         force_along, q0, q1, q2, w0, w1, w2, position_error, alignment = out.tolist()
         command = self._force_command(force_along, dt)
         n0, n1, n2 = self.n_c.tolist()

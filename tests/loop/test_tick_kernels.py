@@ -212,3 +212,45 @@ def test_stretching_floats_equal_update():
             assert _bits(got) == _bits(expected)
             assert _bits(fast.v_gt) == _bits(checked.v_gt)
             assert [getattr(fast, n) for n in names] == [getattr(checked, n) for n in names]
+
+
+@pytest.mark.parametrize("layout", ["F", "C"])
+def test_hold_terms_equal_numpys_matrix_product(layout):
+    """R_g R_hold^T and k (p_g - p_hold) of ``_tick_kernels.hold_terms`` equal numpy's ``@`` and
+    the element-wise formula, with R_hold^T as the loop keeps it (a transposed view, F order) and
+    C-ordered. Catches: the product's entries summed in Python order (no fma) or transposed."""
+    from harvest_qp.loop._tick_kernels import hold_terms
+
+    rng = np.random.default_rng(37)
+    linear, rotation = np.empty(3), np.empty((3, 3))
+    for _ in range(2000):
+        pose, hold = random_pose(rng), random_pose(rng)
+        hold_rotation_T = hold[:3, :3].T if layout == "F" else hold[:3, :3].T.copy()
+        hold_translation = hold[:3, 3].copy()
+        hold_terms(pose, hold_translation, hold_rotation_T, -0.7, linear, rotation)
+        assert _bits(rotation) == _bits(pose[:3, :3] @ hold_rotation_T)
+        assert _bits(linear) == _bits(-0.7 * (pose[:3, 3] - hold_translation))
+
+
+@pytest.mark.parametrize("position", [0, 1, 2])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_stretching_refuses_a_non_finite_force_before_any_state_change(position, bad):
+    """With ``check_force`` a non-finite force raises InvalidInputError naming the argument, and
+    the force integral and diagnostics are left as they were (the loop hands the robot's reading
+    unchecked to this path). Catches: the finiteness test skipping a position, or run after the
+    force command advanced the integral."""
+    from harvest_qp.exceptions import InvalidInputError
+
+    law = StemStretching(integration_threshold=0.0)
+    law.set_target(np.zeros(3), np.array([0.0, 0.0, 0.1]))
+    pose = random_pose(np.random.default_rng(38))
+    law._update_floats(pose, np.array([0.0, 0.0, 200.0]), 0.002, check_force="force")  # saturates
+    state = ("integral", "saturated", "position_error", "alignment", "force_along_nc")
+    before = [getattr(law, name) for name in state] + [law.v_gt.tolist()]
+    assert law.saturated
+    force = np.array([0.5, -0.3, 2.0])
+    force[position] = bad
+    with pytest.raises(InvalidInputError, match="force"):
+        law._update_floats(pose, force, 0.002, check_force="force")
+    assert [getattr(law, name) for name in state] + [law.v_gt.tolist()] == before
+    assert len(law._update_floats(pose, force, 0.002)) == 6  # unchecked (as _update_unchecked): no error
