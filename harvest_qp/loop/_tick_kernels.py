@@ -35,10 +35,15 @@ from harvest_qp.references._kernels import dot3 as _dot3
 V0 = 0  # V_cr + keep-out + V_cu, 6 floats [m/s; rad/s]
 THETA = 6  # ReachingCentering.theta [rad]
 DISTANCE = 7  # ReachingCentering.distance = |p_r - p_c| [m]
-ROLL_VALID = 8  # 1.0 when the roll reference is defined (|direction projected| >= 1e-6), else 0.0
-ROLL_Y = 9  # (y_c x d) . z_c: np.arctan2's first argument
-ROLL_X = 10  # y_c . d: np.arctan2's second argument
+ROLL_Y = 8  # (y_c x d) . z_c: np.arctan2's first argument (when the roll is defined)
+ROLL_X = 9  # y_c . d: np.arctan2's second argument
+ROLL_ANGLE = 10  # left for the caller's np.arctan2(out[ROLL_Y], out[ROLL_X]) (written with out=)
 OUT_SIZE = 11
+
+# camera_references' return codes.
+DONE = 0  # every output written, the roll defined (ROLL_Y, ROLL_X)
+DONE_NO_ROLL = 2  # every output written; no roll (the direction is along z_c)
+DEGENERATE = 1  # nothing valid: the minimum rotation is degenerate (use the Python path)
 
 # eq:ktheta_world's axis is undefined below this sine (reaching._PARALLEL_SINE).
 _PARALLEL_SINE = 1e-12
@@ -55,8 +60,9 @@ def camera_references(  # pragma: no cover (compiled)
     pose, roi_centre, roi_target, roi_fraction, radius_squared, k_cp, k_co, keep_out_minimum, k_keep_out,
     unveil, value, raw, unveil_fraction, u0, u1, u2, out, p_r, new_value,
 ):
-    """The camera arm's references of one tick; 0 when done, 1 when the minimum rotation is
-    degenerate (``|p_r - p_c| = 0`` or z_c parallel to it: nothing is valid, use the Python path).
+    """The camera arm's references of one tick; returns :data:`DONE`, :data:`DONE_NO_ROLL`
+    (|direction projected normal to z_c| < 1e-6) or :data:`DEGENERATE` (``|p_r - p_c| = 0`` or
+    z_c parallel to it: nothing is valid, use the Python path).
 
     Args:
         pose: the camera pose, float64 ``(4, 4)``.
@@ -68,7 +74,7 @@ def camera_references(  # pragma: no cover (compiled)
         unveil: add V_cu (unveiling enabled); then ``value``, ``raw`` (float64 ``(6,)``) are
             its low-pass state and input and ``unveil_fraction`` its step fraction.
         u0, u1, u2: the roll reference's direction (the stem's) [unit].
-        out: float64, the slots named in this module (V, theta, distance, the roll's).
+        out: float64 ``(OUT_SIZE,)``, the slots named in this module (V, theta, distance, the roll's).
         p_r: float64 ``(3,)``, receives the new filtered p_r [m].
         new_value: float64 ``(6,)``, receives V_cu's new filter value (when ``unveil``).
     """
@@ -88,7 +94,7 @@ def camera_references(  # pragma: no cover (compiled)
     sine = math.sqrt(_dot3(x0, x1, x2, x0, x1, x2))
     cosine = _dot3(z0, z1, z2, e0, e1, e2)
     if norm_e == 0.0 or not sine > _PARALLEL_SINE * norm_e:
-        return 1
+        return DEGENERATE
     theta = math.atan2(sine, cosine)
     a0, a1, a2 = x0 / sine, x1 / sine, x2 / sine
     excess = squared - radius_squared
@@ -123,13 +129,11 @@ def camera_references(  # pragma: no cover (compiled)
     along = _dot3(u0, u1, u2, z0, z1, z2)
     d0, d1, d2 = u0 - along * z0, u1 - along * z1, u2 - along * z2
     if math.sqrt(_dot3(d0, d1, d2, d0, d1, d2)) < 1e-6:
-        out[ROLL_VALID] = 0.0
-        return 0
+        return DONE_NO_ROLL
     w0, w1, w2 = y1 * d2 - y2 * d1, y2 * d0 - y0 * d2, y0 * d1 - y1 * d0
-    out[ROLL_VALID] = 1.0
     out[ROLL_Y] = _dot3(w0, w1, w2, z0, z1, z2)
     out[ROLL_X] = _dot3(y0, y1, y2, d0, d1, d2)
-    return 0
+    return DONE
 
 
 @njit(cache=True)

@@ -415,6 +415,13 @@ def _pose_matrix(pose: pin.SE3) -> np.ndarray:
     return pose.homogeneous
 
 
+def _reference_buffers(out: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``out`` (``_tick_kernels.camera_references``' output) and 1-element views of its roll slots:
+    np.arctan2 on arrays, written with ``out=``, costs a third of its call on two scalars."""
+    k = _tick_kernels
+    return out, out[k.ROLL_Y:k.ROLL_Y + 1], out[k.ROLL_X:k.ROLL_X + 1], out[k.ROLL_ANGLE:k.ROLL_ANGLE + 1]
+
+
 def _wrap_half_turn(angle: float) -> float:
     """An angle between two undirected lines, in [-pi/2, pi/2]."""
     # On Python floats: the same IEEE operations as on numpy's float64 scalars (numpy's and
@@ -501,7 +508,10 @@ class HarvestController:
         #: fast path); False: a dict and a list of tuples (the generic protocol, the same log).
         self._row_log = True
         self._last_pair_names: tuple | None = None  # _active_pair_columns' last names (reused while unchanged)
-        self._references_out = np.empty(_tick_kernels.OUT_SIZE)  # _camera_references' kernel output
+        # _camera_references' kernel output and views of its roll slots (for np.arctan2's out=).
+        self._references_buffers = _reference_buffers(np.empty(_tick_kernels.OUT_SIZE))
+        self._filter_fractions_key: tuple | None = None
+        self._filter_fractions = (0.0, 0.0)
         #: Set to a dict to collect wall-clock times [s] per tick: "perception" (per new
         #: frame), "references" and "mapper" (the QP step or the pseudo-inverse).
         self.timing: dict[str, list[float]] | None = None
@@ -1034,28 +1044,39 @@ class HarvestController:
             and reaching.roi_centre is not None
             and reaching._roi_target is not None
         ):
+            key = (dt, tau_r, tau_u)
+            if self._filter_fractions_key != key:  # the filters' -expm1(-dt / tau), per (dt, tau)
+                self._filter_fractions_key = key
+                self._filter_fractions = (-math.expm1(-dt / tau_r), -math.expm1(-dt / tau_u) if tau_u else 0.0)
+            fraction_r, fraction_u = self._filter_fractions
             r = s["reaching"]
-            out = self._references_out
+            buffers = self._references_buffers
+            out, roll_y, roll_x, roll_angle = buffers
+            if roll_angle.base is not out:  # a copied controller (deepcopy, pickle): views made again
+                out, roll_y, roll_x, roll_angle = self._references_buffers = _reference_buffers(out)
             p_r = np.empty(3)
             value = np.empty(6)
             u0, u1, u2 = direction.tolist()
-            if _tick_kernels.camera_references(
-                T_c, reaching.roi_centre, reaching._roi_target, -math.expm1(-dt / tau_r), reaching.radius**2,
+            code = _tick_kernels.camera_references(
+                T_c, reaching.roi_centre, reaching._roi_target, fraction_r, reaching.radius**2,
                 reaching.k_cp, reaching.k_co, r["min_distance_factor"] * r["radius"], r["k_keep_out"],
-                unveil, unveiling.value, unveiling.raw, -math.expm1(-dt / tau_u) if unveil else 0.0,
-                u0, u1, u2, out, p_r, value,
-            ) == 0:
-                v0, v1, v2, v3, v4, v5, theta, distance, valid, roll_y, roll_x = out.tolist()
+                unveil, unveiling.value, unveiling.raw, fraction_u, u0, u1, u2, out, p_r, value,
+            )
+            if code != _tick_kernels.DEGENERATE:
+                if code == _tick_kernels.DONE:
+                    # np.arctan2 (not math.atan2, which differs in the last bit), as _roll_reference,
+                    # on views of the kernel's output and into it (a third of the scalar call's time).
+                    np.arctan2(roll_y, roll_x, out=roll_angle)
+                v0, v1, v2, v3, v4, v5, theta, distance, _, _, angle = out.tolist()
                 reaching.roi_centre = p_r
                 reaching.theta = theta
                 reaching.distance = distance
                 if unveil:
                     unveiling.value = value
                 V = [v0, v1, v2, v3, v4, v5]
-                if not valid:
+                if code != _tick_kernels.DONE:
                     return V, np.zeros(6), float("nan")
-                # np.arctan2 (not math.atan2, which differs in the last bit), as _roll_reference.
-                angle = _wrap_half_turn(float(np.arctan2(roll_y, roll_x)))
+                angle = (angle + math.pi / 2) % math.pi - math.pi / 2  # _wrap_half_turn
                 gain = s["roll"]["k_roll"] * angle
                 (_, _, z0, _), (_, _, z1, _), (_, _, z2, _) = rows
                 return V, np.array((0.0, 0.0, 0.0, gain * z0, gain * z1, gain * z2)), angle

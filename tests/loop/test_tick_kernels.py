@@ -254,3 +254,19 @@ def test_stretching_refuses_a_non_finite_force_before_any_state_change(position,
         law._update_floats(pose, force, 0.002, check_force="force")
     assert [getattr(law, name) for name in state] + [law.v_gt.tolist()] == before
     assert len(law._update_floats(pose, force, 0.002)) == 6  # unchecked (as _update_unchecked): no error
+
+
+def test_a_copied_controller_computes_the_same_references(controller):
+    """A deep copy (or an unpickled controller) has its own kernel output buffer; the roll's
+    np.arctan2 must read and write that buffer, not copies of the old views. Catches: the
+    views kept after a copy (the roll angle then read from a slot nothing wrote)."""
+    c = controller
+    rng = np.random.default_rng(39)
+    for i in (1, 3, 5, 9, 11, 13, 15, 17, 19, 23):  # none along the optical axis: every one rolls
+        pose, direction = _state(c, rng, i)
+        twin = copy.deepcopy(c)
+        got = twin._camera_references(pose, 0.002, pose[:3].tolist(), direction)
+        expected = c._camera_references(pose, 0.002, pose[:3].tolist(), direction)
+        for a, b in zip(got, expected):
+            assert _bits(a) == _bits(b)
+        assert not math.isnan(expected[2])
