@@ -1439,7 +1439,8 @@ class HarvestController:
             missing = ("map_cells",)
         layout = _LAYOUT_WITH_MAP if with_map else _LAYOUT_WITHOUT_MAP
         # np.fromiter: each Python float to float64 exactly, half the time of np.array(row).
-        return _ValueRow(layout, np.fromiter(row, np.float64, layout.width), missing)
+        # The missing names' slots hold NaN already (built above): no check needed (_built).
+        return _ValueRow._built(layout, np.fromiter(row, np.float64, layout.width), missing)
 
     def _active_pair_columns(self) -> _PairColumns | list:
         """:meth:`_active_pairs` as three columns (``runner._PairColumns``, read as the same
@@ -1448,8 +1449,9 @@ class HarvestController:
         if active is None:
             return []
         distances = getattr(lim, "_dist", None)
-        distances = (np.asarray(distances[active], dtype=np.float64) if distances is not None
-                     else np.full(active.size, np.nan))
+        # Python floats of float64 values (what _PairColumns' constructor made of the array).
+        distances = (np.asarray(distances[active], dtype=np.float64).tolist() if distances is not None
+                     else [math.nan] * active.size)
         names = lim.capsule_names
         a = lim.pair_a[active].tolist()
         b = lim.pair_b[active].tolist()
@@ -1464,7 +1466,7 @@ class HarvestController:
             first = list(map(lookup, a))
             second = list(map(lookup, b))
             self._last_pair_names = (a, b, list(names), first, second)
-        return _PairColumns(first, second, distances)
+        return _PairColumns._built(first, second, distances)  # lists of one length: no check needed
 
     # ------------------------------------------------------------------ summary
 

@@ -270,3 +270,25 @@ def test_a_copied_controller_computes_the_same_references(controller):
         for a, b in zip(got, expected):
             assert _bits(a) == _bits(b)
         assert not math.isnan(expected[2])
+
+
+def test_the_unchecked_row_and_columns_equal_the_checked_constructors():
+    """``_ValueRow._built`` / ``_PairColumns._built`` (the controller's per-tick constructors without
+    the checks) give what the checked constructors give for the same, well-formed data: same
+    attributes (types, values, bytes), same reading. Catches: attributes swapped or a missing
+    name dropped in the unchecked constructor."""
+    from harvest_qp.runner import _PairColumns, _ValueLayout, _ValueRow
+
+    layout = _ValueLayout([("a", ()), ("b", (3,)), ("c", ())])
+    row = np.array([1.5, 2.0, -0.0, 3.0, math.nan])
+    checked, built = _ValueRow(layout, row.copy(), ("c",)), _ValueRow._built(layout, row.copy(), ("c",))
+    assert (built.layout, built.missing) == (checked.layout, checked.missing)
+    assert built.row.tobytes() == checked.row.tobytes()
+    assert list(built) == list(checked) == ["a", "b"] and built["a"] == 1.5
+    assert _bits(built["b"]) == _bits(checked["b"])
+    distances = np.array([0.25, -0.0, 1e-3])
+    checked = _PairColumns(["x", "y", "z"], ["u", "v", "w"], distances)
+    built = _PairColumns._built(["x", "y", "z"], ["u", "v", "w"], distances.tolist())
+    assert (built.first, built.second) == (checked.first, checked.second)
+    assert type(built.distances) is list and _bits(built.distances) == _bits(checked.distances)
+    assert list(built) == list(checked) and built == checked
