@@ -25,6 +25,10 @@ from numba.extending import intrinsic
 
 __all__: list[str] = []
 
+# _NO_NRT: the per-tick kernels allocate nothing, so they are compiled without numba's reference-
+# counted runtime (``_nrt=False``): an array argument is then unboxed without a MemInfo allocated
+# and freed per call (measured: 8 array arguments 0.82 -> 0.55 us per call, hot).
+
 # stretching_terms' out slots.
 FORCE_ALONG, Q0, W0, POSITION_ERROR, ALIGNMENT, STRETCH_SIZE = 0, 1, 4, 7, 8, 9
 
@@ -48,7 +52,7 @@ def dot3(a0, a1, a2, b0, b1, b2):  # pragma: no cover (compiled)
     return _fma(a2, b2, _fma(a1, b1, _fma(a0, b0, 0.0)))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)  # see _NO_NRT
 def stretching_terms(pose, n, target, f, k_og, out):  # pragma: no cover (compiled)
     """What :meth:`StemStretching.update` computes before its force command (which is stateful
     Python): into ``out`` n_c^T f [N], the projected position error (I - n n^T)(p_g - p_gd) [m],
