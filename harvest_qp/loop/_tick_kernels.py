@@ -155,3 +155,38 @@ def hold_terms(pose, hold_translation, hold_rotation_T, k, linear, rotation):  #
         for j in range(3):
             rotation[i, j] = _dot3(pose[i, 0], pose[i, 1], pose[i, 2],
                                    hold_rotation_T[0, j], hold_rotation_T[1, j], hold_rotation_T[2, j])
+
+
+@njit(cache=True, _nrt=False)  # see _NO_NRT
+def log_row(  # pragma: no cover (compiled)
+    row, with_map, roll_error, map_cells, phase, p_r, pose, p_sb, p_gd, n_c, V_c, V_g, force_nc, theta,
+    roi_distance, position_error, alignment, unveiling_pairs,
+):
+    """:meth:`HarvestController._log_row`'s float64 row, written into ``row`` (copies only):
+    ``roll_error``, ``map_cells`` (when ``with_map``), ``phase``, p_r, p_c, z_c, x_c (from
+    ``pose``), p_sb, p_gd, n_c (float64 ``(3,)``), V_c, V_g (float64 ``(6,)``) and the six scalars,
+    in the layout's order (``controller._LOGGED_VALUES``)."""
+    row[0] = roll_error
+    i = 1
+    if with_map:
+        row[1] = map_cells
+        i = 2
+    row[i] = phase
+    for j in range(3):
+        row[i + 1 + j] = p_r[j]
+        row[i + 4 + j] = pose[j, 3]
+        row[i + 7 + j] = pose[j, 2]
+        row[i + 10 + j] = pose[j, 0]
+        row[i + 13 + j] = p_sb[j]
+        row[i + 16 + j] = p_gd[j]
+        row[i + 19 + j] = n_c[j]
+    for j in range(6):
+        row[i + 22 + j] = V_c[j]
+        row[i + 28 + j] = V_g[j]
+    i += 34
+    row[i] = force_nc
+    row[i + 1] = theta
+    row[i + 2] = roi_distance
+    row[i + 3] = position_error
+    row[i + 4] = alignment
+    row[i + 5] = unveiling_pairs

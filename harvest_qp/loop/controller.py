@@ -215,9 +215,11 @@ _NAN3 = np.full(3, np.nan)
 _NAN3.setflags(write=False)
 _ZEROS6 = np.zeros(6)
 _ZEROS6.setflags(write=False)
-_ZEROS3 = np.zeros(3)
-_ZEROS3.setflags(write=False)
 _FLOAT64 = np.dtype(np.float64)
+#: Writable twins of _NAN3 / _ZEROS6, handed only to the compiled row copy (which reads them): numba
+#: compiles a read-only array argument as another type (a second compilation, not a second result).
+_NAN3_KERNEL = np.full(3, np.nan)
+_ZEROS6_KERNEL = np.zeros(6)
 
 
 #: The values logged every tick (``value/<name>``) after the tick's own ``roll_error`` and
@@ -413,6 +415,13 @@ def _pose_matrix(pose: pin.SE3) -> np.ndarray:
     """The ``(4, 4)`` homogeneous matrix of ``pose``: a new C-ordered array (pinocchio's own
     ``homogeneous``, the same numbers as filling ``np.eye(4)``, ~10x cheaper)."""
     return pose.homogeneous
+
+
+def _missing_names(roll_error: float | None, map_cells: float | None, with_map: bool) -> tuple[str, ...]:
+    """The tick's value names not given (``_ValueRow.missing``) of the row layouts."""
+    if roll_error is None:
+        return ("roll_error", "map_cells") if with_map and map_cells is None else ("roll_error",)
+    return ("map_cells",) if with_map and map_cells is None else ()
 
 
 def _reference_buffers(out: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -1194,7 +1203,6 @@ class HarvestController:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
         roll_error = None  # logged as value/roll_error when the references ran
-        V_c_floats = None  # V_c as Python floats (when the references ran)
         V_g_floats = None  # V_g as Python floats (the approach's hold twist)
         map_cells = None  # logged as value/map_cells when the map fed the QP
         V_c = _ZEROS6
@@ -1217,7 +1225,7 @@ class HarvestController:
             else:
                 # The wrist force is the robot's reading: checked as StemStretching.update does
                 # (a float64 (3,) array's finiteness by the compiled law, before any state changes).
-                force = obs.force if t > st.t_switch else _ZEROS3
+                force = obs.force if t > st.t_switch else np.zeros(3)
                 if type(force) is not np.ndarray or force.dtype is not _FLOAT64 or force.shape != (3,):
                     force = as_position(force, "force")
                 stretching = self.stretching
@@ -1241,7 +1249,6 @@ class HarvestController:
                         st.force_filtered += self._force_filter_fraction(dt, tau) * (force_nc - st.force_filtered)
                     self._check_precut(t, st.force_filtered)
             V_c = np.array(V)
-            V_c_floats = V
 
         t_map = time.perf_counter() if timing is not None else 0.0
         if st.phase == Phase.ABORT:
@@ -1289,9 +1296,7 @@ class HarvestController:
         st.previous_qdot = qdot
 
         if self._row_log:
-            values = self._log_row(T_c, V_c if V_c_floats is None else V_c_floats,
-                                   V_g if V_g_floats is None else V_g_floats, force_nc, roi_distance,
-                                   roll_error, map_cells, rows=rows_c)
+            values = self._log_row(T_c, V_c, V_g, force_nc, roi_distance, roll_error, map_cells, rows=rows_c)
             pairs = self._active_pair_columns()
         else:  # the generic protocol: a dict of values, a list of pair tuples
             values = {}
@@ -1418,6 +1423,23 @@ class HarvestController:
         if roi_distance is None:
             offset = reaching.roi_centre - T_c[:3, 3]
             roi_distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+        if type(V_c) is np.ndarray and type(V_g) is np.ndarray and reaching.roi_centre is not None:
+            # The loop's path (V_c and V_g are the arrays it handed to the QP): the row written
+            # by one compiled copy (_tick_kernels.log_row) instead of ~8 tolist and a list of 44
+            # floats; the same values (copies), NaN where the floats below put NaN.
+            nan = math.nan
+            with_map = self.map_feed is not None
+            layout = _LAYOUT_WITH_MAP if with_map else _LAYOUT_WITHOUT_MAP
+            row = np.empty(layout.width)
+            _tick_kernels.log_row(
+                row, with_map, nan if roll_error is None else roll_error, nan if map_cells is None else map_cells,
+                float(phase), reaching.roi_centre, T_c, _NAN3_KERNEL if st.p_sb is None else st.p_sb,
+                _NAN3_KERNEL if st.p_gd is None else st.p_gd, stretching.n_c if bimanual else _NAN3_KERNEL,
+                _ZEROS6_KERNEL if V_c is _ZEROS6 else V_c, _ZEROS6_KERNEL if V_g is _ZEROS6 else V_g, force_nc,
+                reaching.theta, roi_distance, stretching.position_error if bimanual else nan,
+                stretching.alignment if bimanual else nan, float(self.unveiling.n_pairs),
+            )
+            return _ValueRow._built(layout, row, _missing_names(roll_error, map_cells, with_map))
         (x0, _, z0, c0), (x1, _, z1, c1), (x2, _, z2, c2) = T_c[:3].tolist() if rows is None else rows
         nan = math.nan
         with_map = self.map_feed is not None
@@ -1432,11 +1454,7 @@ class HarvestController:
         row += V_g if type(V_g) is list else V_g.tolist()  # the hold twist's floats in the approach
         row += (force_nc, reaching.theta, roi_distance, stretching.position_error if bimanual else nan,
                 stretching.alignment if bimanual else nan, float(self.unveiling.n_pairs))
-        missing = ()
-        if roll_error is None:
-            missing = ("roll_error", "map_cells") if with_map and map_cells is None else ("roll_error",)
-        elif with_map and map_cells is None:
-            missing = ("map_cells",)
+        missing = _missing_names(roll_error, map_cells, with_map)
         layout = _LAYOUT_WITH_MAP if with_map else _LAYOUT_WITHOUT_MAP
         # np.fromiter: each Python float to float64 exactly, half the time of np.array(row).
         # The missing names' slots hold NaN already (built above): no check needed (_built).
