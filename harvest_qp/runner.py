@@ -330,6 +330,15 @@ class _ValueRow(Mapping):
         self.row = row
         self.missing = missing
 
+    @classmethod
+    def _built(cls, layout: _ValueLayout, row: NDArray[np.float64], missing: tuple[str, ...]) -> _ValueRow:
+        """A row the library's controller built itself (a new float64 ``(layout.width,)`` array
+        from ``np.fromiter``, NaN already in the missing names' slots): the constructor's checks
+        skipped, every tick (the runner still checks the row's dtype and length)."""
+        values = _new_object(cls)
+        values.layout, values.row, values.missing = layout, row, missing
+        return values
+
     def __getitem__(self, name: str) -> float | NDArray[np.float64]:
         layout = self.layout
         i = layout.index[name]  # KeyError for an unknown name
@@ -382,6 +391,14 @@ class _PairColumns(Sequence):
         self.first = first
         self.second = second
         self.distances = distances.tolist()  # Python floats, as the generic check's float(distance)
+
+    @classmethod
+    def _built(cls, first: list[str], second: list[str], distances: list[float]) -> _PairColumns:
+        """Columns the library's controller built itself (two name lists and the distances as a
+        list of Python floats, all of one length): the constructor's checks skipped, every tick."""
+        columns = _new_object(cls)
+        columns.first, columns.second, columns.distances = first, second, distances
+        return columns
 
     def __len__(self) -> int:
         return len(self.distances)

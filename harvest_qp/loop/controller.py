@@ -64,6 +64,7 @@ from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import ConfigError, HarvestQPError, InvalidInputError
 from harvest_qp.interface import OBSTACLE, STEM, PointCloud, RobotInterface
 from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit
+from harvest_qp.loop import _tick_kernels
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
 from harvest_qp.references import (
     GraspFeedForward,
@@ -214,6 +215,11 @@ _NAN3 = np.full(3, np.nan)
 _NAN3.setflags(write=False)
 _ZEROS6 = np.zeros(6)
 _ZEROS6.setflags(write=False)
+_FLOAT64 = np.dtype(np.float64)
+#: Writable twins of _NAN3 / _ZEROS6, handed only to the compiled row copy (which reads them): numba
+#: compiles a read-only array argument as another type (a second compilation, not a second result).
+_NAN3_KERNEL = np.full(3, np.nan)
+_ZEROS6_KERNEL = np.zeros(6)
 
 
 #: The values logged every tick (``value/<name>``) after the tick's own ``roll_error`` and
@@ -411,6 +417,20 @@ def _pose_matrix(pose: pin.SE3) -> np.ndarray:
     return pose.homogeneous
 
 
+def _missing_names(roll_error: float | None, map_cells: float | None, with_map: bool) -> tuple[str, ...]:
+    """The tick's value names not given (``_ValueRow.missing``) of the row layouts."""
+    if roll_error is None:
+        return ("roll_error", "map_cells") if with_map and map_cells is None else ("roll_error",)
+    return ("map_cells",) if with_map and map_cells is None else ()
+
+
+def _reference_buffers(out: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``out`` (``_tick_kernels.camera_references``' output) and 1-element views of its roll slots:
+    np.arctan2 on arrays, written with ``out=``, costs a third of its call on two scalars."""
+    k = _tick_kernels
+    return out, out[k.ROLL_Y:k.ROLL_Y + 1], out[k.ROLL_X:k.ROLL_X + 1], out[k.ROLL_ANGLE:k.ROLL_ANGLE + 1]
+
+
 def _wrap_half_turn(angle: float) -> float:
     """An angle between two undirected lines, in [-pi/2, pi/2]."""
     # On Python floats: the same IEEE operations as on numpy's float64 scalars (numpy's and
@@ -490,13 +510,17 @@ class HarvestController:
         self.state = _State()
         self.dt = 0.002
         self._force_fraction_key: tuple[float, float] | None = None
-        self._force_fraction = np.float64(0.0)
+        self._force_fraction = 0.0
         self.snapshots: dict[str, FrameSnapshot] = {}
         self.switch_snapshot: SwitchSnapshot | None = None
         #: Hand the runner the tick's values as one row and the active pairs as columns (its
         #: fast path); False: a dict and a list of tuples (the generic protocol, the same log).
         self._row_log = True
         self._last_pair_names: tuple | None = None  # _active_pair_columns' last names (reused while unchanged)
+        # _camera_references' kernel output and views of its roll slots (for np.arctan2's out=).
+        self._references_buffers = _reference_buffers(np.empty(_tick_kernels.OUT_SIZE))
+        self._filter_fractions_key: tuple | None = None
+        self._filter_fractions = (0.0, 0.0)
         #: Set to a dict to collect wall-clock times [s] per tick: "perception" (per new
         #: frame), "references" and "mapper" (the QP step or the pseudo-inverse).
         self.timing: dict[str, list[float]] | None = None
@@ -1008,6 +1032,67 @@ class HarvestController:
             return [(v + 0.0) + u for v, u in zip(V, self.unveiling._update_list(dt))]
         return [(v + 0.0) + 0.0 for v in V]
 
+    def _camera_references(self, T_c: np.ndarray, dt: float, rows: list,
+                           direction: np.ndarray) -> tuple[list[float], np.ndarray, float]:
+        """:meth:`_camera_twist` and :meth:`_roll_reference` of one tick: (V as 6 Python floats,
+        the roll twist, the roll angle [rad] or NaN), advancing the p_r and V_cu filters.
+
+        Speed (every tick): one compiled call (``_tick_kernels.camera_references``: the same
+        IEEE operations, numpy's dot products reproduced bit for bit) instead of ~20 small
+        numpy calls; np.arctan2 stays numpy's. The two Python methods remain the reference and
+        take over where the kernel does not apply (a zero filter time constant, no ROI centre
+        yet, the degenerate minimum rotation). ``rows``: ``T_c[:3].tolist()``.
+        """
+        reaching, unveiling = self.reaching, self.unveiling
+        s = self.settings
+        unveil = s["unveiling"]["enabled"]
+        tau_r, tau_u = reaching.roi_time_constant, unveiling.time_constant
+        if (
+            tau_r != 0.0
+            and (tau_u != 0.0 or not unveil)
+            and reaching.roi_centre is not None
+            and reaching._roi_target is not None
+        ):
+            key = (dt, tau_r, tau_u)
+            if self._filter_fractions_key != key:  # the filters' -expm1(-dt / tau), per (dt, tau)
+                self._filter_fractions_key = key
+                self._filter_fractions = (-math.expm1(-dt / tau_r), -math.expm1(-dt / tau_u) if tau_u else 0.0)
+            fraction_r, fraction_u = self._filter_fractions
+            r = s["reaching"]
+            buffers = self._references_buffers
+            out, roll_y, roll_x, roll_angle = buffers
+            if roll_angle.base is not out:  # a copied controller (deepcopy, pickle): views made again
+                out, roll_y, roll_x, roll_angle = self._references_buffers = _reference_buffers(out)
+            p_r = np.empty(3)
+            value = np.empty(6)
+            u0, u1, u2 = direction.tolist()
+            code = _tick_kernels.camera_references(
+                T_c, reaching.roi_centre, reaching._roi_target, fraction_r, reaching.radius**2,
+                reaching.k_cp, reaching.k_co, r["min_distance_factor"] * r["radius"], r["k_keep_out"],
+                unveil, unveiling.value, unveiling.raw, fraction_u, u0, u1, u2, out, p_r, value,
+            )
+            if code != _tick_kernels.DEGENERATE:
+                if code == _tick_kernels.DONE:
+                    # np.arctan2 (not math.atan2, which differs in the last bit), as _roll_reference,
+                    # on views of the kernel's output and into it (a third of the scalar call's time).
+                    np.arctan2(roll_y, roll_x, out=roll_angle)
+                v0, v1, v2, v3, v4, v5, theta, distance, _, _, angle = out.tolist()
+                reaching.roi_centre = p_r
+                reaching.theta = theta
+                reaching.distance = distance
+                if unveil:
+                    unveiling.value = value
+                V = [v0, v1, v2, v3, v4, v5]
+                if code != _tick_kernels.DONE:
+                    return V, np.zeros(6), float("nan")
+                angle = (angle + math.pi / 2) % math.pi - math.pi / 2  # _wrap_half_turn
+                gain = s["roll"]["k_roll"] * angle
+                (_, _, z0, _), (_, _, z1, _), (_, _, z2, _) = rows
+                return V, np.array((0.0, 0.0, 0.0, gain * z0, gain * z1, gain * z2)), angle
+        V = self._camera_twist(T_c, dt, rows)
+        roll, roll_error = self._roll_reference(T_c, direction, rows)
+        return V, roll, roll_error
+
     def _hold_twist(self, T_g: np.ndarray) -> np.ndarray:
         """V_g of the approach: the grasping arm held at its initial pose (gain ``grasping.k_hold``).
 
@@ -1019,10 +1104,13 @@ class HarvestController:
         """:meth:`_hold_twist` as 6 Python floats (the loop logs them without reading the array back)."""
         st = self.state
         k = -self.settings["grasping"]["k_hold"]
-        g0, g1, g2 = T_g[:3, 3].tolist()
-        h0, h1, h2 = st.hold_translation.tolist()
-        w0, w1, w2 = pin.log3(T_g[:3, :3] @ st.hold_rotation_T).tolist()
-        return [k * (g0 - h0), k * (g1 - h1), k * (g2 - h2), k * w0, k * w1, k * w2]
+        # k (p_g - p_hold) and R_g R_hold^T in one compiled call (numpy's matrix product bit for
+        # bit, _tick_kernels.hold_terms); log3 stays pinocchio's.
+        linear, rotation = np.empty(3), np.empty((3, 3))
+        _tick_kernels.hold_terms(T_g, st.hold_translation, st.hold_rotation_T, k, linear, rotation)
+        v0, v1, v2 = linear.tolist()
+        w0, w1, w2 = pin.log3(rotation).tolist()
+        return [v0, v1, v2, k * w0, k * w1, k * w2]
 
     def _keep_out(self, T_c: np.ndarray) -> np.ndarray:
         """Outward speed below the minimum distance from the ROI centre (beyond the paper).
@@ -1115,7 +1203,6 @@ class HarvestController:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
         roll_error = None  # logged as value/roll_error when the references ran
-        V_c_floats = None  # V_c as Python floats (when the references ran)
         V_g_floats = None  # V_g as Python floats (the approach's hold twist)
         map_cells = None  # logged as value/map_cells when the map fed the QP
         V_c = _ZEROS6
@@ -1125,24 +1212,31 @@ class HarvestController:
         roi_distance = None
         if st.phase != Phase.ABORT:
             dt = self.dt
-            V = self._camera_twist(T_c, dt, rows_c)  # V_cr + keep-out + V_cu, 6 floats
+            if st.phase == Phase.APPROACH:
+                direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
+            else:
+                direction = self.stretching.n_c  # set at the switch (StemStretching.set_target)
+            # V_cr + keep-out + V_cu (6 floats) and the roll reference of the blade across the stem.
+            V, roll, roll_error = self._camera_references(T_c, dt, rows_c, direction)
             roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
             if st.phase == Phase.APPROACH:
                 V_g_floats = self._hold_twist_floats(T_g)
                 V_g = np.array(V_g_floats)
-                direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
             else:
-                # The wrist force is the robot's reading: checked as StemStretching.update does.
-                force = as_position(obs.force, "force") if t > st.t_switch else np.zeros(3)
+                # The wrist force is the robot's reading: checked as StemStretching.update does
+                # (a float64 (3,) array's finiteness by the compiled law, before any state changes).
+                force = obs.force if t > st.t_switch else np.zeros(3)
+                if type(force) is not np.ndarray or force.dtype is not _FLOAT64 or force.shape != (3,):
+                    force = as_position(force, "force")
                 stretching = self.stretching
-                V_g = stretching._update_unchecked(T_g, force, dt)
+                V_g_floats = stretching._update_floats(T_g, force, dt, check_force="force")
+                V_g = np.array(V_g_floats)
                 force_nc = stretching.force_along_nc  # float(n_c @ force)
                 if s["grasping"]["feed_forward"]:
                     (_, _, _, c0), (_, _, _, c1), (_, _, _, c2) = rows_c
                     b0, b1, b2 = st.p_sb.tolist()
-                    terms = self.feed_forward._terms(V_g[:3].tolist(), [c0 - b0, c1 - b1, c2 - b2])
+                    terms = self.feed_forward._terms(V_g_floats[:3], [c0 - b0, c1 - b1, c2 - b2])
                     V = [v + w for v, w in zip(V, terms)]
-                direction = stretching.n_c
                 if force_nc > self.force_limit:
                     self._abort(t, f"stem force {force_nc:.2f} N above the limit {self.force_limit:.2f} N")
                 else:
@@ -1155,8 +1249,6 @@ class HarvestController:
                         st.force_filtered += self._force_filter_fraction(dt, tau) * (force_nc - st.force_filtered)
                     self._check_precut(t, st.force_filtered)
             V_c = np.array(V)
-            V_c_floats = V
-            roll, roll_error = self._roll_reference(T_c, direction, rows_c)
 
         t_map = time.perf_counter() if timing is not None else 0.0
         if st.phase == Phase.ABORT:
@@ -1204,9 +1296,7 @@ class HarvestController:
         st.previous_qdot = qdot
 
         if self._row_log:
-            values = self._log_row(T_c, V_c if V_c_floats is None else V_c_floats,
-                                   V_g if V_g_floats is None else V_g_floats, force_nc, roi_distance,
-                                   roll_error, map_cells, rows=rows_c)
+            values = self._log_row(T_c, V_c, V_g, force_nc, roi_distance, roll_error, map_cells, rows=rows_c)
             pairs = self._active_pair_columns()
         else:  # the generic protocol: a dict of values, a list of pair tuples
             values = {}
@@ -1224,13 +1314,15 @@ class HarvestController:
             done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
         return _command(qdot, status, values, pairs, done)
 
-    def _force_filter_fraction(self, dt: float, tau: float) -> np.float64:
+    def _force_filter_fraction(self, dt: float, tau: float) -> float:
         """-expm1(-dt / tau), the pre-cut force filter's step fraction: numpy's expm1 (as
         before; libm's may differ in the last bit), computed once per (dt, tau)."""
         key = (dt, tau)
         if self._force_fraction_key != key:
             self._force_fraction_key = key
-            self._force_fraction = -np.expm1(-dt / tau)
+            # A Python float (the same value): the filter and the pre-cut test then run on
+            # Python floats, not numpy scalars (the same IEEE operations, cheaper).
+            self._force_fraction = float(-np.expm1(-dt / tau))
         return self._force_fraction
 
     def _check_precut(self, t: float, force_nc: float) -> None:
@@ -1331,6 +1423,23 @@ class HarvestController:
         if roi_distance is None:
             offset = reaching.roi_centre - T_c[:3, 3]
             roi_distance = math.sqrt(float(offset @ offset))  # = np.linalg.norm, bit for bit
+        if type(V_c) is np.ndarray and type(V_g) is np.ndarray and reaching.roi_centre is not None:
+            # The loop's path (V_c and V_g are the arrays it handed to the QP): the row written
+            # by one compiled copy (_tick_kernels.log_row) instead of ~8 tolist and a list of 44
+            # floats; the same values (copies), NaN where the floats below put NaN.
+            nan = math.nan
+            with_map = self.map_feed is not None
+            layout = _LAYOUT_WITH_MAP if with_map else _LAYOUT_WITHOUT_MAP
+            row = np.empty(layout.width)
+            _tick_kernels.log_row(
+                row, with_map, nan if roll_error is None else roll_error, nan if map_cells is None else map_cells,
+                float(phase), reaching.roi_centre, T_c, _NAN3_KERNEL if st.p_sb is None else st.p_sb,
+                _NAN3_KERNEL if st.p_gd is None else st.p_gd, stretching.n_c if bimanual else _NAN3_KERNEL,
+                _ZEROS6_KERNEL if V_c is _ZEROS6 else V_c, _ZEROS6_KERNEL if V_g is _ZEROS6 else V_g, force_nc,
+                reaching.theta, roi_distance, stretching.position_error if bimanual else nan,
+                stretching.alignment if bimanual else nan, float(self.unveiling.n_pairs),
+            )
+            return _ValueRow._built(layout, row, _missing_names(roll_error, map_cells, with_map))
         (x0, _, z0, c0), (x1, _, z1, c1), (x2, _, z2, c2) = T_c[:3].tolist() if rows is None else rows
         nan = math.nan
         with_map = self.map_feed is not None
@@ -1345,14 +1454,11 @@ class HarvestController:
         row += V_g if type(V_g) is list else V_g.tolist()  # the hold twist's floats in the approach
         row += (force_nc, reaching.theta, roi_distance, stretching.position_error if bimanual else nan,
                 stretching.alignment if bimanual else nan, float(self.unveiling.n_pairs))
-        missing = ()
-        if roll_error is None:
-            missing = ("roll_error", "map_cells") if with_map and map_cells is None else ("roll_error",)
-        elif with_map and map_cells is None:
-            missing = ("map_cells",)
+        missing = _missing_names(roll_error, map_cells, with_map)
         layout = _LAYOUT_WITH_MAP if with_map else _LAYOUT_WITHOUT_MAP
         # np.fromiter: each Python float to float64 exactly, half the time of np.array(row).
-        return _ValueRow(layout, np.fromiter(row, np.float64, layout.width), missing)
+        # The missing names' slots hold NaN already (built above): no check needed (_built).
+        return _ValueRow._built(layout, np.fromiter(row, np.float64, layout.width), missing)
 
     def _active_pair_columns(self) -> _PairColumns | list:
         """:meth:`_active_pairs` as three columns (``runner._PairColumns``, read as the same
@@ -1361,8 +1467,9 @@ class HarvestController:
         if active is None:
             return []
         distances = getattr(lim, "_dist", None)
-        distances = (np.asarray(distances[active], dtype=np.float64) if distances is not None
-                     else np.full(active.size, np.nan))
+        # Python floats of float64 values (what _PairColumns' constructor made of the array).
+        distances = (np.asarray(distances[active], dtype=np.float64).tolist() if distances is not None
+                     else [math.nan] * active.size)
         names = lim.capsule_names
         a = lim.pair_a[active].tolist()
         b = lim.pair_b[active].tolist()
@@ -1377,7 +1484,7 @@ class HarvestController:
             first = list(map(lookup, a))
             second = list(map(lookup, b))
             self._last_pair_names = (a, b, list(names), first, second)
-        return _PairColumns(first, second, distances)
+        return _PairColumns._built(first, second, distances)  # lists of one length: no check needed
 
     # ------------------------------------------------------------------ summary
 

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.references._checks import as_position, as_positive_scalar
+from harvest_qp.references._kernels import dot3
 
 __all__ = ["GraspFeedForward", "switch_ready"]
 
@@ -56,14 +57,14 @@ class GraspFeedForward:
 
         The same IEEE operations in the same order as :meth:`__call__` (the cross product's
         two products and one difference per entry, the division) and numpy's dot product for
-        |p_c - p_sb|^2: bit-identical (tests/references/test_unchecked_paths.py).
+        |p_c - p_sb|^2 (reproduced by ``_kernels.dot3``): bit-identical
+        (tests/references/test_unchecked_paths.py).
         """
         v0, v1, v2 = v
         l0, l1, l2 = lever
         a0, a1, a2 = l1 * v2 - l2 * v1, l2 * v0 - l0 * v2, l0 * v1 - l1 * v0  # S(p_c - p_sb) v_gt
         if self.normalise:
-            arm = np.array(lever)
-            squared = float(arm.dot(arm))
+            squared = dot3(l0, l1, l2, l0, l1, l2)  # numpy's lever @ lever, bit for bit, without an array
             if squared > 0.0:
                 a0, a1, a2 = a0 / squared, a1 / squared, a2 / squared
             else:
