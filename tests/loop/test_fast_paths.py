@@ -21,7 +21,7 @@ from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
 from harvest_qp.loop.settings import check_settings
-from tests.helpers import random_pose
+from tests.helpers import assert_as_numpy, random_pose
 
 
 def _bits(values) -> list[int]:
@@ -98,7 +98,7 @@ def test_hold_twist_equals_the_numpy_formula(controller):
         expected = np.zeros(6)
         expected[:3] = -k * (T_g[:3, 3] - hold.translation)
         expected[3:] = -k * pin.log3(T_g[:3, :3] @ hold.rotation.T)
-        assert _bits(c._hold_twist(T_g)) == _bits(expected)
+        assert_as_numpy(c._hold_twist(T_g), expected)
 
 
 def _roll_reference_numpy(k_roll: float, T_c: np.ndarray, direction: np.ndarray):

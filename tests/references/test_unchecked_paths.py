@@ -19,7 +19,7 @@ import pytest
 
 from harvest_qp.references import GraspFeedForward, ReachingCentering, StemStretching, Unveiling
 from harvest_qp.references._checks import cross3, cross_rows
-from tests.helpers import random_pose
+from tests.helpers import assert_as_numpy, random_pose
 
 
 def _bits(values) -> list[int]:
@@ -91,9 +91,9 @@ def test_stretching_fast_path_equals_update():
             force = 4.0 * rng.normal(size=3)
             expected = checked.update(pose, force, 0.002)
             got = fast._update_unchecked(pose, force.copy(), 0.002)
-            assert _bits(got) == _bits(expected)
-            assert _bits(fast.v_gt) == _bits(checked.v_gt)
-            assert [getattr(fast, n) for n in names] == [getattr(checked, n) for n in names]
+            assert_as_numpy(got, expected)
+            assert_as_numpy(fast.v_gt, checked.v_gt)
+            assert_as_numpy([getattr(fast, n) for n in names], [getattr(checked, n) for n in names])
 
 
 @pytest.mark.parametrize("normalise", [True, False])
@@ -104,8 +104,8 @@ def test_feed_forward_fast_path_equals_call(normalise):
     for _ in range(2000):
         v, camera, stem_base = 0.05 * rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
         lever = (camera - stem_base).tolist()
-        assert _bits(law._terms(v.tolist(), lever)) == _bits(law(v, camera, stem_base))
-    assert _bits(law._terms([0.1, 0.0, 0.0], [0.0, 0.0, 0.0])) == _bits(law([0.1, 0.0, 0.0], np.zeros(3), np.zeros(3)))
+        assert_as_numpy(law._terms(v.tolist(), lever), law(v, camera, stem_base))
+    assert_as_numpy(law._terms([0.1, 0.0, 0.0], [0.0, 0.0, 0.0]), law([0.1, 0.0, 0.0], np.zeros(3), np.zeros(3)))
 
 
 @pytest.mark.parametrize("time_constant", [0.2, 0.0])
