@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-__all__ = ["CONTACT_KINDS", "ContactMonitor"]
+__all__ = ["CONTACT_KINDS", "ContactCertificate", "ContactMonitor"]
 
 #: Contact kinds counted by :meth:`ContactMonitor.contact_counts`, in this order.
 CONTACT_KINDS = ("arm_arm", "arm_vine", "arm_stand", "arm_floor")
@@ -363,3 +363,306 @@ def _segment_distances(p1: NDArray, q1: NDArray, p2: NDArray, q2: NDArray) -> ND
         for j in range(m):
             out[i, j] = _pair_distance(p1, q1, i, p2, q2, j)
     return out
+
+
+#: MuJoCo's flags (mjtDisableBit / mjtEnableBit) the contact certificate reads.
+_DSBL_CONSTRAINT = int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+_DSBL_CONTACT = int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+_DSBL_FILTERPARENT = int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
+_ENBL_OVERRIDE = int(mujoco.mjtEnableBit.mjENBL_OVERRIDE)
+_ENBL_SLEEP = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+
+#: Clearance [m] the certificate keeps above every pair's contact margin: far above the
+#: round-off of the bounds (~1e-15 m) and of MuJoCo's convex narrow phase (``ccd_tolerance``,
+#: 1e-6 by default), so a certified pair is certainly farther apart than its margin.
+_CERTIFICATE_CLEARANCE = 1e-3
+
+_SHAPE_SEGMENT, _SHAPE_PLANE = 0, 1
+
+#: After a baseline that certified nothing, this many rebase calls are skipped (a robot
+#: resting in contact or within the clearance would otherwise pay for one every step).
+_REBASE_BACKOFF = 10
+
+#: At most this many loose pairs per baseline get MuJoCo's exact distance (~1.5 us each).
+_MAX_REFINED = 8
+
+
+class ContactCertificate:
+    """Proves, before ``mj_step1``, that its collision detection would find no contact.
+
+    ``mj_step1`` runs MuJoCo's collision detection (broad and narrow phase, ~40 % of it here)
+    even when the robot is far from everything, which in the paper episode is every step
+    (no contact in any golden run). When no contact can be found, running ``mj_step1`` with
+    ``mjDSBL_CONTACT`` set gives the same result bit for bit (MuJoCo then only clears the
+    contact list, which the full detection leaves empty too; a test holds the two to each
+    other over whole trajectories).
+
+    The proof: at a *baseline* state (right after a full ``mj_step1`` that found no
+    contact) every geom pair MuJoCo may test (the model's explicit ``<pair>``s and every
+    pair its bitmask and body filters let through) gets a lower bound of its distance
+    (spheres, capsules exact; an ellipsoid inside its enclosing capsule; anything else
+    inside its bounding sphere; a plane as a half-space). The robot's collidable geoms hang
+    on chains of hinge joints; a point at most R away from a hinge's anchor (R: the sum of
+    the rigid link lengths below it, a model constant) moves by at most R |dq| when that
+    hinge turns by dq, for any path between the two configurations, so a pair's distance
+    changes by at most sum_j R_j |q_j - q0_j| over the joints that move one geom relative
+    to the other (their common ancestors move both rigidly). While that sum stays below every pair's
+    baseline bound minus its margin minus :data:`_CERTIFICATE_CLEARANCE`, no contact is
+    possible and :meth:`certified` says so; else the caller runs the full detection and
+    calls :meth:`rebase`.
+
+    Models the proof does not cover (a collidable geom moved by a non-hinge joint, a mocap
+    body or a body with several joints, flexes, height fields, SDFs, a dynamic plane) get
+    a certificate that is never valid (always the full detection). Read at construction:
+    geom sizes, margins, pairs, filters; the model's options and the contact-filter
+    callback are read at each :meth:`rebase`.
+    """
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        self.model = model
+        self.supported = False
+        self._valid = False
+        self._wait = 0
+        self._pair_slack = np.zeros(0)
+        try:
+            self._build(model)
+        except _Unsupported:
+            return
+        self.supported = True
+
+    def _build(self, m: mujoco.MjModel) -> None:
+        if m.nflex:
+            raise _Unsupported
+        collidable = [
+            g for g in range(m.ngeom) if m.geom_contype[g] or m.geom_conaffinity[g]
+        ] + m.pair_geom1.tolist() + m.pair_geom2.tolist()  # fmt: skip
+        collidable = sorted(set(collidable))
+        data = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, data)
+        hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+        # Per collidable geom: its chain of hinge joints (qpos address, reach R [m]), root first.
+        chains: dict[int, list[tuple[int, float]]] = {}
+        joint_of: dict[int, int] = {}
+        for g in collidable:
+            kind = int(m.geom_type[g])
+            if kind in (int(mujoco.mjtGeom.mjGEOM_HFIELD), int(mujoco.mjtGeom.mjGEOM_SDF)):
+                raise _Unsupported
+            body = int(m.geom_bodyid[g])
+            joints = []  # leaf first
+            b = body
+            while b != 0:
+                if m.body_mocapid[b] >= 0 or m.body_jntnum[b] > 1:
+                    raise _Unsupported
+                if m.body_jntnum[b] == 1:
+                    j = int(m.body_jntadr[b])
+                    if int(m.jnt_type[j]) != hinge:
+                        raise _Unsupported
+                    joints.append(j)
+                b = int(m.body_parentid[b])
+            if joints and kind == int(mujoco.mjtGeom.mjGEOM_PLANE):
+                raise _Unsupported  # a moving half-space: no finite reach
+            # Reach of each hinge: anchor to anchor down the chain, then to the geom's centre,
+            # plus the geom's bounding radius (all rigid distances, the same in any pose).
+            reach = []
+            far = float(np.linalg.norm(data.geom_xpos[g] - data.xanchor[joints[0]])) + float(m.geom_rbound[g]) if joints else 0.0
+            for i, j in enumerate(joints):
+                if i:
+                    far += float(np.linalg.norm(data.xanchor[joints[i - 1]] - data.xanchor[j]))
+                reach.append((j, far * (1.0 + 1e-9)))
+            chains[g] = reach[::-1]
+            for j, _ in reach:
+                joint_of.setdefault(j, len(joint_of))
+        self._joint_qpos = np.array([m.jnt_qposadr[j] for j in joint_of], dtype=np.int64)
+        # The pairs MuJoCo may test: explicit pairs, then the filtered dynamic ones (a superset is safe).
+        pairs: list[tuple[int, int, float]] = []
+        for k in range(m.npair):
+            pairs.append((int(m.pair_geom1[k]), int(m.pair_geom2[k]), float(m.pair_margin[k])))
+        filter_parent = not (m.opt.disableflags & _DSBL_FILTERPARENT)
+        self._filter_parent = filter_parent
+        weld = m.body_weldid
+        for a_i, a in enumerate(collidable):
+            for b in collidable[a_i + 1 :]:
+                ba, bb = int(m.geom_bodyid[a]), int(m.geom_bodyid[b])
+                wa, wb = int(weld[ba]), int(weld[bb])
+                if wa == wb:
+                    continue  # same weld body (static-static included): never tested
+                pa, pb = int(weld[m.body_parentid[wa]]), int(weld[m.body_parentid[wb]])
+                if filter_parent and wa != 0 and wb != 0 and (wa == pb or wb == pa):
+                    continue
+                if not (m.geom_contype[a] & m.geom_conaffinity[b]) and not (m.geom_contype[b] & m.geom_conaffinity[a]):
+                    continue
+                plane = int(mujoco.mjtGeom.mjGEOM_PLANE)
+                if int(m.geom_type[a]) == plane and int(m.geom_type[b]) == plane:
+                    continue  # no collision function
+                pairs.append((a, b, float(m.geom_margin[a] + m.geom_margin[b])))
+        self._pair_margins = np.array([p[2] for p in pairs], dtype=np.float64)
+        # Per pair, the joints moving one geom relative to the other and their reaches.
+        terms = []
+        for a, b, _ in pairs:
+            ra, rb = dict(chains[a]), dict(chains[b])
+            common = set(ra) & set(rb)
+            terms.append([(joint_of[j], r) for j, r in chains[a] if j not in common]
+                         + [(joint_of[j], r) for j, r in chains[b] if j not in common])  # fmt: skip
+        width = max([len(t) for t in terms] + [1])
+        self._term_joint = np.zeros((len(pairs), width), dtype=np.int64)
+        self._term_reach = np.zeros((len(pairs), width))
+        for p, t in enumerate(terms):
+            for c, (j, r) in enumerate(t):
+                self._term_joint[p, c], self._term_reach[p, c] = j, r
+        self._pair_geoms = np.array([(a, b) for a, b, _ in pairs], dtype=np.int64).reshape(-1, 2)
+        # Per geom: bounding shape (segment along a local axis with a radius, or a plane).
+        n = m.ngeom
+        self._shape = np.full(n, _SHAPE_SEGMENT, dtype=np.int64)
+        self._axis = np.full(n, 2, dtype=np.int64)
+        self._half = np.zeros(n)
+        self._radius = np.zeros(n)
+        for g in collidable:
+            kind, size = int(m.geom_type[g]), m.geom_size[g]
+            if kind == int(mujoco.mjtGeom.mjGEOM_PLANE):
+                self._shape[g] = _SHAPE_PLANE
+            elif kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+                self._radius[g] = size[0]
+            elif kind == int(mujoco.mjtGeom.mjGEOM_CAPSULE):
+                self._radius[g], self._half[g] = size[0], size[1]
+            elif kind == int(mujoco.mjtGeom.mjGEOM_ELLIPSOID):
+                order = np.argsort(size)[::-1]
+                self._axis[g], self._radius[g], self._half[g] = order[0], size[order[1]], size[order[0]] - size[order[1]]
+            else:
+                self._radius[g] = m.geom_rbound[g]
+        exact = np.zeros(n, dtype=bool)
+        for g in collidable:
+            exact[g] = int(m.geom_type[g]) in (
+                int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_CAPSULE),
+            )  # fmt: skip
+        # Pairs whose bound is loose (a geom inside an enclosing shape): refined with MuJoCo's distance.
+        self._loose = ~(exact[self._pair_geoms[:, 0]] & exact[self._pair_geoms[:, 1]])
+        self._fromto = np.zeros(6)
+        self._q0 = np.zeros(self._joint_qpos.size)
+        self._pair_slack = np.zeros(len(pairs))
+
+    def rebase(self, data: mujoco.MjData) -> None:
+        """Take ``data``'s state (after ``mj_step1``) as the baseline, if it certifies anything.
+
+        Valid only when the model's options and callbacks allow the proof (no sleeping, no
+        contact-filter callback) and every pair is clear of its margin by
+        :data:`_CERTIFICATE_CLEARANCE` now.
+        """
+        self._valid = False
+        if not self.supported or data.ncon:
+            return
+        if self._wait > 0:
+            self._wait -= 1  # the last baseline failed: a robot resting within the clearance would pay every step
+            return
+        m = self.model
+        opt = m.opt
+        if opt.enableflags & _ENBL_SLEEP or opt.disableflags & (_DSBL_CONTACT | _DSBL_CONSTRAINT):
+            return
+        if mujoco.get_mjcb_contactfilter() is not None:
+            return
+        if bool(opt.disableflags & _DSBL_FILTERPARENT) != (not self._filter_parent):
+            return
+        margins = self._pair_margins
+        if opt.enableflags & _ENBL_OVERRIDE:
+            margins = np.full_like(margins, float(opt.o_margin))
+        slack = self._pair_slack
+        valid = _certificate_rebase(
+            data.geom_xpos, data.geom_xmat, data.qpos, self._joint_qpos, self._q0, self._pair_geoms, margins,
+            _CERTIFICATE_CLEARANCE, self._shape, self._axis, self._half, self._radius, slack,
+        )  # fmt: skip
+        if not valid:
+            # A pair with an ellipsoid (or a geom bounded by its sphere) may fail only because
+            # its enclosing shape is loose (a flat leaf in a fat capsule): ask MuJoCo for the
+            # distance of those few (its convex distance is accurate to ccd_tolerance, far
+            # below the clearance).
+            failing = np.flatnonzero(~(slack > 0.0))
+            if failing.size <= _MAX_REFINED and self._loose[failing].all():
+                for p in failing.tolist():
+                    a, b = self._pair_geoms[p].tolist()
+                    distance = mujoco.mj_geomDistance(m, data, a, b, 1.0, self._fromto)
+                    slack[p] = distance - margins[p] - _CERTIFICATE_CLEARANCE
+                valid = bool((slack[failing] > 0.0).all())
+        self._valid = valid
+        if not self._valid:
+            self._wait = _REBASE_BACKOFF
+
+    def invalidate(self) -> None:
+        """Forget the baseline (the next step runs the full detection and takes a new one)."""
+        self._valid = False
+        self._wait = 0
+
+    def certified(self, qpos: NDArray[np.float64]) -> bool:
+        """True when no contact is possible at the configuration ``qpos`` (see the class)."""
+        return self._valid and _certificate_holds(qpos, self._joint_qpos, self._q0, self._term_joint, self._term_reach,
+                                                  self._pair_slack)  # fmt: skip
+
+
+class _Unsupported(Exception):
+    """The model is outside what :class:`ContactCertificate` can prove."""
+
+
+@njit(cache=True)
+def _certificate_rebase(xpos, xmat, qpos, joint_qpos, q0, pair_geoms, margins, clearance, shape, axis, half, radius,
+                        slack):  # fmt: skip
+    """Baseline of :class:`ContactCertificate`: per pair, its distance's lower bound minus margin and clearance.
+
+    Writes ``q0`` (the joints now) and ``slack``; returns True when every slack is positive.
+    """
+    for i in range(joint_qpos.shape[0]):
+        q0[i] = qpos[joint_qpos[i]]
+    ok = True
+    for p in range(pair_geoms.shape[0]):
+        a, b = pair_geoms[p, 0], pair_geoms[p, 1]
+        if shape[a] == _SHAPE_PLANE and shape[b] == _SHAPE_PLANE:
+            lower = np.inf
+        elif shape[a] == _SHAPE_PLANE or shape[b] == _SHAPE_PLANE:
+            pl, g = (a, b) if shape[a] == _SHAPE_PLANE else (b, a)
+            # Signed height of the segment's ends above the plane (its normal: local z).
+            nx, ny, nz = xmat[pl, 2], xmat[pl, 5], xmat[pl, 8]
+            ax = axis[g]
+            lower = np.inf
+            for s in (-1.0, 1.0):
+                h = 0.0
+                for c in range(3):
+                    end = xpos[g, c] + s * half[g] * xmat[g, 3 * c + ax]
+                    h += (end - xpos[pl, c]) * (nx if c == 0 else (ny if c == 1 else nz))
+                lower = min(lower, h - radius[g])
+        else:
+            aa, ab = axis[a], axis[b]
+            ux = 2.0 * half[a] * xmat[a, _ax_index(0, aa)]
+            uy = 2.0 * half[a] * xmat[a, _ax_index(1, aa)]
+            uz = 2.0 * half[a] * xmat[a, _ax_index(2, aa)]
+            vx = 2.0 * half[b] * xmat[b, _ax_index(0, ab)]
+            vy = 2.0 * half[b] * xmat[b, _ax_index(1, ab)]
+            vz = 2.0 * half[b] * xmat[b, _ax_index(2, ab)]
+            # Segment starts: centre minus half the axis.
+            rx = (xpos[a, 0] - 0.5 * ux) - (xpos[b, 0] - 0.5 * vx)
+            ry = (xpos[a, 1] - 0.5 * uy) - (xpos[b, 1] - 0.5 * vy)
+            rz = (xpos[a, 2] - 0.5 * uz) - (xpos[b, 2] - 0.5 * vz)
+            lower = _clamped_distance(ux, uy, uz, vx, vy, vz, rx, ry, rz, _dot(ux, uy, uz, ux, uy, uz), 1e-12)
+            lower -= radius[a] + radius[b]
+        slack[p] = lower - margins[p] - clearance
+        if not slack[p] > 0.0:
+            ok = False
+    return ok
+
+
+@njit(cache=True, inline="always")
+def _ax_index(row, axis):
+    """Index in a row-major 3x3 ``xmat`` of the world ``row`` component of local axis ``axis``."""
+    return 3 * row + axis
+
+
+@njit(cache=True)
+def _certificate_holds(qpos, joint_qpos, q0, term_joint, term_reach, slack):
+    """True when every pair's possible approach since the baseline, sum R |q - q0|, is below its slack."""
+    n = joint_qpos.shape[0]
+    dq = np.empty(n)
+    for i in range(n):
+        dq[i] = abs(qpos[joint_qpos[i]] - q0[i])
+    for p in range(slack.shape[0]):
+        moved = 0.0
+        for c in range(term_joint.shape[1]):
+            moved += term_reach[p, c] * dq[term_joint[p, c]]
+        if not moved < slack[p]:
+            return False
+    return True

@@ -30,7 +30,7 @@ from harvest_qp.interface import N_JOINTS, ROBOT, PointCloud, RobotInterface
 from harvest_qp.robot import description as desc
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo, _servo_step
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
-from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor, _count_kinds
+from harvest_qp.sim.contacts import _DSBL_CONTACT, CONTACT_KINDS, ContactCertificate, ContactMonitor, _count_kinds
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
 from harvest_qp.validation import as_positive_scalar, check_field_types
@@ -196,6 +196,10 @@ class SimRobot(RobotInterface):
             stand_geoms=robot_geoms[m.geom_bodyid[robot_geoms] == base], vine_geoms=scene.vine_geoms,
             floor_geoms=np.array(floor, dtype=np.int64),
         )  # fmt: skip
+        # Proves, step by step, when MuJoCo's collision detection cannot find a contact (see
+        # ContactCertificate): mj_step1 then skips it, with the same result bit for bit.
+        self._certificate = ContactCertificate(m)
+        self._opt = m.opt
         slide = ids["stem_slide"]
         self._slide_dof = int(m.jnt_dofadr[slide])
         self._slide_stiffness = float(m.jnt_stiffness[slide])
@@ -289,6 +293,7 @@ class SimRobot(RobotInterface):
         self._torn = False
         self._tear_time = float("nan")
         self._max_tension = 0.0
+        self._certificate.invalidate()
         mujoco.mj_resetData(m, d)
         d.qpos[self._qpos_ids] = self.scene.home_q
         mujoco.mj_forward(m, d)
@@ -634,7 +639,21 @@ class SimRobot(RobotInterface):
         # step2 integrates with the forces of the current state; step1 then computes the
         # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
-        mujoco.mj_step1(m, d)
+        certificate = self._certificate
+        if certificate._valid and certificate.certified(self._qpos):
+            # No contact is possible at the new configuration (proven from the joints' motion
+            # since the certificate's baseline): step1 without the collision detection, which
+            # would find nothing; the same result bit for bit.
+            opt = self._opt
+            flags = opt.disableflags
+            opt.disableflags = flags | _DSBL_CONTACT
+            try:
+                mujoco.mj_step1(m, d)
+            finally:
+                opt.disableflags = flags
+        else:
+            mujoco.mj_step1(m, d)
+            certificate.rebase(d)
 
     def _check_tear(self, tension: float | None = None) -> None:
         """Tear the stem when its tension exceeds the break force: release its axial spring.
