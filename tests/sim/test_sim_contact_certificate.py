@@ -232,3 +232,32 @@ def test_contact_filter_callback_disables_the_certificate():
         mujoco.set_mjcb_contactfilter(None)
     certificate.rebase(data)
     assert certificate._valid
+
+
+def test_sorted_early_exit_equals_testing_every_pair(default_scene):
+    """Bug caught: the per-step kernel's early exit (pairs sorted by slack over largest
+    reach, stop once the total joint travel is below it) certifying a configuration that
+    the full per-pair test refuses, or refusing one it accepts.
+
+    Oracle: numpy over every pair: ``(reach * |q - q0|[joint]).sum(1) < slack`` for all
+    pairs. 600 random configurations around the baseline, both outcomes present.
+    Planted and caught: the exit test as ``travel < 2 * tau[i]``; the travel summed over
+    half the joints.
+    """
+    robot = SimRobot(default_scene, camera=None)
+    cert = robot._certificate
+    cert.invalidate()
+    cert.rebase(robot.data)
+    assert cert._valid
+    rng = np.random.default_rng(11)
+    q0 = robot.data.qpos.copy()
+    outcomes = set()
+    for i in range(600):
+        q = q0.copy()
+        scale = 10.0 ** rng.uniform(-4.5, -1.0)
+        q[robot._qpos_ids] += rng.normal(0.0, scale, 12) * (rng.random(12) < 0.5)
+        dq = np.abs(q[cert._joint_qpos] - cert._q0)
+        expected = bool(((cert._term_reach * dq[cert._term_joint]).sum(axis=1) < cert._pair_slack).all())
+        assert cert.certified(q) == expected, i
+        outcomes.add(expected)
+    assert outcomes == {True, False}
