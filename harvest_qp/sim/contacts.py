@@ -383,6 +383,10 @@ _SHAPE_SEGMENT, _SHAPE_PLANE = 0, 1
 #: resting in contact or within the clearance would otherwise pay for one every step).
 _REBASE_BACKOFF = 10
 
+#: Total joint travel [rad] (sum over the joints of |q - q0|) after which a new baseline is
+#: taken whatever the slacks: pairs that stay clear over this travel need no per-step test.
+_CERTIFICATE_HORIZON = 0.1
+
 #: At most this many loose pairs per baseline get MuJoCo's exact distance (~1.5 us each).
 _MAX_REFINED = 8
 
@@ -538,18 +542,20 @@ class ContactCertificate:
         self._loose = ~(exact[self._pair_geoms[:, 0]] & exact[self._pair_geoms[:, 1]])
         self._fromto = np.zeros(6)
         # The per-step test's operands in one int and one float buffer (a numba call costs
-        # ~0.06 us per array argument): ints = [joint qpos addresses (nj), pair order (P),
-        # term joints (P x W)]; floats = [q0 (nj), work (nj), tau sorted (P), slack (P),
-        # term reaches (P x W)].
+        # ~0.06 us per array argument), sizes in their headers (see _certificate_holds).
         nj, npairs = self._joint_qpos.size, len(pairs)
-        self._sizes = (nj, npairs, width)
-        self._ints = np.concatenate([self._joint_qpos, np.zeros(npairs, np.int64), self._term_joint.ravel()])
-        self._floats = np.concatenate([np.zeros(2 * nj + 2 * npairs), self._term_reach.ravel()])
-        self._order = self._ints[nj : nj + npairs]
-        self._q0 = self._floats[:nj]
-        self._tau = self._floats[2 * nj : 2 * nj + npairs]
-        self._pair_slack = self._floats[2 * nj + npairs : 2 * nj + 2 * npairs]
-        self._max_reach = self._term_reach.max(axis=1)
+        self._ints = np.concatenate([
+            [nj, npairs, width, 0], self._joint_qpos, np.zeros(npairs, np.int64), self._term_joint.ravel(),
+        ]).astype(np.int64)  # fmt: skip
+        max_reach = self._term_reach.max(axis=1)
+        self._floats = np.concatenate([
+            [_CERTIFICATE_HORIZON, 0.0], np.zeros(2 * nj + 2 * npairs), self._term_reach.ravel(), max_reach,
+            self._pair_margins,
+        ])  # fmt: skip
+        self._q0 = self._floats[2 : 2 + nj]
+        self._pair_slack = self._floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+        self._margin_view = self._floats[self._floats.size - npairs :]
+        self._rbound = np.ascontiguousarray(m.geom_rbound, dtype=np.float64)
 
     def rebase(self, data: mujoco.MjData) -> None:
         """Take ``data``'s state (after ``mj_step1``) as the baseline, if it certifies anything.
@@ -572,39 +578,33 @@ class ContactCertificate:
             return
         if bool(opt.disableflags & _DSBL_FILTERPARENT) != (not self._filter_parent):
             return
-        margins = self._pair_margins
+        margins = self._margin_view
         if opt.enableflags & _ENBL_OVERRIDE:
-            margins = np.full_like(margins, float(opt.o_margin))
+            margins[:] = float(opt.o_margin)
+        else:
+            margins[:] = self._pair_margins
+        self._floats[1] = _CERTIFICATE_CLEARANCE
         slack = self._pair_slack
-        valid = _certificate_rebase(
-            data.geom_xpos, data.geom_xmat, data.qpos, self._joint_qpos, self._q0, self._pair_geoms, margins,
-            _CERTIFICATE_CLEARANCE, self._shape, self._axis, self._half, self._radius, slack,
+        n_failing = _certificate_rebase(
+            data.geom_xpos, data.geom_xmat, data.qpos, self._ints, self._floats, self._pair_geoms, self._shape,
+            self._axis, self._half, self._radius, self._rbound,
         )  # fmt: skip
-        if not valid:
+        if n_failing:
             # A pair with an ellipsoid (or a geom bounded by its sphere) may fail only because
             # its enclosing shape is loose (a flat leaf in a fat capsule): ask MuJoCo for the
             # distance of those few (its convex distance is accurate to ccd_tolerance, far
             # below the clearance).
             failing = np.flatnonzero(~(slack > 0.0))
-            if failing.size <= _MAX_REFINED and self._loose[failing].all():
-                for p in failing.tolist():
-                    a, b = self._pair_geoms[p].tolist()
-                    distance = mujoco.mj_geomDistance(m, data, a, b, 1.0, self._fromto)
-                    slack[p] = distance - margins[p] - _CERTIFICATE_CLEARANCE
-                valid = bool((slack[failing] > 0.0).all())
-        self._valid = valid
-        if not valid:
+            if failing.size > _MAX_REFINED or not self._loose[failing].all():
+                self._wait = _REBASE_BACKOFF
+                return
+            for p in failing.tolist():
+                a, b = self._pair_geoms[p].tolist()
+                distance = mujoco.mj_geomDistance(m, data, a, b, 1.0, self._fromto)
+                slack[p] = distance - margins[p] - _CERTIFICATE_CLEARANCE
+        self._valid = _certificate_order(self._ints, self._floats)
+        if not self._valid:
             self._wait = _REBASE_BACKOFF
-            return
-        # The per-step test's order: a pair is safe while the joints' total travel S stays
-        # below tau = slack / (its largest reach) (its travel sum R |dq| <= max R * S), so
-        # pairs sorted by tau are tested exactly only while S >= tau (a handful), then none.
-        n_joints, n_pairs = self._sizes[0], self._sizes[1]
-        with np.errstate(divide="ignore"):
-            tau = np.where(self._max_reach > 0.0, slack / self._max_reach, np.inf) * (1.0 - 1e-12)
-        order = np.argsort(tau, kind="stable")
-        self._order[:] = order
-        self._tau[:] = tau[order]
 
     def invalidate(self) -> None:
         """Forget the baseline (the next step runs the full detection and takes a new one)."""
@@ -613,7 +613,7 @@ class ContactCertificate:
 
     def certified(self, qpos: NDArray[np.float64]) -> bool:
         """True when no contact is possible at the configuration ``qpos`` (see the class)."""
-        return self._valid and _certificate_holds(qpos, self._ints, self._floats, *self._sizes)
+        return self._valid and _certificate_holds(qpos, self._ints, self._floats)
 
 
 class _Unsupported(Exception):
@@ -621,49 +621,112 @@ class _Unsupported(Exception):
 
 
 @njit(cache=True)
-def _certificate_rebase(xpos, xmat, qpos, joint_qpos, q0, pair_geoms, margins, clearance, shape, axis, half, radius,
-                        slack):  # fmt: skip
+def _certificate_rebase(xpos, xmat, qpos, ints, floats, pair_geoms, shape, axis, half, radius, rbound):
     """Baseline of :class:`ContactCertificate`: per pair, its distance's lower bound minus margin and clearance.
 
-    Writes ``q0`` (the joints now) and ``slack``; returns True when every slack is positive.
+    Writes ``q0`` (the joints now) and every pair's ``slack`` (layout: :func:`_certificate_holds`);
+    returns the number of pairs whose slack is not positive. A moving pair whose bounding
+    spheres' gap already gives a slack beyond the horizon (``slack >= horizon * largest
+    reach``) keeps that bound (it is one): its exact bound would not change the test.
     """
-    for i in range(joint_qpos.shape[0]):
+    nj, npairs, width = ints[0], ints[1], ints[2]
+    joint_qpos = ints[4 : 4 + nj]
+    horizon, clearance = floats[0], floats[1]
+    q0 = floats[2 : 2 + nj]
+    slack = floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+    base = 2 + 2 * nj + 2 * npairs + npairs * width
+    max_reach = floats[base : base + npairs]
+    margins = floats[base + npairs : base + 2 * npairs]
+    for i in range(nj):
         q0[i] = qpos[joint_qpos[i]]
-    ok = True
-    for p in range(pair_geoms.shape[0]):
+    failing = 0
+    for p in range(npairs):
         a, b = pair_geoms[p, 0], pair_geoms[p, 1]
-        if shape[a] == _SHAPE_PLANE and shape[b] == _SHAPE_PLANE:
-            lower = np.inf
-        elif shape[a] == _SHAPE_PLANE or shape[b] == _SHAPE_PLANE:
-            pl, g = (a, b) if shape[a] == _SHAPE_PLANE else (b, a)
-            # Signed height of the segment's ends above the plane (its normal: local z).
-            nx, ny, nz = xmat[pl, 2], xmat[pl, 5], xmat[pl, 8]
-            ax = axis[g]
-            lower = np.inf
-            for s in (-1.0, 1.0):
-                h = 0.0
-                for c in range(3):
-                    end = xpos[g, c] + s * half[g] * xmat[g, 3 * c + ax]
-                    h += (end - xpos[pl, c]) * (nx if c == 0 else (ny if c == 1 else nz))
-                lower = min(lower, h - radius[g])
-        else:
-            aa, ab = axis[a], axis[b]
-            ux = 2.0 * half[a] * xmat[a, _ax_index(0, aa)]
-            uy = 2.0 * half[a] * xmat[a, _ax_index(1, aa)]
-            uz = 2.0 * half[a] * xmat[a, _ax_index(2, aa)]
-            vx = 2.0 * half[b] * xmat[b, _ax_index(0, ab)]
-            vy = 2.0 * half[b] * xmat[b, _ax_index(1, ab)]
-            vz = 2.0 * half[b] * xmat[b, _ax_index(2, ab)]
-            # Segment starts: centre minus half the axis.
-            rx = (xpos[a, 0] - 0.5 * ux) - (xpos[b, 0] - 0.5 * vx)
-            ry = (xpos[a, 1] - 0.5 * uy) - (xpos[b, 1] - 0.5 * vy)
-            rz = (xpos[a, 2] - 0.5 * uz) - (xpos[b, 2] - 0.5 * vz)
-            lower = _clamped_distance(ux, uy, uz, vx, vy, vz, rx, ry, rz, _dot(ux, uy, uz, ux, uy, uz), 1e-12)
-            lower -= radius[a] + radius[b]
-        slack[p] = lower - margins[p] - clearance
+        if max_reach[p] > 0.0 and shape[a] != _SHAPE_PLANE and shape[b] != _SHAPE_PLANE:
+            dx, dy, dz = xpos[a, 0] - xpos[b, 0], xpos[a, 1] - xpos[b, 1], xpos[a, 2] - xpos[b, 2]
+            gap = math.sqrt(dx * dx + dy * dy + dz * dz) - rbound[a] - rbound[b] - margins[p] - clearance
+            if gap >= horizon * max_reach[p]:
+                slack[p] = gap
+                continue
+        slack[p] = _pair_lower_bound(xpos, xmat, a, b, shape, axis, half, radius) - margins[p] - clearance
         if not slack[p] > 0.0:
-            ok = False
-    return ok
+            failing += 1
+    return failing
+
+
+@njit(cache=True)
+def _certificate_order(ints, floats):
+    """After :func:`_certificate_rebase` (and any refinement): the per-step test's pair list.
+
+    The pairs that can come within their margin before the joints' total travel reaches
+    the horizon (``tau = slack / largest reach < horizon``), in increasing ``tau``
+    (insertion sort: a handful). Returns True when every slack is positive (a valid baseline).
+    """
+    nj, npairs, width = ints[0], ints[1], ints[2]
+    near = ints[4 + nj : 4 + nj + npairs]
+    horizon = floats[0]
+    tau = floats[2 + 2 * nj : 2 + 2 * nj + npairs]
+    slack = floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+    base = 2 + 2 * nj + 2 * npairs + npairs * width
+    max_reach = floats[base : base + npairs]
+    n = 0
+    for p in range(npairs):
+        if not slack[p] > 0.0:
+            ints[3] = 0
+            return False
+        if max_reach[p] > 0.0:
+            # Rounded down so that travel < tau implies max_reach * travel < slack.
+            t = slack[p] / max_reach[p] * (1.0 - 1e-12)
+            if t < horizon:
+                j = n
+                while j > 0 and tau[j - 1] > t:
+                    tau[j] = tau[j - 1]
+                    near[j] = near[j - 1]
+                    j -= 1
+                tau[j] = t
+                near[j] = p
+                n += 1
+    ints[3] = n
+    return True
+
+
+@njit(cache=True)
+def _pair_lower_bound(xpos, xmat, a, b, shape, axis, half, radius):
+    """Lower bound of the distance between geoms ``a`` and ``b`` from their bounding shapes.
+
+    Segments with radii (spheres, capsules exact; ellipsoids in their enclosing capsule;
+    other geoms in their bounding sphere): the segments' distance minus both radii. A
+    plane is a half-space: the lowest end of the other geom's segment above it minus its
+    radius. Two planes never collide (no collision function): infinity.
+    """
+    if shape[a] == _SHAPE_PLANE and shape[b] == _SHAPE_PLANE:
+        return np.inf
+    if shape[a] == _SHAPE_PLANE or shape[b] == _SHAPE_PLANE:
+        pl, g = (a, b) if shape[a] == _SHAPE_PLANE else (b, a)
+        # Signed height of the segment's ends above the plane (its normal: local z).
+        nx, ny, nz = xmat[pl, 2], xmat[pl, 5], xmat[pl, 8]
+        ax = axis[g]
+        lower = np.inf
+        for s in (-1.0, 1.0):
+            h = 0.0
+            for c in range(3):
+                end = xpos[g, c] + s * half[g] * xmat[g, 3 * c + ax]
+                h += (end - xpos[pl, c]) * (nx if c == 0 else (ny if c == 1 else nz))
+            lower = min(lower, h - radius[g])
+        return lower
+    aa, ab = axis[a], axis[b]
+    ux = 2.0 * half[a] * xmat[a, _ax_index(0, aa)]
+    uy = 2.0 * half[a] * xmat[a, _ax_index(1, aa)]
+    uz = 2.0 * half[a] * xmat[a, _ax_index(2, aa)]
+    vx = 2.0 * half[b] * xmat[b, _ax_index(0, ab)]
+    vy = 2.0 * half[b] * xmat[b, _ax_index(1, ab)]
+    vz = 2.0 * half[b] * xmat[b, _ax_index(2, ab)]
+    # Segment starts: centre minus half the axis.
+    rx = (xpos[a, 0] - 0.5 * ux) - (xpos[b, 0] - 0.5 * vx)
+    ry = (xpos[a, 1] - 0.5 * uy) - (xpos[b, 1] - 0.5 * vy)
+    rz = (xpos[a, 2] - 0.5 * uz) - (xpos[b, 2] - 0.5 * vz)
+    distance = _clamped_distance(ux, uy, uz, vx, vy, vz, rx, ry, rz, _dot(ux, uy, uz, ux, uy, uz), 1e-12)
+    return distance - radius[a] - radius[b]
 
 
 @njit(cache=True, inline="always")
@@ -673,27 +736,37 @@ def _ax_index(row, axis):
 
 
 @njit(cache=True)
-def _certificate_holds(qpos, ints, floats, nj, npairs, width):
+def _certificate_holds(qpos, ints, floats):
     """True when every pair's possible approach since the baseline, sum R |q - q0|, is below its slack.
 
-    Operands packed by :class:`ContactCertificate` (see ``_ints``/``_floats``). The pairs
-    come in increasing ``tau`` (slack over largest reach): once the joints' total travel
-    ``S`` is below a pair's ``tau``, that pair and all later ones are safe
-    (``sum R |dq| <= max R * S < slack``); the pairs before are tested term by term.
+    ``ints = [nj, npairs, width, n_near, joint qpos addresses (nj), near pairs (npairs),
+    term joints (npairs x width)]``; ``floats = [horizon, clearance, q0 (nj), work (nj),
+    tau of the near pairs (npairs), slack (npairs), term reaches (npairs x width), largest
+    reach (npairs), margins (npairs)]``. Beyond the horizon of total joint travel ``S``
+    the answer is False (the caller takes a new baseline). Else only the near pairs (see
+    :func:`_certificate_order`) can be at risk, in increasing ``tau``: once ``S`` is below
+    a pair's ``tau``, it and all later ones are safe (``sum R |dq| <= max R * S < slack``);
+    the pairs before are tested term by term.
     """
-    joint_qpos, order = ints[:nj], ints[nj : nj + npairs]
-    term_joint = ints[nj + npairs :].reshape(npairs, width)
-    q0, dq = floats[:nj], floats[nj : 2 * nj]
-    tau, slack = floats[2 * nj : 2 * nj + npairs], floats[2 * nj + npairs : 2 * nj + 2 * npairs]
-    term_reach = floats[2 * nj + 2 * npairs :].reshape(npairs, width)
+    nj, npairs, width, n_near = ints[0], ints[1], ints[2], ints[3]
+    joint_qpos, near = ints[4 : 4 + nj], ints[4 + nj : 4 + nj + npairs]
+    term_joint = ints[4 + nj + npairs :].reshape(npairs, width)
+    horizon = floats[0]
+    q0, dq = floats[2 : 2 + nj], floats[2 + nj : 2 + 2 * nj]
+    tau = floats[2 + 2 * nj : 2 + 2 * nj + npairs]
+    slack = floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+    base = 2 + 2 * nj + 2 * npairs
+    term_reach = floats[base : base + npairs * width].reshape(npairs, width)
     travel = 0.0
     for i in range(nj):
         dq[i] = abs(qpos[joint_qpos[i]] - q0[i])
         travel += dq[i]
-    for i in range(npairs):
+    if not travel < horizon:
+        return False
+    for i in range(n_near):
         if travel < tau[i]:
             return True
-        p = order[i]
+        p = near[i]
         moved = 0.0
         for c in range(width):
             moved += term_reach[p, c] * dq[term_joint[p, c]]

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 
 from harvest_qp.sim import SimRobot
-from harvest_qp.sim.contacts import _CERTIFICATE_CLEARANCE, _DSBL_CONTACT, ContactCertificate
+from harvest_qp.sim.contacts import _CERTIFICATE_CLEARANCE, _CERTIFICATE_HORIZON, _DSBL_CONTACT, ContactCertificate
 
 
 def _full_detection(robot: SimRobot) -> SimRobot:
@@ -235,20 +235,30 @@ def test_contact_filter_callback_disables_the_certificate():
 
 
 def test_sorted_early_exit_equals_testing_every_pair(default_scene):
-    """Bug caught: the per-step kernel's early exit (pairs sorted by slack over largest
-    reach, stop once the total joint travel is below it) certifying a configuration that
-    the full per-pair test refuses, or refusing one it accepts.
+    """Bug caught: the per-step kernel's early exit (near pairs sorted by slack over largest
+    reach, stop once the total joint travel is below it; far pairs never tested) certifying
+    a configuration that the full per-pair test refuses, or refusing one it accepts.
 
-    Oracle: numpy over every pair: ``(reach * |q - q0|[joint]).sum(1) < slack`` for all
-    pairs. 600 random configurations around the baseline, both outcomes present.
-    Planted and caught: the exit test as ``travel < 2 * tau[i]``; the travel summed over
-    half the joints.
+    Oracle: numpy over every pair: total travel below the horizon and
+    ``(reach * |q - q0|[joint]).sum(1) < slack`` for all pairs (slacks from the baseline,
+    exact or the bounding-sphere gap beyond the horizon). 600 random configurations around
+    the baseline, both outcomes present. Planted and caught: the exit test as
+    ``travel < 2 * tau[i]``; the travel summed over half the joints; the near list cut at
+    half the horizon in ``_certificate_order``.
     """
     robot = SimRobot(default_scene, camera=None)
     cert = robot._certificate
     cert.invalidate()
     cert.rebase(robot.data)
     assert cert._valid
+    # The near list: exactly the moving pairs whose slack over largest reach is below the
+    # horizon, in increasing order of it (numpy's stable argsort).
+    reach_max = cert._term_reach.max(axis=1)
+    tau = np.where(reach_max > 0, cert._pair_slack / np.where(reach_max > 0, reach_max, 1.0), np.inf)
+    expected_near = np.flatnonzero(tau < _CERTIFICATE_HORIZON)
+    expected_near = expected_near[np.argsort(tau[expected_near], kind="stable")]
+    nj, n_near = cert._joint_qpos.size, cert._ints[3]
+    np.testing.assert_array_equal(cert._ints[4 + nj : 4 + nj + n_near], expected_near)
     rng = np.random.default_rng(11)
     q0 = robot.data.qpos.copy()
     outcomes = set()
@@ -257,7 +267,24 @@ def test_sorted_early_exit_equals_testing_every_pair(default_scene):
         scale = 10.0 ** rng.uniform(-4.5, -1.0)
         q[robot._qpos_ids] += rng.normal(0.0, scale, 12) * (rng.random(12) < 0.5)
         dq = np.abs(q[cert._joint_qpos] - cert._q0)
-        expected = bool(((cert._term_reach * dq[cert._term_joint]).sum(axis=1) < cert._pair_slack).all())
+        within = dq.sum() < _CERTIFICATE_HORIZON  # beyond the horizon: always a new baseline
+        expected = within and bool(((cert._term_reach * dq[cert._term_joint]).sum(axis=1) < cert._pair_slack).all())
         assert cert.certified(q) == expected, i
         outcomes.add(expected)
+    # Adversarial: each pair that can come within its margin before the horizon, moved on
+    # its longest-reach joint alone just past (and just short of) its slack.
+    at_risk = np.flatnonzero((reach_max > 0) & (cert._pair_slack < 0.9 * _CERTIFICATE_HORIZON * reach_max))
+    assert at_risk.size > 0
+    for p in at_risk.tolist():
+        c = int(np.argmax(cert._term_reach[p]))
+        joint = cert._joint_qpos[cert._term_joint[p, c]]
+        for factor in (1.01, 0.99):
+            q = q0.copy()
+            q[joint] += factor * cert._pair_slack[p] / cert._term_reach[p, c]
+            dq = np.abs(q[cert._joint_qpos] - cert._q0)
+            within = dq.sum() < _CERTIFICATE_HORIZON
+            expected = within and bool(((cert._term_reach * dq[cert._term_joint]).sum(axis=1) < cert._pair_slack).all())
+            assert cert.certified(q) == expected, (p, factor)
+            if factor > 1.0:
+                assert not expected
     assert outcomes == {True, False}
