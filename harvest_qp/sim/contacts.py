@@ -427,6 +427,9 @@ class ContactCertificate:
         self.supported = False
         self._valid = False
         self._wait = 0
+        self._full = True  # the next baseline measures every pair (no slack to carry over)
+        self._override: float | None = None  # the o_margin the margins were set for (None: the model's)
+        self._bound_data: tuple | None = None
         self._pair_slack = np.zeros(0)
         try:
             self._build(model)
@@ -579,16 +582,23 @@ class ContactCertificate:
         if bool(opt.disableflags & _DSBL_FILTERPARENT) != (not self._filter_parent):
             return
         margins = self._margin_view
-        if opt.enableflags & _ENBL_OVERRIDE:
-            margins[:] = float(opt.o_margin)
-        else:
-            margins[:] = self._pair_margins
+        override = float(opt.o_margin) if opt.enableflags & _ENBL_OVERRIDE else None
+        if override != self._override:
+            # The margins changed: the carried slacks (see _certificate_rebase) no longer hold.
+            margins[:] = self._pair_margins if override is None else override
+            self._override = override
+            self._full = True
         self._floats[1] = _CERTIFICATE_CLEARANCE
         slack = self._pair_slack
+        bound = self._bound_data
+        if bound is None or bound[0] is not data:
+            bound = self._bound_data = (data, data.geom_xpos, data.geom_xmat, data.qpos)  # live views, made once
+            self._full = True
         n_failing = _certificate_rebase(
-            data.geom_xpos, data.geom_xmat, data.qpos, self._ints, self._floats, self._pair_geoms, self._shape,
-            self._axis, self._half, self._radius, self._rbound,
+            bound[1], bound[2], bound[3], self._ints, self._floats, self._pair_geoms, self._shape, self._axis,
+            self._half, self._radius, self._rbound, self._full,
         )  # fmt: skip
+        self._full = False
         if n_failing:
             # A pair with an ellipsoid (or a geom bounded by its sphere) may fail only because
             # its enclosing shape is loose (a flat leaf in a fat capsule): ask MuJoCo for the
@@ -607,9 +617,11 @@ class ContactCertificate:
             self._wait = _REBASE_BACKOFF
 
     def invalidate(self) -> None:
-        """Forget the baseline (the next step runs the full detection and takes a new one)."""
+        """Forget the baseline (the next step runs the full detection and takes a new one,
+        measuring every pair again)."""
         self._valid = False
         self._wait = 0
+        self._full = True
 
     def certified(self, qpos: NDArray[np.float64]) -> bool:
         """True when no contact is possible at the configuration ``qpos`` (see the class)."""
@@ -621,13 +633,17 @@ class _Unsupported(Exception):
 
 
 @njit(cache=True)
-def _certificate_rebase(xpos, xmat, qpos, ints, floats, pair_geoms, shape, axis, half, radius, rbound):
+def _certificate_rebase(xpos, xmat, qpos, ints, floats, pair_geoms, shape, axis, half, radius, rbound, full):
     """Baseline of :class:`ContactCertificate`: per pair, its distance's lower bound minus margin and clearance.
 
     Writes ``q0`` (the joints now) and every pair's ``slack`` (layout: :func:`_certificate_holds`);
-    returns the number of pairs whose slack is not positive. A moving pair whose bounding
-    spheres' gap already gives a slack beyond the horizon (``slack >= horizon * largest
-    reach``) keeps that bound (it is one): its exact bound would not change the test.
+    returns the number of pairs whose slack is not positive. Unless ``full``, a pair's
+    slack at the last baseline is carried over: minus its largest reach times the joints'
+    total travel since then, it is still a lower bound now (the motion bound of the class),
+    and it is kept while it leaves the pair beyond the horizon (``slack >= horizon *
+    largest reach``: then its exact value cannot change the per-step test); only the
+    others are measured again. Likewise a measured pair whose bounding spheres' gap
+    already puts it beyond the horizon keeps that bound.
     """
     nj, npairs, width = ints[0], ints[1], ints[2]
     joint_qpos = ints[4 : 4 + nj]
@@ -637,10 +653,20 @@ def _certificate_rebase(xpos, xmat, qpos, ints, floats, pair_geoms, shape, axis,
     base = 2 + 2 * nj + 2 * npairs + npairs * width
     max_reach = floats[base : base + npairs]
     margins = floats[base + npairs : base + 2 * npairs]
+    travel = 0.0
     for i in range(nj):
-        q0[i] = qpos[joint_qpos[i]]
+        q = qpos[joint_qpos[i]]
+        travel += abs(q - q0[i])
+        q0[i] = q
     failing = 0
     for p in range(npairs):
+        if not full and max_reach[p] > 0.0:
+            carried = slack[p] - max_reach[p] * travel
+            if carried >= horizon * max_reach[p]:
+                slack[p] = carried
+                continue
+        elif not full and slack[p] > 0.0:
+            continue  # two geoms that never move relative to each other: the same bound
         a, b = pair_geoms[p, 0], pair_geoms[p, 1]
         if max_reach[p] > 0.0 and shape[a] != _SHAPE_PLANE and shape[b] != _SHAPE_PLANE:
             dx, dy, dz = xpos[a, 0] - xpos[b, 0], xpos[a, 1] - xpos[b, 1], xpos[a, 2] - xpos[b, 2]

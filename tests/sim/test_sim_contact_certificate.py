@@ -288,3 +288,46 @@ def test_sorted_early_exit_equals_testing_every_pair(default_scene):
             if factor > 1.0:
                 assert not expected
     assert outcomes == {True, False}
+
+
+def test_carried_slacks_stay_below_mujoco_distances(default_scene):
+    """Bug caught: a baseline that carries a pair's slack over from the last one without
+    subtracting the motion since (or subtracting too little), or keeps a stale slack.
+
+    Oracle: ``mujoco.mj_geomDistance`` of every pair at each new baseline: the slack held
+    must not exceed the true distance minus margin and clearance (1e-6 m for MuJoCo's
+    convex distances). The arms sweep fast through large motions, so carried slacks are
+    used (checked) and shrink a lot between baselines. Planted and caught:
+    ``carried = slack[p]`` (nothing subtracted); ``0.05 * max_reach[p] * travel`` subtracted
+    (0.3 times passes: the bound is loose by more than 3x on these sweeps).
+    """
+    robot = SimRobot(default_scene, camera=None)
+    m, d = robot.model, robot.data
+    cert = robot._certificate
+    fromto = np.zeros(6)
+    inner = cert.rebase
+    checked = carried = 0
+
+    def rebase(data):
+        nonlocal checked, carried
+        full = cert._full
+        inner(data)
+        if not cert._valid or full:
+            return
+        carried += 1
+        if carried % 3:
+            return  # every third incremental baseline is held to MuJoCo (each costs ~650 distances)
+        true = np.array([mujoco.mj_geomDistance(m, d, int(a), int(b), 10.0, fromto) for a, b in cert._pair_geoms])
+        limit = true - cert._margin_view - _CERTIFICATE_CLEARANCE + 1e-6
+        assert (cert._pair_slack <= limit).all(), [(m.geom(a).name, m.geom(b).name) for a, b in
+                                                   cert._pair_geoms[cert._pair_slack > limit]]  # fmt: skip
+        checked += 1
+
+    cert.rebase = rebase
+    for joint, speed, ticks in [(0, 1.0, 120), (7, -0.8, 120), (1, -0.6, 120), (6, 0.7, 60), (2, 0.8, 120)]:
+        qdot = np.zeros(12)
+        qdot[joint] = speed
+        robot.send_joint_velocities(qdot)
+        for _ in range(ticks):
+            robot.step()
+    assert checked >= 5
