@@ -348,14 +348,15 @@ class SimRobot(RobotInterface):
         return self._ticks * self.control_period
 
     def joint_positions(self) -> NDArray[np.float64]:
+        # self._qpos / self._qvel: data.qpos / data.qvel bound once (each data.qpos builds a new view).
         if self._qpos_slice is not None:
-            return self.data.qpos[self._qpos_slice].copy()
-        return self.data.qpos[self._qpos_ids]  # fancy indexing copies
+            return self._qpos[self._qpos_slice].copy()
+        return self._qpos[self._qpos_ids]  # fancy indexing copies
 
     def joint_velocities(self) -> NDArray[np.float64]:
         if self._dof_slice is not None:
-            return self.data.qvel[self._dof_slice].copy()
-        return self.data.qvel[self._dof_ids]
+            return self._qvel[self._dof_slice].copy()
+        return self._qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
         return self._force.reading()
@@ -365,8 +366,10 @@ class SimRobot(RobotInterface):
 
     def camera_cloud(self) -> PointCloud | None:
         latest = None
-        while self._frames and self._frames[0][0] <= self.time + 1e-12:
-            latest = self._frames.popleft()[1]
+        frames = self._frames
+        now = self._ticks * self.control_period  # self.time without the property call
+        while frames and frames[0][0] <= now + 1e-12:
+            latest = frames.popleft()[1]
         return latest
 
     def send_joint_velocities(self, qdot: ArrayLike) -> None:
