@@ -483,7 +483,7 @@ class ContactCertificate:
         # The pairs MuJoCo may test: explicit pairs, then the filtered dynamic ones (a superset is safe).
         pairs: list[tuple[int, int, float]] = []
         for k in range(m.npair):
-            pairs.append((int(m.pair_geom1[k]), int(m.pair_geom2[k]), float(m.pair_margin[k])))
+            pairs.append((int(m.pair_geom1[k]), int(m.pair_geom2[k]), float(m.pair_margin[k]), float(m.pair_gap[k])))
         filter_parent = not (m.opt.disableflags & _DSBL_FILTERPARENT)
         self._filter_parent = filter_parent
         weld = m.body_weldid
@@ -501,11 +501,14 @@ class ContactCertificate:
                 plane = int(mujoco.mjtGeom.mjGEOM_PLANE)
                 if int(m.geom_type[a]) == plane and int(m.geom_type[b]) == plane:
                     continue  # no collision function
-                pairs.append((a, b, float(m.geom_margin[a] + m.geom_margin[b])))
+                pairs.append((a, b, float(m.geom_margin[a] + m.geom_margin[b]), float(m.geom_gap[a] + m.geom_gap[b])))
+        # MuJoCo's narrow phase reports a contact within margin + gap (the gap only makes it
+        # inactive): the certificate keeps every pair clear of both.
         self._pair_margins = np.array([p[2] for p in pairs], dtype=np.float64)
+        self._pair_gaps = np.array([p[3] for p in pairs], dtype=np.float64)
         # Per pair, the joints moving one geom relative to the other and their reaches.
         terms = []
-        for a, b, _ in pairs:
+        for a, b, _, _ in pairs:
             ra, rb = dict(chains[a]), dict(chains[b])
             common = set(ra) & set(rb)
             terms.append([(joint_of[j], r) for j, r in chains[a] if j not in common]
@@ -516,7 +519,7 @@ class ContactCertificate:
         for p, t in enumerate(terms):
             for c, (j, r) in enumerate(t):
                 self._term_joint[p, c], self._term_reach[p, c] = j, r
-        self._pair_geoms = np.array([(a, b) for a, b, _ in pairs], dtype=np.int64).reshape(-1, 2)
+        self._pair_geoms = np.array([(a, b) for a, b, _, _ in pairs], dtype=np.int64).reshape(-1, 2)
         # Per geom: bounding shape (segment along a local axis with a radius, or a plane).
         n = m.ngeom
         self._shape = np.full(n, _SHAPE_SEGMENT, dtype=np.int64)
@@ -553,7 +556,7 @@ class ContactCertificate:
         max_reach = self._term_reach.max(axis=1)
         self._floats = np.concatenate([
             [_CERTIFICATE_HORIZON, 0.0], np.zeros(2 * nj + 2 * npairs), self._term_reach.ravel(), max_reach,
-            self._pair_margins,
+            self._pair_margins + self._pair_gaps,
         ])  # fmt: skip
         self._q0 = self._floats[2 : 2 + nj]
         self._pair_slack = self._floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
@@ -585,7 +588,7 @@ class ContactCertificate:
         override = float(opt.o_margin) if opt.enableflags & _ENBL_OVERRIDE else None
         if override != self._override:
             # The margins changed: the carried slacks (see _certificate_rebase) no longer hold.
-            margins[:] = self._pair_margins if override is None else override
+            margins[:] = (self._pair_margins if override is None else override) + self._pair_gaps
             self._override = override
             self._full = True
         self._floats[1] = _CERTIFICATE_CLEARANCE

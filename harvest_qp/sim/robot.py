@@ -101,6 +101,10 @@ class SimRobot(RobotInterface):
 
     The model's physics options (``model.opt.timestep`` among them), the servo's limits and
     the substep count are read when the robot is built: build a new robot to change them.
+    Each physics step skips MuJoCo's collision detection when it provably cannot find a
+    contact (:class:`~harvest_qp.sim.contacts.ContactCertificate`; the same results bit for
+    bit); the collision geometry it proves against (geom types and sizes, margins, gaps,
+    explicit pairs, contact filters) is likewise read when the robot is built.
     """
 
     def __init__(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+import pytest
 
 from harvest_qp.sim import SimRobot
 from harvest_qp.sim.contacts import _CERTIFICATE_CLEARANCE, _CERTIFICATE_HORIZON, _DSBL_CONTACT, ContactCertificate
@@ -140,15 +141,17 @@ def _step_pair(model: mujoco.MjModel, certificate: ContactCertificate, data: muj
     return False
 
 
-def test_pendulum_falling_onto_a_post_and_floor_equals_full_detection():
+@pytest.mark.parametrize("padding", ["", 'margin="0.01" gap="0.02"'])
+def test_pendulum_falling_onto_a_post_and_floor_equals_full_detection(padding):
     """Bug caught: the certificate on a model other than the lab's (plane half-space bound,
-    ellipsoid refinement, two-joint chain) lets a contact through.
+    ellipsoid refinement, two-joint chain, geom margins and gaps) lets a contact through.
 
     Oracle: the same model stepped with full detection. A double pendulum swings down onto
     a post and the floor; contacts must appear at the same step in both, bit for bit.
-    Planted and caught: the plane bound's sign flipped (``h = -h``).
+    Planted and caught: the plane bound's sign flipped (``h = -h``); the gaps left out of
+    the pairs' thresholds (MuJoCo reports contacts within margin + gap).
     """
-    model = mujoco.MjModel.from_xml_string(_PENDULUM)
+    model = mujoco.MjModel.from_xml_string(_PENDULUM.replace('type="ellipsoid"', f'type="ellipsoid" {padding}'))
     a, b = mujoco.MjData(model), mujoco.MjData(model)
     a.qpos[:] = b.qpos[:] = [-1.2, 0.3]
     mujoco.mj_forward(model, a)
