@@ -471,7 +471,9 @@ class ContactCertificate:
             # Reach of each hinge: anchor to anchor down the chain, then to the geom's centre,
             # plus the geom's bounding radius (all rigid distances, the same in any pose).
             reach = []
-            far = float(np.linalg.norm(data.geom_xpos[g] - data.xanchor[joints[0]])) + float(m.geom_rbound[g]) if joints else 0.0
+            far = 0.0
+            if joints:
+                far = float(np.linalg.norm(data.geom_xpos[g] - data.xanchor[joints[0]])) + float(m.geom_rbound[g])
             for i, j in enumerate(joints):
                 if i:
                     far += float(np.linalg.norm(data.xanchor[joints[i - 1]] - data.xanchor[j]))
@@ -536,7 +538,8 @@ class ContactCertificate:
                 self._radius[g], self._half[g] = size[0], size[1]
             elif kind == int(mujoco.mjtGeom.mjGEOM_ELLIPSOID):
                 order = np.argsort(size)[::-1]
-                self._axis[g], self._radius[g], self._half[g] = order[0], size[order[1]], size[order[0]] - size[order[1]]
+                self._axis[g], self._radius[g] = order[0], size[order[1]]
+                self._half[g] = size[order[0]] - size[order[1]]
             else:
                 self._radius[g] = m.geom_rbound[g]
         exact = np.zeros(n, dtype=bool)

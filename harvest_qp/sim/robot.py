@@ -31,7 +31,12 @@ from harvest_qp.robot import description as desc
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo, _servo_step
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
 from harvest_qp.sim.contacts import (
-    _DSBL_CONTACT, CONTACT_KINDS, ContactCertificate, ContactMonitor, _certificate_holds, _count_kinds,
+    _DSBL_CONTACT,
+    CONTACT_KINDS,
+    ContactCertificate,
+    ContactMonitor,
+    _certificate_holds,
+    _count_kinds,
 )
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
