@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-__all__ = ["CONTACT_KINDS", "ContactMonitor"]
+__all__ = ["CONTACT_KINDS", "ContactCertificate", "ContactMonitor"]
 
 #: Contact kinds counted by :meth:`ContactMonitor.contact_counts`, in this order.
 CONTACT_KINDS = ("arm_arm", "arm_vine", "arm_stand", "arm_floor")
@@ -363,3 +363,445 @@ def _segment_distances(p1: NDArray, q1: NDArray, p2: NDArray, q2: NDArray) -> ND
         for j in range(m):
             out[i, j] = _pair_distance(p1, q1, i, p2, q2, j)
     return out
+
+
+#: MuJoCo's flags (mjtDisableBit / mjtEnableBit) the contact certificate reads.
+_DSBL_CONSTRAINT = int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+_DSBL_CONTACT = int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+_DSBL_FILTERPARENT = int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
+_ENBL_OVERRIDE = int(mujoco.mjtEnableBit.mjENBL_OVERRIDE)
+_ENBL_SLEEP = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+
+#: Clearance [m] the certificate keeps above every pair's contact margin: far above the
+#: round-off of the bounds (~1e-15 m) and of MuJoCo's convex narrow phase (``ccd_tolerance``,
+#: 1e-6 by default), so a certified pair is certainly farther apart than its margin.
+_CERTIFICATE_CLEARANCE = 1e-3
+
+_SHAPE_SEGMENT, _SHAPE_PLANE = 0, 1
+
+#: After a baseline that certified nothing, this many rebase calls are skipped (a robot
+#: resting in contact or within the clearance would otherwise pay for one every step).
+_REBASE_BACKOFF = 10
+
+#: Total joint travel [rad] (sum over the joints of |q - q0|) after which a new baseline is
+#: taken whatever the slacks: pairs that stay clear over this travel need no per-step test.
+_CERTIFICATE_HORIZON = 0.1
+
+#: At most this many loose pairs per baseline get MuJoCo's exact distance (~1.5 us each).
+_MAX_REFINED = 8
+
+
+class ContactCertificate:
+    """Proves, before ``mj_step1``, that its collision detection would find no contact.
+
+    ``mj_step1`` runs MuJoCo's collision detection (broad and narrow phase, ~40 % of it here)
+    even when the robot is far from everything, which in the paper episode is every step
+    (no contact in any golden run). When no contact can be found, running ``mj_step1`` with
+    ``mjDSBL_CONTACT`` set gives the same result bit for bit (MuJoCo then only clears the
+    contact list, which the full detection leaves empty too; a test holds the two to each
+    other over whole trajectories).
+
+    The proof: at a *baseline* state (right after a full ``mj_step1`` that found no
+    contact) every geom pair MuJoCo may test (the model's explicit ``<pair>``s and every
+    pair its bitmask and body filters let through) gets a lower bound of its distance
+    (spheres, capsules exact; an ellipsoid inside its enclosing capsule; anything else
+    inside its bounding sphere; a plane as a half-space). The robot's collidable geoms hang
+    on chains of hinge joints; a point at most R away from a hinge's anchor (R: the sum of
+    the rigid link lengths below it, a model constant) moves by at most R |dq| when that
+    hinge turns by dq, for any path between the two configurations, so a pair's distance
+    changes by at most sum_j R_j |q_j - q0_j| over the joints that move one geom relative
+    to the other (their common ancestors move both rigidly). While that sum stays below every pair's
+    baseline bound minus its margin minus :data:`_CERTIFICATE_CLEARANCE`, no contact is
+    possible and :meth:`certified` says so; else the caller runs the full detection and
+    calls :meth:`rebase`.
+
+    Models the proof does not cover (a collidable geom moved by a non-hinge joint, a mocap
+    body or a body with several joints, flexes, height fields, SDFs, a dynamic plane) get
+    a certificate that is never valid (always the full detection). Read at construction:
+    geom sizes, margins, pairs, filters; the model's options and the contact-filter
+    callback are read at each :meth:`rebase`.
+    """
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        self.model = model
+        self.supported = False
+        self._valid = False
+        self._wait = 0
+        self._full = True  # the next baseline measures every pair (no slack to carry over)
+        self._override: float | None = None  # the o_margin the margins were set for (None: the model's)
+        self._bound_data: tuple | None = None
+        self._pair_slack = np.zeros(0)
+        try:
+            self._build(model)
+        except _Unsupported:
+            return
+        self.supported = True
+
+    def _build(self, m: mujoco.MjModel) -> None:
+        if m.nflex:
+            raise _Unsupported
+        collidable = [
+            g for g in range(m.ngeom) if m.geom_contype[g] or m.geom_conaffinity[g]
+        ] + m.pair_geom1.tolist() + m.pair_geom2.tolist()  # fmt: skip
+        collidable = sorted(set(collidable))
+        data = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, data)
+        hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+        # Per collidable geom: its chain of hinge joints (qpos address, reach R [m]), root first.
+        chains: dict[int, list[tuple[int, float]]] = {}
+        joint_of: dict[int, int] = {}
+        for g in collidable:
+            kind = int(m.geom_type[g])
+            if kind in (int(mujoco.mjtGeom.mjGEOM_HFIELD), int(mujoco.mjtGeom.mjGEOM_SDF)):
+                raise _Unsupported
+            body = int(m.geom_bodyid[g])
+            joints = []  # leaf first
+            b = body
+            while b != 0:
+                if m.body_mocapid[b] >= 0 or m.body_jntnum[b] > 1:
+                    raise _Unsupported
+                if m.body_jntnum[b] == 1:
+                    j = int(m.body_jntadr[b])
+                    if int(m.jnt_type[j]) != hinge:
+                        raise _Unsupported
+                    joints.append(j)
+                b = int(m.body_parentid[b])
+            if joints and kind == int(mujoco.mjtGeom.mjGEOM_PLANE):
+                raise _Unsupported  # a moving half-space: no finite reach
+            # Reach of each hinge: anchor to anchor down the chain, then to the geom's centre,
+            # plus the geom's bounding radius (all rigid distances, the same in any pose).
+            reach = []
+            far = 0.0
+            if joints:
+                far = float(np.linalg.norm(data.geom_xpos[g] - data.xanchor[joints[0]])) + float(m.geom_rbound[g])
+            for i, j in enumerate(joints):
+                if i:
+                    far += float(np.linalg.norm(data.xanchor[joints[i - 1]] - data.xanchor[j]))
+                reach.append((j, far * (1.0 + 1e-9)))
+            chains[g] = reach[::-1]
+            for j, _ in reach:
+                joint_of.setdefault(j, len(joint_of))
+        self._joint_qpos = np.array([m.jnt_qposadr[j] for j in joint_of], dtype=np.int64)
+        # The pairs MuJoCo may test: explicit pairs, then the filtered dynamic ones (a superset is safe).
+        pairs: list[tuple[int, int, float]] = []
+        for k in range(m.npair):
+            pairs.append((int(m.pair_geom1[k]), int(m.pair_geom2[k]), float(m.pair_margin[k]), float(m.pair_gap[k])))
+        filter_parent = not (m.opt.disableflags & _DSBL_FILTERPARENT)
+        self._filter_parent = filter_parent
+        weld = m.body_weldid
+        for a_i, a in enumerate(collidable):
+            for b in collidable[a_i + 1 :]:
+                ba, bb = int(m.geom_bodyid[a]), int(m.geom_bodyid[b])
+                wa, wb = int(weld[ba]), int(weld[bb])
+                if wa == wb:
+                    continue  # same weld body (static-static included): never tested
+                pa, pb = int(weld[m.body_parentid[wa]]), int(weld[m.body_parentid[wb]])
+                if filter_parent and wa != 0 and wb != 0 and (wa == pb or wb == pa):
+                    continue
+                if not (m.geom_contype[a] & m.geom_conaffinity[b]) and not (m.geom_contype[b] & m.geom_conaffinity[a]):
+                    continue
+                plane = int(mujoco.mjtGeom.mjGEOM_PLANE)
+                if int(m.geom_type[a]) == plane and int(m.geom_type[b]) == plane:
+                    continue  # no collision function
+                pairs.append((a, b, float(m.geom_margin[a] + m.geom_margin[b]), float(m.geom_gap[a] + m.geom_gap[b])))
+        # MuJoCo's narrow phase reports a contact within margin + gap (the gap only makes it
+        # inactive): the certificate keeps every pair clear of both.
+        self._pair_margins = np.array([p[2] for p in pairs], dtype=np.float64)
+        self._pair_gaps = np.array([p[3] for p in pairs], dtype=np.float64)
+        # Per pair, the joints moving one geom relative to the other and their reaches.
+        terms = []
+        for a, b, _, _ in pairs:
+            ra, rb = dict(chains[a]), dict(chains[b])
+            common = set(ra) & set(rb)
+            terms.append([(joint_of[j], r) for j, r in chains[a] if j not in common]
+                         + [(joint_of[j], r) for j, r in chains[b] if j not in common])  # fmt: skip
+        width = max([len(t) for t in terms] + [1])
+        self._term_joint = np.zeros((len(pairs), width), dtype=np.int64)
+        self._term_reach = np.zeros((len(pairs), width))
+        for p, t in enumerate(terms):
+            for c, (j, r) in enumerate(t):
+                self._term_joint[p, c], self._term_reach[p, c] = j, r
+        self._pair_geoms = np.array([(a, b) for a, b, _, _ in pairs], dtype=np.int64).reshape(-1, 2)
+        # Per geom: bounding shape (segment along a local axis with a radius, or a plane).
+        n = m.ngeom
+        self._shape = np.full(n, _SHAPE_SEGMENT, dtype=np.int64)
+        self._axis = np.full(n, 2, dtype=np.int64)
+        self._half = np.zeros(n)
+        self._radius = np.zeros(n)
+        for g in collidable:
+            kind, size = int(m.geom_type[g]), m.geom_size[g]
+            if kind == int(mujoco.mjtGeom.mjGEOM_PLANE):
+                self._shape[g] = _SHAPE_PLANE
+            elif kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+                self._radius[g] = size[0]
+            elif kind == int(mujoco.mjtGeom.mjGEOM_CAPSULE):
+                self._radius[g], self._half[g] = size[0], size[1]
+            elif kind == int(mujoco.mjtGeom.mjGEOM_ELLIPSOID):
+                order = np.argsort(size)[::-1]
+                self._axis[g], self._radius[g] = order[0], size[order[1]]
+                self._half[g] = size[order[0]] - size[order[1]]
+            else:
+                self._radius[g] = m.geom_rbound[g]
+        exact = np.zeros(n, dtype=bool)
+        for g in collidable:
+            exact[g] = int(m.geom_type[g]) in (
+                int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_CAPSULE),
+            )  # fmt: skip
+        # Pairs whose bound is loose (a geom inside an enclosing shape): refined with MuJoCo's distance.
+        self._loose = ~(exact[self._pair_geoms[:, 0]] & exact[self._pair_geoms[:, 1]])
+        self._fromto = np.zeros(6)
+        # The per-step test's operands in one int and one float buffer (a numba call costs
+        # ~0.06 us per array argument), sizes in their headers (see _certificate_holds).
+        nj, npairs = self._joint_qpos.size, len(pairs)
+        self._ints = np.concatenate([
+            [nj, npairs, width, 0], self._joint_qpos, np.zeros(npairs, np.int64), self._term_joint.ravel(),
+        ]).astype(np.int64)  # fmt: skip
+        max_reach = self._term_reach.max(axis=1)
+        self._floats = np.concatenate([
+            [_CERTIFICATE_HORIZON, 0.0], np.zeros(2 * nj + 2 * npairs), self._term_reach.ravel(), max_reach,
+            self._pair_margins + self._pair_gaps,
+        ])  # fmt: skip
+        self._q0 = self._floats[2 : 2 + nj]
+        self._pair_slack = self._floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+        self._margin_view = self._floats[self._floats.size - npairs :]
+        self._rbound = np.ascontiguousarray(m.geom_rbound, dtype=np.float64)
+
+    def rebase(self, data: mujoco.MjData) -> None:
+        """Take ``data``'s state (after ``mj_step1``) as the baseline, if it certifies anything.
+
+        Valid only when the model's options and callbacks allow the proof (no sleeping, no
+        contact-filter callback) and every pair is clear of its margin by
+        :data:`_CERTIFICATE_CLEARANCE` now.
+        """
+        self._valid = False
+        if not self.supported or data.ncon:
+            return
+        if self._wait > 0:
+            self._wait -= 1  # the last baseline failed: a robot resting within the clearance would pay every step
+            return
+        m = self.model
+        opt = m.opt
+        if opt.enableflags & _ENBL_SLEEP or opt.disableflags & (_DSBL_CONTACT | _DSBL_CONSTRAINT):
+            return
+        if mujoco.get_mjcb_contactfilter() is not None:
+            return
+        if bool(opt.disableflags & _DSBL_FILTERPARENT) != (not self._filter_parent):
+            return
+        margins = self._margin_view
+        override = float(opt.o_margin) if opt.enableflags & _ENBL_OVERRIDE else None
+        if override != self._override:
+            # The margins changed: the carried slacks (see _certificate_rebase) no longer hold.
+            margins[:] = (self._pair_margins if override is None else override) + self._pair_gaps
+            self._override = override
+            self._full = True
+        self._floats[1] = _CERTIFICATE_CLEARANCE
+        slack = self._pair_slack
+        bound = self._bound_data
+        if bound is None or bound[0] is not data:
+            bound = self._bound_data = (data, data.geom_xpos, data.geom_xmat, data.qpos)  # live views, made once
+            self._full = True
+        n_failing = _certificate_rebase(
+            bound[1], bound[2], bound[3], self._ints, self._floats, self._pair_geoms, self._shape, self._axis,
+            self._half, self._radius, self._rbound, self._full,
+        )  # fmt: skip
+        self._full = False
+        if n_failing:
+            # A pair with an ellipsoid (or a geom bounded by its sphere) may fail only because
+            # its enclosing shape is loose (a flat leaf in a fat capsule): ask MuJoCo for the
+            # distance of those few (its convex distance is accurate to ccd_tolerance, far
+            # below the clearance).
+            failing = np.flatnonzero(~(slack > 0.0))
+            if failing.size > _MAX_REFINED or not self._loose[failing].all():
+                self._wait = _REBASE_BACKOFF
+                return
+            for p in failing.tolist():
+                a, b = self._pair_geoms[p].tolist()
+                distance = mujoco.mj_geomDistance(m, data, a, b, 1.0, self._fromto)
+                slack[p] = distance - margins[p] - _CERTIFICATE_CLEARANCE
+        self._valid = _certificate_order(self._ints, self._floats)
+        if not self._valid:
+            self._wait = _REBASE_BACKOFF
+
+    def invalidate(self) -> None:
+        """Forget the baseline (the next step runs the full detection and takes a new one,
+        measuring every pair again)."""
+        self._valid = False
+        self._wait = 0
+        self._full = True
+
+    def certified(self, qpos: NDArray[np.float64]) -> bool:
+        """True when no contact is possible at the configuration ``qpos`` (see the class)."""
+        return self._valid and _certificate_holds(qpos, self._ints, self._floats)
+
+
+class _Unsupported(Exception):
+    """The model is outside what :class:`ContactCertificate` can prove."""
+
+
+@njit(cache=True)
+def _certificate_rebase(xpos, xmat, qpos, ints, floats, pair_geoms, shape, axis, half, radius, rbound, full):
+    """Baseline of :class:`ContactCertificate`: per pair, its distance's lower bound minus margin and clearance.
+
+    Writes ``q0`` (the joints now) and every pair's ``slack`` (layout: :func:`_certificate_holds`);
+    returns the number of pairs whose slack is not positive. Unless ``full``, a pair's
+    slack at the last baseline is carried over: minus its largest reach times the joints'
+    total travel since then, it is still a lower bound now (the motion bound of the class),
+    and it is kept while it leaves the pair beyond the horizon (``slack >= horizon *
+    largest reach``: then its exact value cannot change the per-step test); only the
+    others are measured again. Likewise a measured pair whose bounding spheres' gap
+    already puts it beyond the horizon keeps that bound.
+    """
+    nj, npairs, width = ints[0], ints[1], ints[2]
+    joint_qpos = ints[4 : 4 + nj]
+    horizon, clearance = floats[0], floats[1]
+    q0 = floats[2 : 2 + nj]
+    slack = floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+    base = 2 + 2 * nj + 2 * npairs + npairs * width
+    max_reach = floats[base : base + npairs]
+    margins = floats[base + npairs : base + 2 * npairs]
+    travel = 0.0
+    for i in range(nj):
+        q = qpos[joint_qpos[i]]
+        travel += abs(q - q0[i])
+        q0[i] = q
+    failing = 0
+    for p in range(npairs):
+        if not full and max_reach[p] > 0.0:
+            carried = slack[p] - max_reach[p] * travel
+            if carried >= horizon * max_reach[p]:
+                slack[p] = carried
+                continue
+        elif not full and slack[p] > 0.0:
+            continue  # two geoms that never move relative to each other: the same bound
+        a, b = pair_geoms[p, 0], pair_geoms[p, 1]
+        if max_reach[p] > 0.0 and shape[a] != _SHAPE_PLANE and shape[b] != _SHAPE_PLANE:
+            dx, dy, dz = xpos[a, 0] - xpos[b, 0], xpos[a, 1] - xpos[b, 1], xpos[a, 2] - xpos[b, 2]
+            gap = math.sqrt(dx * dx + dy * dy + dz * dz) - rbound[a] - rbound[b] - margins[p] - clearance
+            if gap >= horizon * max_reach[p]:
+                slack[p] = gap
+                continue
+        slack[p] = _pair_lower_bound(xpos, xmat, a, b, shape, axis, half, radius) - margins[p] - clearance
+        if not slack[p] > 0.0:
+            failing += 1
+    return failing
+
+
+@njit(cache=True)
+def _certificate_order(ints, floats):
+    """After :func:`_certificate_rebase` (and any refinement): the per-step test's pair list.
+
+    The pairs that can come within their margin before the joints' total travel reaches
+    the horizon (``tau = slack / largest reach < horizon``), in increasing ``tau``
+    (insertion sort: a handful). Returns True when every slack is positive (a valid baseline).
+    """
+    nj, npairs, width = ints[0], ints[1], ints[2]
+    near = ints[4 + nj : 4 + nj + npairs]
+    horizon = floats[0]
+    tau = floats[2 + 2 * nj : 2 + 2 * nj + npairs]
+    slack = floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+    base = 2 + 2 * nj + 2 * npairs + npairs * width
+    max_reach = floats[base : base + npairs]
+    n = 0
+    for p in range(npairs):
+        if not slack[p] > 0.0:
+            ints[3] = 0
+            return False
+        if max_reach[p] > 0.0:
+            # Rounded down so that travel < tau implies max_reach * travel < slack.
+            t = slack[p] / max_reach[p] * (1.0 - 1e-12)
+            if t < horizon:
+                j = n
+                while j > 0 and tau[j - 1] > t:
+                    tau[j] = tau[j - 1]
+                    near[j] = near[j - 1]
+                    j -= 1
+                tau[j] = t
+                near[j] = p
+                n += 1
+    ints[3] = n
+    return True
+
+
+@njit(cache=True)
+def _pair_lower_bound(xpos, xmat, a, b, shape, axis, half, radius):
+    """Lower bound of the distance between geoms ``a`` and ``b`` from their bounding shapes.
+
+    Segments with radii (spheres, capsules exact; ellipsoids in their enclosing capsule;
+    other geoms in their bounding sphere): the segments' distance minus both radii. A
+    plane is a half-space: the lowest end of the other geom's segment above it minus its
+    radius. Two planes never collide (no collision function): infinity.
+    """
+    if shape[a] == _SHAPE_PLANE and shape[b] == _SHAPE_PLANE:
+        return np.inf
+    if shape[a] == _SHAPE_PLANE or shape[b] == _SHAPE_PLANE:
+        pl, g = (a, b) if shape[a] == _SHAPE_PLANE else (b, a)
+        # Signed height of the segment's ends above the plane (its normal: local z).
+        nx, ny, nz = xmat[pl, 2], xmat[pl, 5], xmat[pl, 8]
+        ax = axis[g]
+        lower = np.inf
+        for s in (-1.0, 1.0):
+            h = 0.0
+            for c in range(3):
+                end = xpos[g, c] + s * half[g] * xmat[g, 3 * c + ax]
+                h += (end - xpos[pl, c]) * (nx if c == 0 else (ny if c == 1 else nz))
+            lower = min(lower, h - radius[g])
+        return lower
+    aa, ab = axis[a], axis[b]
+    ux = 2.0 * half[a] * xmat[a, _ax_index(0, aa)]
+    uy = 2.0 * half[a] * xmat[a, _ax_index(1, aa)]
+    uz = 2.0 * half[a] * xmat[a, _ax_index(2, aa)]
+    vx = 2.0 * half[b] * xmat[b, _ax_index(0, ab)]
+    vy = 2.0 * half[b] * xmat[b, _ax_index(1, ab)]
+    vz = 2.0 * half[b] * xmat[b, _ax_index(2, ab)]
+    # Segment starts: centre minus half the axis.
+    rx = (xpos[a, 0] - 0.5 * ux) - (xpos[b, 0] - 0.5 * vx)
+    ry = (xpos[a, 1] - 0.5 * uy) - (xpos[b, 1] - 0.5 * vy)
+    rz = (xpos[a, 2] - 0.5 * uz) - (xpos[b, 2] - 0.5 * vz)
+    distance = _clamped_distance(ux, uy, uz, vx, vy, vz, rx, ry, rz, _dot(ux, uy, uz, ux, uy, uz), 1e-12)
+    return distance - radius[a] - radius[b]
+
+
+@njit(cache=True, inline="always")
+def _ax_index(row, axis):
+    """Index in a row-major 3x3 ``xmat`` of the world ``row`` component of local axis ``axis``."""
+    return 3 * row + axis
+
+
+@njit(cache=True)
+def _certificate_holds(qpos, ints, floats):
+    """True when every pair's possible approach since the baseline, sum R |q - q0|, is below its slack.
+
+    ``ints = [nj, npairs, width, n_near, joint qpos addresses (nj), near pairs (npairs),
+    term joints (npairs x width)]``; ``floats = [horizon, clearance, q0 (nj), work (nj),
+    tau of the near pairs (npairs), slack (npairs), term reaches (npairs x width), largest
+    reach (npairs), margins (npairs)]``. Beyond the horizon of total joint travel ``S``
+    the answer is False (the caller takes a new baseline). Else only the near pairs (see
+    :func:`_certificate_order`) can be at risk, in increasing ``tau``: once ``S`` is below
+    a pair's ``tau``, it and all later ones are safe (``sum R |dq| <= max R * S < slack``);
+    the pairs before are tested term by term.
+    """
+    nj, npairs, width, n_near = ints[0], ints[1], ints[2], ints[3]
+    joint_qpos, near = ints[4 : 4 + nj], ints[4 + nj : 4 + nj + npairs]
+    term_joint = ints[4 + nj + npairs :].reshape(npairs, width)
+    horizon = floats[0]
+    q0, dq = floats[2 : 2 + nj], floats[2 + nj : 2 + 2 * nj]
+    tau = floats[2 + 2 * nj : 2 + 2 * nj + npairs]
+    slack = floats[2 + 2 * nj + npairs : 2 + 2 * nj + 2 * npairs]
+    base = 2 + 2 * nj + 2 * npairs
+    term_reach = floats[base : base + npairs * width].reshape(npairs, width)
+    travel = 0.0
+    for i in range(nj):
+        dq[i] = abs(qpos[joint_qpos[i]] - q0[i])
+        travel += dq[i]
+    if not travel < horizon:
+        return False
+    for i in range(n_near):
+        if travel < tau[i]:
+            return True
+        p = near[i]
+        moved = 0.0
+        for c in range(width):
+            moved += term_reach[p, c] * dq[term_joint[p, c]]
+        if not moved < slack[p]:
+            return False
+    return True

@@ -30,7 +30,14 @@ from harvest_qp.interface import N_JOINTS, ROBOT, PointCloud, RobotInterface
 from harvest_qp.robot import description as desc
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo, _servo_step
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
-from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor, _count_kinds
+from harvest_qp.sim.contacts import (
+    _DSBL_CONTACT,
+    CONTACT_KINDS,
+    ContactCertificate,
+    ContactMonitor,
+    _certificate_holds,
+    _count_kinds,
+)
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
 from harvest_qp.validation import as_positive_scalar, check_field_types
@@ -99,6 +106,10 @@ class SimRobot(RobotInterface):
 
     The model's physics options (``model.opt.timestep`` among them), the servo's limits and
     the substep count are read when the robot is built: build a new robot to change them.
+    Each physics step skips MuJoCo's collision detection when it provably cannot find a
+    contact (:class:`~harvest_qp.sim.contacts.ContactCertificate`; the same results bit for
+    bit); the collision geometry it proves against (geom types and sizes, margins, gaps,
+    explicit pairs, contact filters) is likewise read when the robot is built.
     """
 
     def __init__(
@@ -196,6 +207,10 @@ class SimRobot(RobotInterface):
             stand_geoms=robot_geoms[m.geom_bodyid[robot_geoms] == base], vine_geoms=scene.vine_geoms,
             floor_geoms=np.array(floor, dtype=np.int64),
         )  # fmt: skip
+        # Proves, step by step, when MuJoCo's collision detection cannot find a contact (see
+        # ContactCertificate): mj_step1 then skips it, with the same result bit for bit.
+        self._certificate = ContactCertificate(m)
+        self._opt = m.opt
         slide = ids["stem_slide"]
         self._slide_dof = int(m.jnt_dofadr[slide])
         self._slide_stiffness = float(m.jnt_stiffness[slide])
@@ -289,6 +304,7 @@ class SimRobot(RobotInterface):
         self._torn = False
         self._tear_time = float("nan")
         self._max_tension = 0.0
+        self._certificate.invalidate()
         mujoco.mj_resetData(m, d)
         d.qpos[self._qpos_ids] = self.scene.home_q
         mujoco.mj_forward(m, d)
@@ -341,14 +357,15 @@ class SimRobot(RobotInterface):
         return self._ticks * self.control_period
 
     def joint_positions(self) -> NDArray[np.float64]:
+        # self._qpos / self._qvel: data.qpos / data.qvel bound once (each data.qpos builds a new view).
         if self._qpos_slice is not None:
-            return self.data.qpos[self._qpos_slice].copy()
-        return self.data.qpos[self._qpos_ids]  # fancy indexing copies
+            return self._qpos[self._qpos_slice].copy()
+        return self._qpos[self._qpos_ids]  # fancy indexing copies
 
     def joint_velocities(self) -> NDArray[np.float64]:
         if self._dof_slice is not None:
-            return self.data.qvel[self._dof_slice].copy()
-        return self.data.qvel[self._dof_ids]
+            return self._qvel[self._dof_slice].copy()
+        return self._qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
         return self._force.reading()
@@ -358,8 +375,10 @@ class SimRobot(RobotInterface):
 
     def camera_cloud(self) -> PointCloud | None:
         latest = None
-        while self._frames and self._frames[0][0] <= self.time + 1e-12:
-            latest = self._frames.popleft()[1]
+        frames = self._frames
+        now = self._ticks * self.control_period  # self.time without the property call
+        while frames and frames[0][0] <= now + 1e-12:
+            latest = frames.popleft()[1]
         return latest
 
     def send_joint_velocities(self, qdot: ArrayLike) -> None:
@@ -634,7 +653,22 @@ class SimRobot(RobotInterface):
         # step2 integrates with the forces of the current state; step1 then computes the
         # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
-        mujoco.mj_step1(m, d)
+        certificate = self._certificate
+        # certificate.certified(qpos), its kernel called directly (one Python frame less per step).
+        if certificate._valid and _certificate_holds(self._qpos, certificate._ints, certificate._floats):
+            # No contact is possible at the new configuration (proven from the joints' motion
+            # since the certificate's baseline): step1 without the collision detection, which
+            # would find nothing; the same result bit for bit.
+            opt = self._opt
+            flags = opt.disableflags
+            opt.disableflags = flags | _DSBL_CONTACT
+            try:
+                mujoco.mj_step1(m, d)
+            finally:
+                opt.disableflags = flags
+        else:
+            mujoco.mj_step1(m, d)
+            certificate.rebase(d)
 
     def _check_tear(self, tension: float | None = None) -> None:
         """Tear the stem when its tension exceeds the break force: release its axial spring.
