@@ -986,3 +986,82 @@ def feed_tick(
         cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
         out_count, out_cells, out_centres,
     )
+
+
+# --------------------------------------------------------------------------- packed feed tick
+# numba's dispatch costs grow with the argument count (each argument is typed and unboxed on
+# every call: ~4 us for feed_tick's 45 arguments warm, ~20 us with the caches the rest of a
+# control tick leaves, against ~1 us / ~12 us for a dozen; measured). MapCollisionFeed
+# therefore keeps the arrays that only it writes, and the constants, in two buffers (one
+# float64, one int64) built once (MapCollisionFeed._pack); feed_tick_packed cuts them back
+# into the same arrays and runs the same kernels on them (same arithmetic: the same bits).
+# ibuf starts with a header: the sizes below, then the offsets of the float parts in fbuf,
+# then those of the int parts in ibuf, in the order of FEED_FLOAT_PARTS / FEED_INT_PARTS.
+FEED_FLOAT_PARTS = (
+    "place_R", "place_p", "axis", "joint_R", "joint_p", "cap_a", "cap_b", "w0", "w1", "park", "radii",
+    "cache_w0", "cache_w1", "cache_distance", "scratch_distance", "out_distance", "out_centres", "map_floats",
+)  # fmt: skip
+FEED_INT_PARTS = (
+    "parent", "idx_v", "joint_type", "cap_joint", "lo_key", "dims", "state", "cand_start", "scratch_index",
+    "out_index", "out_count", "out_cells", "map_ints",
+)  # fmt: skip
+FEED_SIZES = 5  # header: joints, capsules, cells kept per capsule, scratch length, output slots
+_FO = FEED_SIZES
+_IO = FEED_SIZES + len(FEED_FLOAT_PARTS)
+FEED_HEADER = _IO + len(FEED_INT_PARTS)
+
+
+@njit(cache=True, inline="always")
+def _view2(buf, offset, rows, cols):
+    return buf[offset : offset + rows * cols].reshape((rows, cols))
+
+
+@njit(cache=True)
+def feed_tick_packed(
+    q, active, max_distance, min_separation, slack, map_version, fbuf, ibuf, cand_index, cand_xyz, rel_blocks,
+    block_cells, block_count, block_stamp,
+):
+    """:func:`feed_tick` with the feed's own arrays and constants cut from ``fbuf`` / ``ibuf``
+    (layout above; map floats: cell radius [m], resolution [m]; map ints: nby, nbz)."""
+    nj, n, k, m, slots = ibuf[0], ibuf[1], ibuf[2], ibuf[3], ibuf[4]
+    place_R = fbuf[ibuf[_FO + 0] : ibuf[_FO + 0] + 9 * nj].reshape((nj, 3, 3))
+    place_p = _view2(fbuf, ibuf[_FO + 1], nj, 3)
+    axis = _view2(fbuf, ibuf[_FO + 2], nj, 3)
+    joint_R = fbuf[ibuf[_FO + 3] : ibuf[_FO + 3] + 9 * nj].reshape((nj, 3, 3))
+    joint_p = _view2(fbuf, ibuf[_FO + 4], nj, 3)
+    cap_a = _view2(fbuf, ibuf[_FO + 5], n, 3)
+    cap_b = _view2(fbuf, ibuf[_FO + 6], n, 3)
+    w0 = _view2(fbuf, ibuf[_FO + 7], n, 3)
+    w1 = _view2(fbuf, ibuf[_FO + 8], n, 3)
+    park = fbuf[ibuf[_FO + 9] : ibuf[_FO + 9] + 3]
+    radii = fbuf[ibuf[_FO + 10] : ibuf[_FO + 10] + n]
+    cache_w0 = _view2(fbuf, ibuf[_FO + 11], n, 3)
+    cache_w1 = _view2(fbuf, ibuf[_FO + 12], n, 3)
+    cache_distance = fbuf[ibuf[_FO + 13] : ibuf[_FO + 13] + 1]
+    scratch_distance = fbuf[ibuf[_FO + 14] : ibuf[_FO + 14] + m]
+    out_distance = _view2(fbuf, ibuf[_FO + 15], n, k)
+    out_centres = _view2(fbuf, ibuf[_FO + 16], slots, 3)
+    cell_radius = fbuf[ibuf[_FO + 17]]
+    res = fbuf[ibuf[_FO + 17] + 1]
+    parent = ibuf[ibuf[_IO + 0] : ibuf[_IO + 0] + nj]
+    idx_v = ibuf[ibuf[_IO + 1] : ibuf[_IO + 1] + nj]
+    joint_type = ibuf[ibuf[_IO + 2] : ibuf[_IO + 2] + nj]
+    cap_joint = ibuf[ibuf[_IO + 3] : ibuf[_IO + 3] + n]
+    lo_key = ibuf[ibuf[_IO + 4] : ibuf[_IO + 4] + 3]
+    dims = ibuf[ibuf[_IO + 5] : ibuf[_IO + 5] + 3]
+    state = ibuf[ibuf[_IO + 6] : ibuf[_IO + 6] + FEED_STATE]
+    cand_start = ibuf[ibuf[_IO + 7] : ibuf[_IO + 7] + n + 1]
+    scratch_index = ibuf[ibuf[_IO + 8] : ibuf[_IO + 8] + m]
+    out_index = _view2(ibuf, ibuf[_IO + 9], n, k)
+    out_count = ibuf[ibuf[_IO + 10] : ibuf[_IO + 10] + n]
+    out_cells = ibuf[ibuf[_IO + 11] : ibuf[_IO + 11] + slots]
+    nby = ibuf[ibuf[_IO + 12]]
+    nbz = ibuf[ibuf[_IO + 12] + 1]
+    _collision.forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
+    _collision.capsule_world(cap_joint, cap_a, cap_b, joint_R, joint_p, w0, w1)
+    return feed_update(
+        w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
+        block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
+        cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
+        out_count, out_cells, out_centres,
+    )

@@ -1004,3 +1004,76 @@ def test_feed_drops_its_kept_cells_when_the_map_or_the_radii_are_replaced():
     assert feed.update(q) == 0 and uncached(feed) == 0
     with pytest.raises(InvalidInputError, match="ObstacleMap"):
         feed.map = "not a map"
+
+
+def test_packed_feed_tick_is_the_45_argument_kernel_bit_for_bit():
+    """The feed passes its arrays and constants to the compiled tick in two packed buffers (a
+    dispatch-cost cut); oracle: the unpacked kernel ``_map_kernels.feed_tick`` run every tick on
+    its own copies of the same state. Every output (return value, state counters including the
+    rebuild count, per-capsule cells and distances, fed cells and centres, capsule end points)
+    must be equal bit for bit while the arms swing past the slack, a wall moves (map changes),
+    capsules are switched off and on (parking), and the radii are replaced (repacking).
+    Catches a packed part read at the wrong offset (e.g. the kept end points ``cache_w0`` and
+    ``cache_w1`` swapped: the lists are rebuilt at other ticks), a constant packed wrong
+    (slack, cell radius), and feed arrays not re-pointed at the new buffers after a repack."""
+    from harvest_qp.perception import _map_kernels as K
+
+    config, _, limit, m, feed = _controller(True, ahead=0.09)
+    tree = feed._tree
+    n = len(feed.capsule_names)
+    ref = dict(
+        fk=tuple(a.copy() for a in (tree.parent, tree.idx_v, tree.joint_type, tree.axis, tree.place_R, tree.place_p,
+                                    tree.joint_R, tree.joint_p, feed._joints, feed._a_local, feed._b_local)),
+        w0=np.zeros((n, 3)), w1=np.zeros((n, 3)), state=np.zeros(K.FEED_STATE, np.int64), cache_w0=np.zeros((n, 3)),
+        cache_w1=np.zeros((n, 3)), cache_distance=np.full(1, np.nan), cand_start=np.zeros(n + 1, np.int64),
+        cand_index=np.zeros(4096, np.int64), cand_xyz=np.zeros((4096, 3)), rel_blocks=np.zeros(4096, np.int64),
+        scratch_i=feed._scratch_i.copy(), scratch_d=feed._scratch_d.copy(), index=feed._index.copy(),
+        dist=feed._dist.copy(), count=feed._count.copy(), cells=feed._cells.copy(), centres=feed._centres.copy(),
+    )  # fmt: skip
+
+    def reference_tick(q, radii):
+        r = ref
+        while True:
+            out = K.feed_tick(
+                q, *r["fk"][:8], r["fk"][8], r["fk"][9], r["fk"][10], r["w0"], r["w1"], feed.active.copy(),
+                feed._PARK.copy(), radii, limit.influence_distance + feed.margin, m.cell_radius, feed.min_separation,
+                feed.slack, m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells, m._block_count,
+                m._block_stamp, m._version, r["state"], r["cache_w0"], r["cache_w1"], r["cache_distance"],
+                r["cand_start"], r["cand_index"], r["cand_xyz"], r["rel_blocks"], r["scratch_i"], r["scratch_d"],
+                r["index"], r["dist"], r["count"], r["cells"], r["centres"],
+            )  # fmt: skip
+            if out != -2:
+                return out
+            r["cand_index"] = np.zeros(2 * r["cand_index"].shape[0], np.int64)
+            r["cand_xyz"] = np.zeros((r["cand_index"].shape[0], 3))
+            r["rel_blocks"] = np.zeros(2 * r["rel_blocks"].shape[0], np.int64)
+
+    q0 = config.q.copy()
+    g = config.frame_position("gripper")
+    pose = look_at(g + [-0.25, 0.02, 0.15], g + [0.2, 0.0, 0.0])
+    radii = feed.radii.copy()
+    changed_ticks = 0
+    for tick in range(140):
+        q = q0 + 0.2 * np.sin(0.02 * tick + np.arange(q0.size))
+        if tick % 10 == 5 and tick < 60:
+            x = g[0] + 0.09 - 0.0003 * tick
+            wall = ([x, g[1], g[2]], [0.02 * np.sin(0.1 * tick), 0.25, 0.0], [0.0, 0.0, 0.2], OBSTACLE)
+            m.update(cast(pose, [wall], size=(160, 220)))
+        if tick == 70:  # new radii: the feed repacks and forgets its lists; so does the reference
+            radii = 1.5 * radii
+            feed.radii = radii
+            ref["state"][K.FEED_VALID] = 0
+        feed.active[:] = True
+        if 90 <= tick < 110:
+            feed.active[::3] = False
+        got = feed.update(q)
+        expected = reference_tick(q, radii)
+        assert got == expected or (expected == -1 and got == feed.cells.shape[0]), tick
+        assert np.array_equal(feed._state, ref["state"]), (tick, feed._state, ref["state"])
+        changed_ticks += int(ref["state"][K.FEED_CHANGED])
+        for mine, theirs in ((feed._index, "index"), (feed._count, "count"), (feed._cells, "cells"),
+                             (feed._w0, "w0"), (feed._w1, "w1"), (feed._cache_w0, "cache_w0")):  # fmt: skip
+            assert np.array_equal(mine, ref[theirs]), (tick, theirs)
+        for mine, theirs in ((feed._dist, "dist"), (feed._centres, "centres")):
+            assert mine.tobytes() == ref[theirs].tobytes(), (tick, theirs)
+    assert changed_ticks > 5 and ref["state"][K.FEED_REBUILDS] > 12
