@@ -1000,6 +1000,7 @@ def feed_tick(
 FEED_FLOAT_PARTS = (
     "place_R", "place_p", "axis", "joint_R", "joint_p", "cap_a", "cap_b", "w0", "w1", "park", "radii",
     "cache_w0", "cache_w1", "cache_distance", "scratch_distance", "out_distance", "out_centres", "map_floats",
+    "cand_bound", "displacement",
 )  # fmt: skip
 FEED_INT_PARTS = (
     "parent", "idx_v", "joint_type", "cap_joint", "lo_key", "dims", "state", "cand_start", "scratch_index",
@@ -1043,6 +1044,8 @@ def feed_tick_packed(
     out_centres = _view2(fbuf, ibuf[_FO + 16], slots, 3)
     cell_radius = fbuf[ibuf[_FO + 17]]
     res = fbuf[ibuf[_FO + 17] + 1]
+    cand_bound = fbuf[ibuf[_FO + 18] : ibuf[_FO + 18] + n]
+    displacement = fbuf[ibuf[_FO + 19] : ibuf[_FO + 19] + n]
     parent = ibuf[ibuf[_IO + 0] : ibuf[_IO + 0] + nj]
     idx_v = ibuf[ibuf[_IO + 1] : ibuf[_IO + 1] + nj]
     joint_type = ibuf[ibuf[_IO + 2] : ibuf[_IO + 2] + nj]
@@ -1059,9 +1062,144 @@ def feed_tick_packed(
     nbz = ibuf[ibuf[_IO + 12] + 1]
     _collision.forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
     _collision.capsule_world(cap_joint, cap_a, cap_b, joint_R, joint_p, w0, w1)
-    return feed_update(
+    return feed_update_bounded(
         w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
         block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
         cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-        out_count, out_cells, out_centres,
+        out_count, out_cells, out_centres, cand_bound, displacement,
     )
+
+
+# A bound that skips most kept candidates without their distance (exact, argued here). Let M be
+# the length of the sorted list (scratch) and, for a capsule, D(e) its distance to candidate e
+# when the lists were built (kept in cand_xyz[:, 3]), B the M-th smallest D (cand_bound; inf
+# with fewer than M candidates) and s the larger displacement of its end points since then. A
+# segment's distance to a point moves by at most s when its end points move by at most s, so M
+# candidates are now within B + s (up to rounding, ~1e-16 m; the margin is 1e-9 m): when that is
+# within reach they are all admitted, the list ends full and its last distance W <= B + s.
+# A candidate with D(e) - s > B + s (+ margins) is then farther than W now. Such a candidate
+# never changes the final list: it sorts after every candidate within W, so while it is in the
+# list it is the one evicted (or skipped), and the candidates within W are admitted, evicted
+# and ordered exactly as without it (the list of those is never full while it holds it). When
+# B + s is beyond reach, it is farther than reach and skipped by the reach test anyway.
+_BOUND_MARGIN = 1e-9  # [m]
+
+
+@njit(cache=True)
+def _candidate_bounds(w0, w1, n, m_max, cand_start, cand_xyz, cand_bound, scratch_distance):
+    """Each candidate's distance to its capsule as the lists are built (into ``cand_xyz[:, 3]``) and
+    each capsule's M-th smallest of them (``cand_bound``; inf with fewer than ``m_max`` candidates)."""
+    for c in range(n):
+        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+        dd = dx * dx + dy * dy + dz * dz
+        count = 0
+        for i in range(cand_start[c], cand_start[c + 1]):
+            d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
+            cand_xyz[i, 3] = d
+            if count == m_max and d >= scratch_distance[m_max - 1]:
+                continue
+            pos = count if count < m_max else m_max - 1
+            while pos > 0 and scratch_distance[pos - 1] > d:
+                scratch_distance[pos] = scratch_distance[pos - 1]
+                pos -= 1
+            scratch_distance[pos] = d
+            if count < m_max:
+                count += 1
+        cand_bound[c] = scratch_distance[m_max - 1] if count == m_max else np.inf
+
+
+@njit(cache=True)
+def feed_update_bounded(
+    w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
+    block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
+    cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
+    out_count, out_cells, out_centres, cand_bound, displacement,
+):
+    """:func:`feed_update` with the candidates' bound above (``cand_xyz`` has a 4th column for their
+    distances; ``cand_bound``, ``displacement``: per-capsule scratch kept with the lists). Same result."""
+    n = w0.shape[0]
+    for c in range(n):
+        for a in range(3):
+            if not (np.isfinite(w0[c, a]) and np.isfinite(w1[c, a])):
+                return -1
+    for c in range(n):
+        if not active[c]:
+            for a in range(3):
+                w0[c, a] = park[a]
+                w1[c, a] = park[a]
+    valid = state[FEED_VALID] == 1 and cache_distance[0] == max_distance
+    if valid:
+        slack2 = slack * slack
+        for c in range(n):
+            e0 = (w0[c, 0] - cache_w0[c, 0]) ** 2 + (w0[c, 1] - cache_w0[c, 1]) ** 2 + (w0[c, 2] - cache_w0[c, 2]) ** 2
+            e1 = (w1[c, 0] - cache_w1[c, 0]) ** 2 + (w1[c, 1] - cache_w1[c, 1]) ** 2 + (w1[c, 2] - cache_w1[c, 2]) ** 2
+            if e0 > slack2 or e1 > slack2:
+                valid = False
+                break
+            displacement[c] = np.sqrt(max(e0, e1))
+    if valid and state[FEED_VERSION] != map_version:
+        version = state[FEED_VERSION]
+        for j in range(state[FEED_N_BLOCKS]):
+            if block_stamp[rel_blocks[j]] > version:
+                valid = False
+                break
+        if valid:
+            state[FEED_VERSION] = map_version
+    m_max = scratch_index.shape[0]
+    if not valid:
+        state[FEED_VALID] = 0
+        # A hair more than slack, so that rounding never drops a cell the query would admit.
+        n_rel = _feed_candidates(
+            w0, w1, radii, max_distance, cell_radius, slack * (1.0 + 1e-9) + 1e-12, res, lo_key, dims,
+            nby, nbz, block_cells, block_count, cand_start, cand_index, cand_xyz, rel_blocks,
+        )  # fmt: skip
+        if n_rel < 0:
+            return -2
+        _candidate_bounds(w0, w1, n, m_max, cand_start, cand_xyz, cand_bound, scratch_distance)
+        displacement[:] = 0.0
+        state[FEED_VALID] = 1
+        state[FEED_VERSION] = map_version
+        state[FEED_N_BLOCKS] = n_rel
+        state[FEED_REBUILDS] += 1
+        cache_distance[0] = max_distance
+        cache_w0[:, :] = w0
+        cache_w1[:, :] = w1
+    k_max = out_index.shape[1]
+    sep2 = min_separation * min_separation
+    for c in range(n):
+        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+        dd = dx * dx + dy * dy + dz * dz
+        worst = radii[c] + max_distance + cell_radius
+        far = cand_bound[c] + 2.0 * displacement[c] + 3.0 * _BOUND_MARGIN  # see above
+        count = 0
+        for i in range(cand_start[c], cand_start[c + 1]):
+            if cand_xyz[i, 3] > far:
+                continue
+            d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
+            if d > worst:
+                continue
+            count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, cand_index[i])
+            if count == m_max:
+                worst = scratch_distance[m_max - 1]
+        kept = _keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
+                               scratch_distance, out_index, out_distance)
+        for j in range(kept, k_max):
+            out_index[c, j] = -1
+        out_count[c] = kept
+    n_last = state[FEED_N_LAST]
+    previous = out_cells[:n_last].copy()
+    for i in range(out_centres.shape[0]):
+        for a in range(3):
+            out_centres[i, a] = park[a]
+    m = gather_cells(out_index, out_distance, out_cells.shape[0], res, lo_key, nby, nbz, out_cells, out_centres)
+    changed = m != n_last
+    if not changed:
+        for i in range(m):
+            if out_cells[i] != previous[i]:
+                changed = True
+                break
+    state[FEED_CHANGED] = 1 if changed else 0
+    state[FEED_N_LAST] = m
+    return m

@@ -741,8 +741,10 @@ class MapCollisionFeed:
         self._cache_w1 = np.zeros((n, 3))
         self._cache_distance = np.full(1, np.nan)
         self._cand_start = np.zeros(n + 1, dtype=np.int64)
+        self._cand_bound = np.full(n, np.inf)  # see _map_kernels.feed_update_bounded
+        self._displacement = np.zeros(n)
         self._cand_index = np.zeros(4096, dtype=np.int64)
-        self._cand_xyz = np.zeros((4096, 3))
+        self._cand_xyz = np.zeros((4096, 4))  # x, y, z [m], distance when kept [m]
         self._rel_blocks = np.zeros(4096, dtype=np.int64)
         self._packed: tuple | None = None  # the compiled tick's two buffers (_pack), built on first use
         self._names: dict[int, str] = {}
@@ -847,6 +849,7 @@ class MapCollisionFeed:
             "park": self._park, "radii": self._radii, "cache_w0": self._cache_w0, "cache_w1": self._cache_w1,
             "cache_distance": self._cache_distance, "scratch_distance": self._scratch_d, "out_distance": self._dist,
             "out_centres": self._centres, "map_floats": np.array([m.cell_radius, m.resolution]),
+            "cand_bound": self._cand_bound, "displacement": self._displacement,
         }  # fmt: skip
         ints = {
             "parent": tree.parent, "idx_v": tree.idx_v, "joint_type": tree.joint_type, "cap_joint": self._joints,
@@ -877,7 +880,7 @@ class MapCollisionFeed:
         for attr, name in (
             ("_w0", "w0"), ("_w1", "w1"), ("_cache_w0", "cache_w0"), ("_cache_w1", "cache_w1"),
             ("_cache_distance", "cache_distance"), ("_scratch_d", "scratch_distance"), ("_dist", "out_distance"),
-            ("_centres", "out_centres"),
+            ("_centres", "out_centres"), ("_cand_bound", "cand_bound"), ("_displacement", "displacement"),
         ):  # fmt: skip
             setattr(self, attr, view(fbuf, f_offsets, fnames, name, getattr(self, attr)))
         for attr, name in (
@@ -916,7 +919,7 @@ class MapCollisionFeed:
             if n != -2:
                 break
             self._cand_index = np.zeros(2 * self._cand_index.shape[0], dtype=np.int64)
-            self._cand_xyz = np.zeros((self._cand_index.shape[0], 3))
+            self._cand_xyz = np.zeros((self._cand_index.shape[0], 4))
             self._rel_blocks = np.zeros(2 * self._rel_blocks.shape[0], dtype=np.int64)
         if n < 0:
             return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back

@@ -1077,3 +1077,98 @@ def test_packed_feed_tick_is_the_45_argument_kernel_bit_for_bit():
         for mine, theirs in ((feed._dist, "dist"), (feed._centres, "centres")):
             assert mine.tobytes() == ref[theirs].tobytes(), (tick, theirs)
     assert changed_ticks > 5 and ref["state"][K.FEED_REBUILDS] > 12
+
+
+def _occupy(m: ObstacleMap, keys, value: float = 1.0) -> None:
+    """Set the log-odds of the cells with integer ``keys`` and refresh the map's block lists."""
+    from harvest_qp.perception import _map_kernels as K
+
+    for key in keys:
+        ix, iy, iz = (int(k) for k in np.asarray(key) - m.lo_key)
+        idx = K.cell_index(ix, iy, iz, m._nby, m._nbz)
+        m.log_odds[idx] = value
+        K._mark_dirty(idx >> 9, m._dirty, m._dirty_list, m._n_dirty)
+    m._finish_update()
+
+
+def _feed_kernel_twins(m: ObstacleMap, n: int):
+    """Arguments of ``feed_update`` (the oracle) and of ``feed_update_bounded`` for ``n`` capsules."""
+    from harvest_qp.perception import _map_kernels as K
+
+    def state(columns):
+        return dict(
+            state=np.zeros(K.FEED_STATE, np.int64), cache_w0=np.zeros((n, 3)), cache_w1=np.zeros((n, 3)),
+            cache_distance=np.full(1, np.nan), cand_start=np.zeros(n + 1, np.int64),
+            cand_index=np.zeros(4096, np.int64), cand_xyz=np.zeros((4096, columns)),
+            rel_blocks=np.zeros(4096, np.int64), scratch_index=np.zeros(32, np.int64), scratch_distance=np.zeros(32),
+            out_index=np.full((n, 4), -1, np.int64), out_distance=np.full((n, 4), np.inf),
+            out_count=np.zeros(n, np.int64), out_cells=np.zeros(24, np.int64), out_centres=np.zeros((24, 3)),
+        )  # fmt: skip
+
+    def call(kernel, s, w0, w1, radii, *extra):
+        return kernel(
+            w0.copy(), w1.copy(), np.ones(n, bool), np.array([0.0, 0.0, -1e3]), radii, 0.11, m.cell_radius, 0.03,
+            0.02, m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells, m._block_count, m._block_stamp,
+            m._version, s["state"], s["cache_w0"], s["cache_w1"], s["cache_distance"], s["cand_start"],
+            s["cand_index"], s["cand_xyz"], s["rel_blocks"], s["scratch_index"], s["scratch_distance"],
+            s["out_index"], s["out_distance"], s["out_count"], s["out_cells"], s["out_centres"], *extra,
+        )  # fmt: skip
+
+    old, new = state(3), state(4)
+    bound, moved = np.full(n, np.inf), np.zeros(n)
+
+    def tick(w0, w1, radii):
+        a = call(K.feed_update, old, w0, w1, radii)
+        b = call(K.feed_update_bounded, new, w0, w1, radii, bound, moved)
+        assert a == b
+        for name in ("state", "out_index", "out_count", "out_cells", "scratch_index"):
+            assert np.array_equal(old[name], new[name]), name
+        for name in ("out_distance", "out_centres", "scratch_distance"):
+            assert old[name].tobytes() == new[name].tobytes(), name
+        return a, new
+
+    return tick
+
+
+def test_bounded_feed_skips_only_candidates_that_cannot_change_the_closest_cells():
+    """The feed skips a kept candidate without its distance when, at the lists' capsule pose, it
+    was farther than the M-th closest candidate by more than twice the capsules' displacement
+    since (``feed_update_bounded``); oracle: the unbounded kernel ``feed_update`` (checked against
+    the full query by the tests above), bit for bit every tick: return value, state, per-capsule
+    cells and distances, the sorted scratch list, fed cells and centres.
+    Scene 1 (hand-built): 40 cells on one side of a capsule, 8 cells 3 cm farther on the other,
+    the capsule then moves 1.6 cm towards them (inside the 2 cm slack, no rebuild): the far cells
+    become the closest. Catches a bound with one displacement instead of two (the far cells are
+    skipped) and a bound without the displacement. Scene 2: random cells and capsules wandering
+    in steps up to 6 mm (rebuilds when past the slack or when cells are added or cleared)."""
+    m = ObstacleMap(bounds=((-0.4, -0.4, 0.6), (0.4, 0.4, 1.4)))
+    near = [(kx, ky, kz) for kx in (-13, -14) for ky in (-1, 0) for kz in range(100, 110)]
+    far = [(15, ky, kz) for ky in (-1, 0) for kz in range(100, 104)]
+    _occupy(m, near + far)
+    tick = _feed_kernel_twins(m, 1)
+    radii = np.array([0.05])
+    fed_far = False
+    for shift in (0.0, 0.008, 0.016):
+        w0, w1 = np.array([[shift, 0.0, 1.0]]), np.array([[shift, 0.0, 1.1]])
+        count, new = tick(w0, w1, radii)
+        assert new["state"][2] > 0 and new["state"][5] == 1  # lists kept from the first tick
+        fed_far = fed_far or bool((m.keys(new["out_centres"][:count])[:, 0] == 15).any())
+    assert fed_far  # the far cells were reached through the kept lists
+    # Scene 2.
+    rng = np.random.default_rng(3)
+    m = ObstacleMap(bounds=((-0.4, -0.4, 0.6), (0.4, 0.4, 1.4)))
+    cells = rng.integers((-12, -12, 88), (12, 12, 112), size=(700, 3))
+    _occupy(m, cells)
+    n = 3
+    tick = _feed_kernel_twins(m, n)
+    radii = np.array([0.04, 0.05, 0.03])
+    centre = np.zeros((n, 3)) + [0.0, 0.0, 1.0]
+    axis = rng.normal(size=(n, 3)) * 0.05
+    for step in range(200):
+        centre += rng.normal(size=(n, 3)) * (0.002 if step % 40 else 0.03)
+        centre = np.clip(centre, [-0.1, -0.1, 0.9], [0.1, 0.1, 1.1])
+        axis += rng.normal(size=(n, 3)) * 0.001
+        if step % 25 == 12:
+            _occupy(m, cells[rng.integers(0, len(cells), 20)], value=-0.5)  # some cells cleared
+            _occupy(m, rng.integers((-12, -12, 88), (12, 12, 112), size=(15, 3)))  # some new ones
+        tick(centre - axis, centre + axis, radii)
