@@ -1004,7 +1004,7 @@ FEED_FLOAT_PARTS = (
 )  # fmt: skip
 FEED_INT_PARTS = (
     "parent", "idx_v", "joint_type", "cap_joint", "lo_key", "dims", "state", "cand_start", "scratch_index",
-    "out_index", "out_count", "out_cells", "map_ints",
+    "out_index", "out_count", "out_cells", "map_ints", "kept_cells",
 )  # fmt: skip
 FEED_SIZES = 5  # header: joints, capsules, cells kept per capsule, scratch length, output slots
 _FO = FEED_SIZES
@@ -1060,13 +1060,14 @@ def feed_tick_packed(
     out_cells = ibuf[ibuf[_IO + 11] : ibuf[_IO + 11] + slots]
     nby = ibuf[ibuf[_IO + 12]]
     nbz = ibuf[ibuf[_IO + 12] + 1]
+    kept_cells = _view2(ibuf, ibuf[_IO + 13], k, 3)
     _collision.forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
     _collision.capsule_world(cap_joint, cap_a, cap_b, joint_R, joint_p, w0, w1)
     return feed_update_bounded(
         w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
         block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
         cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-        out_count, out_cells, out_centres, cand_bound, displacement,
+        out_count, out_cells, out_centres, cand_bound, displacement, kept_cells,
     )
 
 
@@ -1110,14 +1111,45 @@ def _candidate_bounds(w0, w1, n, m_max, cand_start, cand_xyz, cand_bound, scratc
 
 
 @njit(cache=True)
+def _keep_separated_once(c, count, k_max, sep2, res, nby, nbz, radius, cell_radius, scratch_index, scratch_distance,
+                         out_index, out_distance, kept_cells):
+    """:func:`_keep_separated` with each cell's grid coordinates computed once (``index_to_cell``'s
+    integer divisions were most of its cost): the kept cells' coordinates wait in ``kept_cells``
+    (``(k_max, 3)`` scratch). The same integers, the same tests: the same result."""
+    kept = 0
+    for j in range(count):
+        if kept == k_max:
+            break
+        idx = scratch_index[j]
+        if sep2 > 0.0:
+            ix, iy, iz = index_to_cell(idx, nby, nbz)
+            far = True
+            for i in range(kept):
+                jx, jy, jz = kept_cells[i, 0], kept_cells[i, 1], kept_cells[i, 2]
+                if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
+                    far = False
+                    break
+            if not far:
+                continue
+            kept_cells[kept, 0] = ix
+            kept_cells[kept, 1] = iy
+            kept_cells[kept, 2] = iz
+        out_index[c, kept] = idx
+        out_distance[c, kept] = scratch_distance[j] - radius - cell_radius
+        kept += 1
+    return kept
+
+
+@njit(cache=True)
 def feed_update_bounded(
     w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
     block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
     cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-    out_count, out_cells, out_centres, cand_bound, displacement,
+    out_count, out_cells, out_centres, cand_bound, displacement, kept_cells,
 ):
     """:func:`feed_update` with the candidates' bound above (``cand_xyz`` has a 4th column for their
-    distances; ``cand_bound``, ``displacement``: per-capsule scratch kept with the lists). Same result."""
+    distances; ``cand_bound``, ``displacement``: per-capsule scratch kept with the lists;
+    ``kept_cells``: ``(k, 3)`` int scratch of :func:`_keep_separated_once`). Same result."""
     n = w0.shape[0]
     for c in range(n):
         for a in range(3):
@@ -1183,8 +1215,8 @@ def feed_update_bounded(
             count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, cand_index[i])
             if count == m_max:
                 worst = scratch_distance[m_max - 1]
-        kept = _keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
-                               scratch_distance, out_index, out_distance)
+        kept = _keep_separated_once(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
+                                    scratch_distance, out_index, out_distance, kept_cells)
         for j in range(kept, k_max):
             out_index[c, j] = -1
         out_count[c] = kept

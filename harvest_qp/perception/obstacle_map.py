@@ -856,6 +856,7 @@ class MapCollisionFeed:
             "lo_key": m.lo_key, "dims": m.dims, "state": self._state, "cand_start": self._cand_start,
             "scratch_index": self._scratch_i, "out_index": self._index, "out_count": self._count,
             "out_cells": self._cells, "map_ints": np.array([m._nby, m._nbz]),
+            "kept_cells": np.zeros((self.per_capsule, 3), dtype=np.int64),
         }  # fmt: skip
         for parts, dtype in ((floats, np.float64), (ints, np.int64)):
             for name, part in parts.items():

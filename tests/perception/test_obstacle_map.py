@@ -1115,11 +1115,11 @@ def _feed_kernel_twins(m: ObstacleMap, n: int):
         )  # fmt: skip
 
     old, new = state(3), state(4)
-    bound, moved = np.full(n, np.inf), np.zeros(n)
+    bound, moved, kept_cells = np.full(n, np.inf), np.zeros(n), np.zeros((4, 3), np.int64)
 
     def tick(w0, w1, radii):
         a = call(K.feed_update, old, w0, w1, radii)
-        b = call(K.feed_update_bounded, new, w0, w1, radii, bound, moved)
+        b = call(K.feed_update_bounded, new, w0, w1, radii, bound, moved, kept_cells)
         assert a == b
         for name in ("state", "out_index", "out_count", "out_cells", "scratch_index"):
             assert np.array_equal(old[name], new[name]), name
