@@ -746,7 +746,8 @@ class MapCollisionFeed:
         self._cand_index = np.zeros(4096, dtype=np.int64)
         self._cand_xyz = np.zeros((4096, 4))  # x, y, z [m], distance when kept [m]
         self._rel_blocks = np.zeros(4096, dtype=np.int64)
-        self._packed: tuple | None = None  # the compiled tick's two buffers (_pack), built on first use
+        self._packed: tuple | None = None  # the compiled tick's two buffers and other arrays (_pack), on first use
+        self._q_shape = (configuration.nv,)
         self._names: dict[int, str] = {}
         self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
         self._centres = np.tile(self._PARK, (self.slots, 1))
@@ -889,15 +890,20 @@ class MapCollisionFeed:
             ("_count", "out_count"), ("_cells", "out_cells"),
         ):  # fmt: skip
             setattr(self, attr, view(ibuf, i_offsets, inames, name, getattr(self, attr)))
-        self._packed = (fbuf, ibuf)
+        # The compiled tick's arguments after the per-tick values (the map's arrays are its own for life).
+        self._packed = (
+            fbuf, ibuf, self._cand_index, self._cand_xyz, self._rel_blocks, m._block_cells, m._block_count,
+            m._block_stamp,
+        )  # fmt: skip
         return self._packed
 
     def update(self, q: ArrayLike | None = None) -> int:
         """Refresh the limit's obstacle spheres from the map for joint positions ``q`` [rad]
         (default: the configuration's current ones); returns how many cells were fed."""
-        q = self._checked_q(q)
+        if not (type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape):
+            q = self._checked_q(q)  # the loop's own q skips the call (same test as its fast path)
         active = self.active
-        if not (isinstance(active, np.ndarray) and active.dtype == np.bool_ and active.shape == self.radii.shape):
+        if not (type(active) is np.ndarray and active.dtype == np.bool_ and active.shape == self._radii.shape):
             active = np.asarray(active, dtype=bool)
             if active.shape != self.radii.shape:
                 raise InvalidInputError(
@@ -908,20 +914,21 @@ class MapCollisionFeed:
         # switched-off capsules parked far below the world, the closest cells (over the
         # candidate cells kept since the last map change: the same result as
         # ObstacleMap.closest_cells, see _map_kernels.feed_update), their union.
-        packed = self._packed
-        if packed is None:
-            packed = self._pack()
+        arrays = self._packed
+        if arrays is None:
+            arrays = self._pack()
         while True:
             n = K.feed_tick_packed(
                 q, active, self.limit.influence_distance + self.margin, self.min_separation, self.slack, m._version,
-                packed[0], packed[1], self._cand_index, self._cand_xyz, self._rel_blocks, m._block_cells,
-                m._block_count, m._block_stamp,
+                *arrays,
             )  # fmt: skip
             if n != -2:
                 break
             self._cand_index = np.zeros(2 * self._cand_index.shape[0], dtype=np.int64)
             self._cand_xyz = np.zeros((self._cand_index.shape[0], 4))
             self._rel_blocks = np.zeros(2 * self._rel_blocks.shape[0], dtype=np.int64)
+            self._packed = None
+            arrays = self._pack()
         if n < 0:
             return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
         if not self._state[K.FEED_CHANGED]:

@@ -1019,6 +1019,9 @@ def test_packed_feed_tick_is_the_45_argument_kernel_bit_for_bit():
     from harvest_qp.perception import _map_kernels as K
 
     config, _, limit, m, feed = _controller(True, ahead=0.09)
+    # Candidate arrays far too small: the feed must grow them (and repack) on its first updates.
+    feed._cand_index, feed._cand_xyz, feed._rel_blocks = np.zeros(16, np.int64), np.zeros((16, 4)), np.zeros(8, np.int64)
+    feed._packed = None
     tree = feed._tree
     n = len(feed.capsule_names)
     ref = dict(
@@ -1077,6 +1080,7 @@ def test_packed_feed_tick_is_the_45_argument_kernel_bit_for_bit():
         for mine, theirs in ((feed._dist, "dist"), (feed._centres, "centres")):
             assert mine.tobytes() == ref[theirs].tobytes(), (tick, theirs)
     assert changed_ticks > 5 and ref["state"][K.FEED_REBUILDS] > 12
+    assert feed._cand_index.shape[0] >= 256 and feed._packed[2] is feed._cand_index  # grown, and passed
 
 
 def _occupy(m: ObstacleMap, keys, value: float = 1.0) -> None:
