@@ -741,10 +741,13 @@ class MapCollisionFeed:
         self._cache_w1 = np.zeros((n, 3))
         self._cache_distance = np.full(1, np.nan)
         self._cand_start = np.zeros(n + 1, dtype=np.int64)
+        self._cand_bound = np.full(n, np.inf)  # see _map_kernels.feed_update_bounded
+        self._displacement = np.zeros(n)
         self._cand_index = np.zeros(4096, dtype=np.int64)
-        self._cand_xyz = np.zeros((4096, 3))
+        self._cand_xyz = np.zeros((4096, 4))  # x, y, z [m], distance when kept [m]
         self._rel_blocks = np.zeros(4096, dtype=np.int64)
-        self._tick_args: tuple | None = None  # the arrays of the compiled tick, gathered once
+        self._packed: tuple | None = None  # the compiled tick's two buffers and other arrays (_pack), on first use
+        self._q_shape = (configuration.nv,)
         self._names: dict[int, str] = {}
         self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
         self._centres = np.tile(self._PARK, (self.slots, 1))
@@ -833,15 +836,74 @@ class MapCollisionFeed:
         self._forget_candidates()
 
     def _forget_candidates(self) -> None:
-        self._tick_args = None
         self._state[K.FEED_VALID] = 0
+        self._packed = None  # repacked (new radii or map constants) on the next update
+
+    def _pack(self) -> tuple:
+        """Copy the feed's own arrays and the constants the compiled tick reads into one float64 and one
+        int64 buffer (layout: ``_map_kernels.FEED_FLOAT_PARTS`` / ``FEED_INT_PARTS``), and make the
+        feed's arrays views into them (values kept), so one call passes 14 arguments instead of 45."""
+        tree, m = self._tree, self._map
+        floats = {
+            "place_R": tree.place_R, "place_p": tree.place_p, "axis": tree.axis, "joint_R": tree.joint_R,
+            "joint_p": tree.joint_p, "cap_a": self._a_local, "cap_b": self._b_local, "w0": self._w0, "w1": self._w1,
+            "park": self._park, "radii": self._radii, "cache_w0": self._cache_w0, "cache_w1": self._cache_w1,
+            "cache_distance": self._cache_distance, "scratch_distance": self._scratch_d, "out_distance": self._dist,
+            "out_centres": self._centres, "map_floats": np.array([m.cell_radius, m.resolution]),
+            "cand_bound": self._cand_bound, "displacement": self._displacement,
+        }  # fmt: skip
+        ints = {
+            "parent": tree.parent, "idx_v": tree.idx_v, "joint_type": tree.joint_type, "cap_joint": self._joints,
+            "lo_key": m.lo_key, "dims": m.dims, "state": self._state, "cand_start": self._cand_start,
+            "scratch_index": self._scratch_i, "out_index": self._index, "out_count": self._count,
+            "out_cells": self._cells, "map_ints": np.array([m._nby, m._nbz]),
+            "kept_cells": np.zeros((self.per_capsule, 3), dtype=np.int64),
+        }  # fmt: skip
+        for parts, dtype in ((floats, np.float64), (ints, np.int64)):
+            for name, part in parts.items():
+                if part.dtype != dtype:  # a conversion could change a value: the layout is fixed
+                    raise TypeError(f"MapCollisionFeed._pack: {name} is {part.dtype}, expected {np.dtype(dtype)}")
+        header = K.FEED_HEADER
+        f_offsets = np.cumsum([0] + [a.size for a in floats.values()])
+        i_offsets = header + np.cumsum([0] + [a.size for a in ints.values()])
+        fbuf = np.concatenate([a.ravel() for a in floats.values()])
+        ibuf = np.concatenate([np.zeros(header, dtype=np.int64)] + [a.ravel() for a in ints.values()])
+        ibuf[: K.FEED_SIZES] = (
+            tree.joint_R.shape[0], self._w0.shape[0], self._index.shape[1], self._scratch_i.shape[0], self._cells.shape[0]
+        )  # fmt: skip
+        ibuf[K.FEED_SIZES : K.FEED_SIZES + len(floats)] = f_offsets[:-1]
+        ibuf[K.FEED_SIZES + len(floats) : header] = i_offsets[:-1]
+
+        def view(buf, offsets, names, name, like):
+            j = names.index(name)
+            return buf[offsets[j] : offsets[j + 1]].reshape(like.shape)
+
+        fnames, inames = list(floats), list(ints)
+        for attr, name in (
+            ("_w0", "w0"), ("_w1", "w1"), ("_cache_w0", "cache_w0"), ("_cache_w1", "cache_w1"),
+            ("_cache_distance", "cache_distance"), ("_scratch_d", "scratch_distance"), ("_dist", "out_distance"),
+            ("_centres", "out_centres"), ("_cand_bound", "cand_bound"), ("_displacement", "displacement"),
+        ):  # fmt: skip
+            setattr(self, attr, view(fbuf, f_offsets, fnames, name, getattr(self, attr)))
+        for attr, name in (
+            ("_state", "state"), ("_cand_start", "cand_start"), ("_scratch_i", "scratch_index"), ("_index", "out_index"),
+            ("_count", "out_count"), ("_cells", "out_cells"),
+        ):  # fmt: skip
+            setattr(self, attr, view(ibuf, i_offsets, inames, name, getattr(self, attr)))
+        # The compiled tick's arguments after the per-tick values (the map's arrays are its own for life).
+        self._packed = (
+            fbuf, ibuf, self._cand_index, self._cand_xyz, self._rel_blocks, m._block_cells, m._block_count,
+            m._block_stamp,
+        )  # fmt: skip
+        return self._packed
 
     def update(self, q: ArrayLike | None = None) -> int:
         """Refresh the limit's obstacle spheres from the map for joint positions ``q`` [rad]
         (default: the configuration's current ones); returns how many cells were fed."""
-        q = self._checked_q(q)
+        if not (type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape):
+            q = self._checked_q(q)  # the loop's own q skips the call (same test as its fast path)
         active = self.active
-        if not (isinstance(active, np.ndarray) and active.dtype == np.bool_ and active.shape == self.radii.shape):
+        if not (type(active) is np.ndarray and active.dtype == np.bool_ and active.shape == self._radii.shape):
             active = np.asarray(active, dtype=bool)
             if active.shape != self.radii.shape:
                 raise InvalidInputError(
@@ -852,30 +914,21 @@ class MapCollisionFeed:
         # switched-off capsules parked far below the world, the closest cells (over the
         # candidate cells kept since the last map change: the same result as
         # ObstacleMap.closest_cells, see _map_kernels.feed_update), their union.
+        arrays = self._packed
+        if arrays is None:
+            arrays = self._pack()
         while True:
-            if self._tick_args is None:
-                tree = self._tree
-                self._tick_args = (
-                    (tree.parent, tree.idx_v, tree.joint_type, tree.axis, tree.place_R, tree.place_p, tree.joint_R,
-                     tree.joint_p, self._joints, self._a_local, self._b_local, self._w0, self._w1),
-                    (self._park, self.radii),
-                    (m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells, m._block_count,
-                     m._block_stamp),
-                    (self._state, self._cache_w0, self._cache_w1, self._cache_distance, self._cand_start,
-                     self._cand_index, self._cand_xyz, self._rel_blocks, self._scratch_i, self._scratch_d, self._index,
-                     self._dist, self._count, self._cells, self._centres),
-                )  # fmt: skip
-            a, b, c, d = self._tick_args
-            n = K.feed_tick(
-                q, *a, active, *b, self.limit.influence_distance + self.margin, m.cell_radius, self.min_separation,
-                self.slack, *c, m._version, *d,
+            n = K.feed_tick_packed(
+                q, active, self.limit.influence_distance + self.margin, self.min_separation, self.slack, m._version,
+                *arrays,
             )  # fmt: skip
             if n != -2:
                 break
             self._cand_index = np.zeros(2 * self._cand_index.shape[0], dtype=np.int64)
-            self._cand_xyz = np.zeros((self._cand_index.shape[0], 3))
+            self._cand_xyz = np.zeros((self._cand_index.shape[0], 4))
             self._rel_blocks = np.zeros(2 * self._rel_blocks.shape[0], dtype=np.int64)
-            self._tick_args = None
+            self._packed = None
+            arrays = self._pack()
         if n < 0:
             return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
         if not self._state[K.FEED_CHANGED]:
