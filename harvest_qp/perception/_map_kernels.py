@@ -1071,6 +1071,74 @@ def feed_tick_packed(
     )
 
 
+@njit(cache=True)
+def _feed_candidates_boxed(
+    w0, w1, radii, max_distance, cell_radius, slack, res, lo_key, dims, nby, nbz, block_cells, block_count,
+    cand_start, cand_index, cand_xyz, rel_blocks,
+):
+    """:func:`_feed_candidates` with the empty blocks of each capsule's box listed as dependent
+    without their distance test (~1.5x more dependent blocks, half the time of a rebuild: 50-63 us
+    against 109-134 us with the caches flushed, measured on the episode's maps). The candidates are
+    the same; a longer list of dependent blocks can only make the lists be rebuilt sooner (they are,
+    on nearly every camera frame anyway), never kept when a block within reach changed."""
+    nbx = dims[0] >> BLOCK_SHIFT
+    block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
+    half = 0.5 * BLOCK * res
+    nb = (nbx, nby, nbz)
+    blo = np.empty(3, np.int64)
+    bhi = np.empty(3, np.int64)
+    cap_c = cand_index.shape[0]
+    cap_b = rel_blocks.shape[0]
+    n_cand = 0
+    n_rel = 0
+    for c in range(w0.shape[0]):
+        cand_start[c] = n_cand
+        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+        dd = dx * dx + dy * dy + dz * dz
+        reach = radii[c] + max_distance + cell_radius + slack
+        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
+        for bx in range(blo[0], bhi[0] + 1):
+            cx0 = (lo_key[0] + bx * BLOCK) * res
+            for by in range(blo[1], bhi[1] + 1):
+                cy0 = (lo_key[1] + by * BLOCK) * res
+                for bz in range(blo[2], bhi[2] + 1):
+                    b = (bx * nby + by) * nbz + bz
+                    nc = block_count[b]
+                    if nc == 0:
+                        if n_rel == cap_b:
+                            return -1
+                        rel_blocks[n_rel] = b
+                        n_rel += 1
+                        continue
+                    cz0 = (lo_key[2] + bz * BLOCK) * res
+                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
+                    if db - block_half_diag > reach:
+                        continue
+                    if n_rel == cap_b:
+                        return -1
+                    rel_blocks[n_rel] = b
+                    n_rel += 1
+                    for j in range(nc):
+                        local = block_cells[b, j]
+                        # The same expressions as closest_cells: the same bits.
+                        px = cx0 + ((local >> 6) + 0.5) * res
+                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
+                        pz = cz0 + ((local & _MASK) + 0.5) * res
+                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
+                        if d > reach:
+                            continue
+                        if n_cand == cap_c:
+                            return -1
+                        cand_index[n_cand] = (b << 9) | local
+                        cand_xyz[n_cand, 0] = px
+                        cand_xyz[n_cand, 1] = py
+                        cand_xyz[n_cand, 2] = pz
+                        n_cand += 1
+    cand_start[w0.shape[0]] = n_cand
+    return n_rel
+
+
 # A bound that skips most kept candidates without their distance (exact, argued here). Let M be
 # the length of the sorted list (scratch) and, for a capsule, D(e) its distance to candidate e
 # when the lists were built (kept in cand_xyz[:, 3]), B the M-th smallest D (cand_bound; inf
@@ -1182,7 +1250,7 @@ def feed_update_bounded(
     if not valid:
         state[FEED_VALID] = 0
         # A hair more than slack, so that rounding never drops a cell the query would admit.
-        n_rel = _feed_candidates(
+        n_rel = _feed_candidates_boxed(
             w0, w1, radii, max_distance, cell_radius, slack * (1.0 + 1e-9) + 1e-12, res, lo_key, dims,
             nby, nbz, block_cells, block_count, cand_start, cand_index, cand_xyz, rel_blocks,
         )  # fmt: skip
