@@ -194,6 +194,9 @@ class NativeModel:
         self._has_model = False
         self._has_solved = False
         self._keep: dict[str, np.ndarray] = {}
+        #: ``(work, problem, result, x, lam)`` as the compiled calls take them, set by ``setup``
+        #: (the solver's fused cascade passes them without five attribute reads per level).
+        self._call_args: tuple[np.ndarray, ...] | None = None
 
     def __reduce_ex__(self, protocol):
         # As daqp.Model: no copy or pickle (a copy would share, and free twice, DAQP's memory).
@@ -225,6 +228,7 @@ class NativeModel:
             raise NativeLayoutError(f"setup shapes do not agree (n {n}, m {m}, rows {mA})")
         self._x = np.zeros(n, dtype=np.double)
         self._lam = np.zeros(m, dtype=np.double)
+        self._call_args = (self._work, self._problem, self._result, self._x, self._lam)
         lib, address = self._lib, self._work.ctypes.data
         if self._has_model:  # as daqp.Model: free the old internals (settings too), then fresh settings
             lib.free_daqp_workspace(address)

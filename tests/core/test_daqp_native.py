@@ -314,3 +314,30 @@ def test_native_model_cannot_be_copied_or_pickled_like_daqp_model():
         with pytest.raises(TypeError) as got:
             action(model)
         assert str(got.value) == str(expected.value)
+
+
+def test_call_arguments_follow_a_repeated_setup():
+    """Oracle: ``daqp.Model`` set up on a 3-variable QP, then again on a 5-variable one. The fused
+    cascade passes ``NativeModel._call_args`` (work, problem, result, x, lam) instead of reading the
+    five attributes: after each setup they must be the model's current buffers, and the compiled
+    ``update_solve`` given them must answer as ``daqp.Model`` does (not refuse the layout).
+
+    Bug caught (planted and seen failing): ``_call_args`` set once and not renewed by a second
+    ``setup`` (the 3-long x and lam of the first problem handed over: the call refuses the layout)."""
+    assert native.available(), native.disabled_reason()
+    rng = np.random.default_rng(11)
+    model, reference = native.NativeModel(), daqp.Model()
+    assert model._call_args is None  # never set up: the solver takes its own path
+    for n, n_in, n_eq in ((3, 2, 1), (5, 4, 2)):
+        qp = _qp(rng, n, n_in, n_eq)
+        model.setup(*qp)
+        reference.setup(*qp)
+        args = model._call_args
+        assert [a is b for a, b in zip(args, (model._work, model._problem, model._result, model._x, model._lam))] \
+            == [True] * 5
+        H, f = qp[0] + 0.2 * np.eye(n), qp[1][::-1].copy()
+        x, flag = native.update_solve(*args, H, f, *qp[2:])
+        reference.update(H, f, *qp[2:])
+        expected = reference.solve()
+        assert flag != native.LAYOUT_REFUSED
+        assert (x.tobytes(), int(flag)) == (expected[0].tobytes(), int(expected[2]))
