@@ -41,6 +41,7 @@ from importlib import metadata
 import numpy as np
 from numba import njit, types
 
+from harvest_qp.exceptions import HarvestQPError
 from harvest_qp.qp_kernels import (
     assemble_load_1,
     assemble_load_2,
@@ -85,7 +86,11 @@ _update_ldp_c = types.ExternalFunction(
 _solve_c = types.ExternalFunction(_PREFIX + "daqp_solve", types.void(types.voidptr, types.voidptr))
 
 
-class NativeLayoutError(RuntimeError):
+_FLOAT64 = np.dtype(np.float64)
+_INTC = np.dtype(np.intc)
+
+
+class NativeLayoutError(HarvestQPError, RuntimeError):
     """DAQP's workspace does not look as this module expects (the native path is then disabled)."""
 
 
@@ -191,6 +196,10 @@ class NativeModel:
         self._result = np.zeros(_RESULT_WORDS, dtype=np.int64)
         lib.allocate_daqp_settings(self._work.ctypes.data)
         self._finalizer = weakref.finalize(self, _free, self._work, lib)
+        # Not at interpreter exit: a daemon thread may still be solving on this workspace then
+        # (an audit saw SIGSEGV at exit in 8 of 28 runs); daqp.Model's __dealloc__ never runs
+        # for live objects at exit either, and the OS takes the memory back.
+        self._finalizer.atexit = False
         self._has_model = False
         self._has_solved = False
         self._keep: dict[str, np.ndarray] = {}
@@ -248,6 +257,8 @@ class NativeModel:
         if flag < 0:
             lib.allocate_daqp_settings(address)  # setup_daqp_main freed them on failure
             self._has_model = False
+            problem[:] = 0  # n = m = 0: the compiled calls refuse every array for this model
+            self._call_args = None
             return flag, setup_time.value
         self._check_layout(n, m, ms)
         self._has_model = True
@@ -332,6 +343,17 @@ class NativeModel:
     def update_solve(self, H, f, A, bupper, blower, sense):
         """``update(H, f, A, bupper, blower, sense)`` then ``solve()``, in one compiled call:
         ``(x, exitflag)`` (the same bits; the Python methods when a shape does not fit)."""
+        if not self._has_model:  # DAQP's workspace is freed after a failed setup
+            raise RuntimeError("Model has not been set up. Call setup() first.")
+        if not (type(H) is np.ndarray and type(f) is np.ndarray and type(A) is np.ndarray
+                and type(bupper) is np.ndarray and type(blower) is np.ndarray and type(sense) is np.ndarray
+                and H.dtype == _FLOAT64 and f.dtype == _FLOAT64 and A.dtype == _FLOAT64
+                and bupper.dtype == _FLOAT64 and blower.dtype == _FLOAT64 and sense.dtype == _INTC):
+            # Another dtype (integers, big-endian floats): the compiled call would hand DAQP the
+            # raw bytes; the Python methods convert, as daqp.Model does.
+            self.update(H, f, A, bupper, blower, sense)
+            x, _, flag, _ = self.solve()
+            return x, flag
         keep = self._keep
         keep["H"], keep["f"], keep["A"], keep["bupper"], keep["blower"], keep["sense"] = H, f, A, bupper, blower, sense
         x, flag = update_solve(self._work, self._problem, self._result, self._x, self._lam, H, f, A, bupper, blower,

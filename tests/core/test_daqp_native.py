@@ -341,3 +341,83 @@ def test_call_arguments_follow_a_repeated_setup():
         expected = reference.solve()
         assert flag != native.LAYOUT_REFUSED
         assert (x.tobytes(), int(flag)) == (expected[0].tobytes(), int(expected[2]))
+
+
+_EXIT_WHILE_SOLVING = """
+import sys, threading, time
+import numpy as np
+from harvest_qp import _daqp_native as native
+from harvest_qp.backends import make_backend
+from harvest_qp.solver import QPProblem
+assert native.available(), native.disabled_reason()
+n = 12
+rng = np.random.default_rng(0)
+M = rng.normal(size=(n, n))
+p = QPProblem(H=M @ M.T + np.eye(n), f=rng.normal(size=n), lower=-np.ones(n), upper=np.ones(n),
+              A=rng.normal(size=(3, n)), b=np.zeros(3), G=rng.normal(size=(60, n)), h=np.ones(60))
+def loop():
+    backend = make_backend("daqp")
+    while True:
+        backend.solve(p)
+threads = [threading.Thread(target=loop, daemon=True) for _ in range(2)]
+for t in threads:
+    t.start()
+time.sleep(0.3)
+sys.exit(0)
+"""
+
+
+def test_interpreter_exit_while_daemon_threads_solve_does_not_crash():
+    """Two daemon threads keep solving while the main thread exits, 8 times: exit code 0 each
+    time (as with daqp.Model). Bug caught: the models' memory freed by weakref.finalize's exit
+    hook while a thread was still inside DAQP (an audit saw SIGSEGV in 8 of 28 such exits;
+    planted here by keeping ``atexit``: failed)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    codes = [
+        subprocess.run([sys.executable, "-c", _EXIT_WHILE_SOLVING], cwd=root, capture_output=True, timeout=120).returncode
+        for _ in range(8)
+    ]
+    assert codes == [0] * 8, codes
+
+
+def test_non_float64_arrays_are_converted_as_daqp_model_converts_them():
+    """A public QPProblem with integer f (and big-endian H) solved three times by one DAQP backend:
+    the float64 problem's answer every time. Bug caught: the compiled update handed the integer
+    bytes to DAQP as doubles from the second solve on (answers of 5e-324, accepted as solved)."""
+    from harvest_qp.backends import make_backend
+    from harvest_qp.solver import QPProblem
+
+    n = 3
+    kwargs = dict(lower=-np.ones(n), upper=np.ones(n), A=np.zeros((0, n)), b=np.zeros(0),
+                  G=np.array([[0.0, 0.0, 1.0]]), h=np.array([0.9]))
+    expected = make_backend("daqp").solve(QPProblem(H=2.0 * np.eye(n), f=np.array([1.0, 2.0, 3.0]), **kwargs))
+    np.testing.assert_allclose(expected, [-0.5, -1.0, -1.0], atol=1e-12)  # hand-computed: clipped at the box
+    for H, f in ((2.0 * np.eye(n), np.array([1, 2, 3])), ((2.0 * np.eye(n)).astype(">f8"), np.array([1.0, 2.0, 3.0]))):
+        backend = make_backend("daqp")
+        for _ in range(3):
+            assert _bits(backend.solve(QPProblem(H=H, f=f, **kwargs))) == _bits(expected)
+
+
+def test_update_solve_after_a_failed_setup_raises_like_daqp_model():
+    """A setup DAQP rejects (a lower bound above its upper bound) frees DAQP's workspace; the
+    next update_solve raises RuntimeError as daqp.Model.update does. Bug caught: update_solve ran
+    DAQP on the freed workspace (segmentation fault)."""
+    if not native.available():
+        pytest.fail(f"native DAQP unavailable: {native.disabled_reason()}")
+    n = 3
+    H, f = np.eye(n), np.ones(n)
+    A = np.zeros((1, n))
+    A[0, 0] = 1.0
+    upper, lower = np.array([1.0, 1.0, 1.0, 1.0]), np.array([-1.0, -1.0, -1.0, 2.0])
+    sense = np.zeros(4, np.intc)
+    reference = daqp.Model()
+    model = native.NativeModel()
+    assert model.setup(H, f, A, upper, lower, sense)[0] == reference.setup(H, f, A, upper, lower, sense)[0] < 0
+    with pytest.raises(RuntimeError, match="set up"):
+        reference.update(H, f, A, upper, lower, sense)
+    with pytest.raises(RuntimeError, match="set up"):
+        model.update_solve(H, f, A, upper, lower, sense)
