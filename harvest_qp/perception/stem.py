@@ -212,6 +212,37 @@ def _distinct_rows_numpy(points: NDArray[np.float64]) -> NDArray[np.float64]:
     return ordered[keep]
 
 
+def _linear_quantiles(values: NDArray[np.float64], low: float, high: float) -> tuple[np.float64, np.float64]:
+    """``np.quantile(values, (low, high))`` (method ``"linear"``) of finite float64 ``values``, bit for bit.
+
+    numpy's own steps on one sorted copy (numpy partitions instead of sorting: the same order
+    statistics): virtual index (n - 1) q, its floor and the next index (both the last element
+    when the index reaches n - 1), gamma = index - floor, and ``_lerp``'s two branches
+    (a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5). np.quantile's call
+    overhead was ~30 % of ``fit_stem`` on the ~45 distinct points of a 283x160 cluster.
+    Only a -0.0 and a 0.0 both in ``values`` could make the pick differ in the sign of a zero.
+    """
+    ordered = np.sort(values)
+    return _linear_quantile(ordered, low), _linear_quantile(ordered, high)
+
+
+def _linear_quantile(ordered: NDArray[np.float64], q: float) -> np.float64:
+    """One quantile of the sorted ``ordered`` as numpy's ``_quantile`` (method ``"linear"``) computes it."""
+    n = ordered.shape[0]
+    virtual = (n - 1) * q
+    if virtual >= n - 1:
+        previous = following = -1  # numpy's "above bounds": the last element, gamma = virtual + 1
+    else:
+        previous = int(np.floor(virtual))
+        following = previous + 1
+    gamma = virtual - previous
+    a, b = ordered[previous], ordered[following]
+    difference = b - a
+    if gamma >= 0.5:
+        return b - difference * (1.0 - gamma)
+    return a + difference * gamma
+
+
 def _point_spacing(points: NDArray[np.float64]) -> float:
     """Median nearest-neighbour distance [m] (the pixel pitch at the stem's range)."""
     # Over the distinct rows (duplicated points are not a finer sampling), the median of the
@@ -489,7 +520,7 @@ def fit_stem(
         along = (cluster - mean) @ direction
         # Duplicated points are not a denser sampling: the quantiles are taken over distinct ones.
         distinct_along = (_distinct_rows(cluster) - mean) @ direction
-        q_low, q_high = np.quantile(distinct_along, (end_quantile, 1.0 - end_quantile))
+        q_low, q_high = _linear_quantiles(distinct_along, end_quantile, 1.0 - end_quantile)
         stretch = end_quantile / (1.0 - 2.0 * end_quantile) * (q_high - q_low)
         low, high = float(q_low - stretch) - 0.5 * pitch, float(q_high + stretch) + 0.5 * pitch
         if name == "top":

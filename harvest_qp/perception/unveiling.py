@@ -288,6 +288,20 @@ def ray_obstacle_pairs(
     camera = as_point("camera_position", camera_position)
     d_a = as_positive_scalar(d_a, "d_a")
     d_o = as_positive_scalar(d_o, "d_o", allow_zero=True)
+    return _ray_obstacle_pairs_unchecked(stem, obstacles, camera, d_a, d_o)
+
+
+def _ray_obstacle_pairs_unchecked(
+    stem: NDArray[np.float64], obstacles: NDArray[np.float64], camera: NDArray[np.float64], d_a: float, d_o: float
+) -> RayObstaclePairs:
+    """:func:`ray_obstacle_pairs` on arguments already checked: ``stem`` and ``obstacles`` finite
+    float64 ``(n, 3)`` arrays, ``camera`` a finite float64 ``(3,)`` array, d_a > 0, d_o >= 0 [m].
+
+    For the library's own callers (:meth:`harvest_qp.references.unveiling.Unveiling._observe_points`,
+    whose clouds the control loop or :meth:`~harvest_qp.references.unveiling.Unveiling.observe` has
+    checked): the finiteness test over the ~20,000 obstacle points of a 283x160 frame was ~15 % of
+    this function's time. A stem point at the camera is still an error (no caller rules it out).
+    """
     reach = d_a + d_o
 
     rays = stem - camera  # p_cs_j

@@ -140,6 +140,11 @@ def repulsive_velocity(
         return np.where(distance[:, None] > 0.0, gain[:, None] * gap / distance[:, None], 0.0)
 
 
+def _checked_cloud(points: object) -> bool:
+    """Whether ``points`` is already a float64 ``(n, 3)`` ndarray (no conversion needed)."""
+    return type(points) is np.ndarray and points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3
+
+
 def _pair_weights(pairs: RayObstaclePairs, floor: float, min_pivot: float) -> NDArray[np.float64]:
     """Per pair |u_jk| / (1 - s) on the interior branch of ``eq:nearest`` with pivot arm
     |p_hat - p_sj| = (1 - s)|p_cs_j| >= ``min_pivot``, zero otherwise."""
@@ -230,6 +235,36 @@ def _unveiling_velocity_from_weights(
     rays = pairs.stem_points - pairs.camera_position
     linear = cross_rows(rays, omega).sum(axis=0)  # S(p_cs) omega = p_cs x omega
     return k_c * np.concatenate((linear, omega.sum(axis=0)))
+
+
+def _counted_unveiling_velocity(
+    pairs: RayObstaclePairs, floor: float, min_pivot: float, k_c: float
+) -> tuple[int, NDArray[np.float64]]:
+    """How many pairs have a nonzero :func:`_pair_weights` weight, and
+    :func:`_unveiling_velocity_from_weights` of those weights, bit for bit, compiled.
+
+    The numpy path (:func:`_pair_weights`, :func:`_stem_angular_velocities_from_weights`,
+    :func:`_unveiling_velocity_from_weights`) stays for the public functions and as the test
+    oracle; it took ~20 small numpy calls per camera frame. The gain (numpy's ``log``, whose
+    SIMD form may differ from libm's) and the two per-ray norms (numpy's own summation orders)
+    stay numpy; :func:`harvest_qp.perception._unveiling_kernels.unveiling_twist` does the rest
+    in numpy's order.
+    """
+    from harvest_qp.perception import _unveiling_kernels  # noqa: PLC0415 (circular at module level)
+
+    gain = _repulsive_gain(pairs.surface_distance, pairs.influence_distance, floor)
+    rays = pairs.stem_points - pairs.camera_position
+    ray_length = np.linalg.norm(rays, axis=1) if min_pivot > 0.0 else gain  # unread when min_pivot == 0
+    ray_squared = np.einsum("ij,ij->i", rays, rays)
+    twist = np.empty(6)
+    n_nonzero = _unveiling_kernels.unveiling_twist(
+        gain, pairs.case, pairs.segment_parameter, pairs.stem_index, pairs.away_directions.T, rays, ray_squared,
+        ray_length, float(min_pivot), float(k_c), _TINY, twist,
+    )  # fmt: skip
+    return int(n_nonzero), twist
+
+
+_TINY = float(np.finfo(np.float64).tiny)  # the floor on 1 - s of _pair_weights
 
 
 def saturate_twist(twist: NDArray[np.float64], max_linear: float, max_angular: float) -> NDArray[np.float64]:
@@ -517,7 +552,10 @@ class Unveiling:
         if stem.shape[0] == 0:
             self.mode, self.n_pairs, self.raw = "idle", 0, np.zeros(6)
             return
-        from harvest_qp.perception.unveiling import ray_obstacle_pairs  # noqa: PLC0415 (circular at module level)
+        from harvest_qp.perception.unveiling import (  # noqa: PLC0415 (circular at module level)
+            _ray_obstacle_pairs_unchecked,
+            ray_obstacle_pairs,
+        )
 
         # Only the law's direction is used; uniform strides over the (image-ordered) points keep
         # it while the cost stays about that of a 283x160 frame (see max_stem_points).
@@ -529,13 +567,18 @@ class Unveiling:
             stride = self.obstacle_stride(obstacles.shape[0])
             if stride > 1 or not isinstance(obstacles, np.ndarray):
                 obstacles = obstacles[::stride]
-        pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=self.d_a, d_o=self.d_o)
+        if _checked_cloud(stem) and _checked_cloud(obstacles):
+            # Finite by this method's contract: the unchecked kernel skips re-testing the ~20,000
+            # obstacle points (~15 % of ray_obstacle_pairs). The attributes may have been reassigned.
+            d_a = as_positive_scalar(self.d_a, "d_a")
+            d_o = as_positive_scalar(self.d_o, "d_o", allow_zero=True)
+            pairs = _ray_obstacle_pairs_unchecked(stem, obstacles, camera, d_a, d_o)
+        else:
+            pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=self.d_a, d_o=self.d_o)
         self.mode = "paper"
         # The pair weights once, for the count and the law (bounded_unveiling_velocity with its
         # default 1e-6 floor would compute the same weights a second time).
-        weight = _pair_weights(pairs, 1e-6, self.min_pivot)
-        self.n_pairs = int(np.count_nonzero(weight))
-        twist = _unveiling_velocity_from_weights(pairs, weight, self.k_c)
+        self.n_pairs, twist = _counted_unveiling_velocity(pairs, 1e-6, self.min_pivot, self.k_c)
         self.raw = saturate_twist(twist, self.max_linear, self.max_angular)
 
     def obstacle_stride(self, n_obstacles: int) -> int:

@@ -150,3 +150,83 @@ def test_unveiling_bad_input_raises():
         Unveiling().observe(np.zeros(3), [[0.0, 0.0]], [])
     with pytest.raises(InvalidInputError, match="dt"):
         Unveiling().update(-0.1)
+
+
+def _law_scene(seed: int, n_stem: int = 60, n_obstacles: int = 4000):
+    """A stem of ``n_stem`` points 0.3 m from the camera behind a leaf-like slab of obstacles."""
+    rng = np.random.default_rng(seed)
+    camera = rng.normal(scale=0.05, size=3)
+    stem = camera + np.column_stack(
+        (rng.uniform(-0.01, 0.01, n_stem), np.linspace(-0.04, 0.04, n_stem), rng.uniform(0.28, 0.32, n_stem))
+    )
+    obstacles = camera + np.column_stack(
+        (rng.uniform(-0.05, 0.05, n_obstacles), rng.uniform(-0.06, 0.06, n_obstacles),
+         rng.uniform(0.01, 0.31, n_obstacles))
+    )  # fmt: skip
+    return stem, obstacles, camera
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("min_pivot", [0.0, 0.03, 0.5])
+def test_compiled_law_is_the_numpy_weights_and_velocity_bit_for_bit(seed, min_pivot):
+    """The compiled per-frame law (_counted_unveiling_velocity, used by Unveiling._observe_points)
+    against the numpy path it replaces (_pair_weights, count_nonzero,
+    _unveiling_velocity_from_weights): same count, same twist bits (signs of zeros included).
+    min_pivot 0.5 m (longer than every ray) drops every pair (all weights zero: the sums of -0.0 rows must come out +0.0
+    as numpy's sum(axis=0) gives them).  Catches (planted and checked): the sums started from
+    the first stem point's terms instead of +0.0 (the all-dropped case gives -0.0), the
+    min_pivot test left out (counts and twists differ at 0.03)."""
+    from harvest_qp.references.unveiling import (
+        _counted_unveiling_velocity,
+        _pair_weights,
+        _unveiling_velocity_from_weights,
+    )
+    from tests.helpers import assert_as_numpy
+
+    stem, obstacles, camera = _law_scene(seed)
+    pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=D_A, d_o=D_O)
+    assert len(pairs) > 100
+    weight = _pair_weights(pairs, 1e-6, min_pivot)
+    expected = _unveiling_velocity_from_weights(pairs, weight, 0.00025)
+    count, twist = _counted_unveiling_velocity(pairs, 1e-6, min_pivot, 0.00025)
+    assert count == np.count_nonzero(weight)
+    assert (count == 0) == (min_pivot == 0.5)
+    assert_as_numpy(twist, expected, exact_zeros=True)
+
+
+def test_unchecked_pairs_are_the_checked_pairs_and_observe_still_checks():
+    """_ray_obstacle_pairs_unchecked (the law's per-frame path) returns the public function's
+    arrays bit for bit (a strided stem view included, as the law thins its stem), and the
+    public entry points still reject NaN.  Catches: the unchecked variant diverging from the
+    public one (e.g. the stem-at-camera test dropped), a public check removed."""
+    from harvest_qp.perception.unveiling import _ray_obstacle_pairs_unchecked
+
+    stem, obstacles, camera = _law_scene(4, n_stem=90)
+    stem = stem[::2]
+    checked = ray_obstacle_pairs(stem, obstacles, camera, d_a=D_A, d_o=D_O)
+    unchecked = _ray_obstacle_pairs_unchecked(stem, obstacles, camera, D_A, D_O)
+    for name in ("stem_index", "obstacle_index", "surface_distance", "case", "segment_parameter", "away_directions"):
+        a, b = getattr(checked, name), getattr(unchecked, name)
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
+    with pytest.raises(InvalidInputError, match="stem_points must differ from camera_position"):
+        _ray_obstacle_pairs_unchecked(np.vstack((stem, camera)), obstacles, camera, D_A, D_O)
+    bad = obstacles.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(InvalidInputError, match="obstacle_points"):
+        ray_obstacle_pairs(stem, bad, camera, d_a=D_A, d_o=D_O)
+    with pytest.raises(InvalidInputError, match="obstacle_points"):
+        Unveiling().observe(camera, stem, bad)
+
+
+def test_observe_gives_the_numpy_laws_twist():
+    """Unveiling.observe (the compiled law inside) against the literal numpy composition
+    ray_obstacle_pairs -> bounded_unveiling_velocity, and its pair count.  Catches: the
+    compiled path fed the wrong d_a / k_c / min_pivot."""
+    stem, obstacles, camera = _law_scene(5)
+    law = Unveiling()
+    law.observe(camera, stem, obstacles)
+    pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=law.d_a, d_o=law.d_o)
+    expected = bounded_unveiling_velocity(pairs, k_c=law.k_c, min_pivot=law.min_pivot, max_linear=law.max_linear,
+                                          max_angular=law.max_angular)  # fmt: skip
+    assert law.mode == "paper" and law.n_pairs > 0
+    np.testing.assert_array_equal(law.raw, expected)
