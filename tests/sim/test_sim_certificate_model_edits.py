@@ -115,7 +115,7 @@ def test_model_edits_between_steps_equal_full_detection(default_scene, case):
 
     Oracle: the same robot and edits with full detection every step. Arms at rest while the
     edits happen (no joint travel: the old certificate never took a new baseline), then the
-    grasping arm moves. Planted and caught: the certificate of 25f59fd (all six model/option
+    grasping arm moves. Planted and caught: sim5's certificate of main abac78b (all six model/option
     cases fail, ncon 0 vs > 0); ``geom_contype``/``geom_conaffinity`` left out of the
     compared arrays (``conaffinity_changed`` fails); the ``o_margin`` test dropped from
     the per-step check (``override_margin_changed`` fails).
