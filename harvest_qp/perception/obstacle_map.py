@@ -867,6 +867,8 @@ class MapCollisionFeed:
         f_offsets = np.cumsum([0] + [a.size for a in floats.values()])
         i_offsets = header + np.cumsum([0] + [a.size for a in ints.values()])
         fbuf = np.concatenate([a.ravel() for a in floats.values()])
+        # Where the packed copy of the map's cell_radius lies (update() compares it with the live value).
+        self._cell_radius_at = int(f_offsets[list(floats).index("map_floats")])
         ibuf = np.concatenate([np.zeros(header, dtype=np.int64)] + [a.ravel() for a in ints.values()])
         ibuf[: K.FEED_SIZES] = (
             tree.joint_R.shape[0], self._w0.shape[0], self._index.shape[1], self._scratch_i.shape[0], self._cells.shape[0]
@@ -915,6 +917,13 @@ class MapCollisionFeed:
         # candidate cells kept since the last map change: the same result as
         # ObstacleMap.closest_cells, see _map_kernels.feed_update), their union.
         arrays = self._packed
+        if arrays is not None and not arrays[0][self._cell_radius_at] == m.cell_radius:
+            # ObstacleMap.cell_radius (a plain attribute) was edited since the pack: the distances must
+            # use the new value, as closest_cells does, and the limit must get the new radii even if
+            # the cells stay the same (FEED_N_LAST = -1 makes the kernel report them as changed).
+            self._forget_candidates()
+            self._state[K.FEED_N_LAST] = -1
+            arrays = None
         if arrays is None:
             arrays = self._pack()
         while True:

@@ -35,7 +35,7 @@ from harvest_qp.sim.contacts import (
     CONTACT_KINDS,
     ContactCertificate,
     ContactMonitor,
-    _certificate_holds,
+    _certificate_holds_checked,
     _count_kinds,
 )
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
@@ -43,6 +43,8 @@ from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_
 from harvest_qp.validation import as_positive_scalar, check_field_types
 
 __all__ = ["SensorFaults", "SimRobot", "SimulationError"]
+
+_get_contactfilter = mujoco.get_mjcb_contactfilter
 
 
 class SimulationError(HarvestQPError):
@@ -108,8 +110,10 @@ class SimRobot(RobotInterface):
     the substep count are read when the robot is built: build a new robot to change them.
     Each physics step skips MuJoCo's collision detection when it provably cannot find a
     contact (:class:`~harvest_qp.sim.contacts.ContactCertificate`; the same results bit for
-    bit); the collision geometry it proves against (geom types and sizes, margins, gaps,
-    explicit pairs, contact filters) is likewise read when the robot is built.
+    bit). Editing ``model``'s collision geometry between steps (body or geom poses, sizes,
+    margins, gaps, contype/conaffinity, explicit pairs, contact options) is honoured: the
+    certificate compares what it proved against with the live model on every step and
+    rebuilds itself on any change.
     """
 
     def __init__(
@@ -654,13 +658,24 @@ class SimRobot(RobotInterface):
         # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
         certificate = self._certificate
-        # certificate.certified(qpos), its kernel called directly (one Python frame less per step).
-        if certificate._valid and _certificate_holds(self._qpos, certificate._ints, certificate._floats):
+        opt = self._opt
+        flags = opt.disableflags
+        # certificate.certified(qpos) inlined (one Python frame less per step): the options and
+        # the contact-filter callback of the baseline, the model arrays it was built from
+        # (robot.model may have been edited since), then the motion bound.
+        if (
+            certificate._valid
+            and flags == certificate._disableflags
+            and opt.enableflags == certificate._enableflags
+            and (certificate._override is None or opt.o_margin == certificate._override)
+            and _get_contactfilter() is None
+            and _certificate_holds_checked(
+                self._qpos, certificate._ints, certificate._floats, certificate._live, certificate._snapshot
+            )
+        ):
             # No contact is possible at the new configuration (proven from the joints' motion
             # since the certificate's baseline): step1 without the collision detection, which
             # would find nothing; the same result bit for bit.
-            opt = self._opt
-            flags = opt.disableflags
             opt.disableflags = flags | _DSBL_CONTACT
             try:
                 mujoco.mj_step1(m, d)

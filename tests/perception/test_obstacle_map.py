@@ -1006,6 +1006,30 @@ def test_feed_drops_its_kept_cells_when_the_map_or_the_radii_are_replaced():
         feed.map = "not a map"
 
 
+def test_feed_follows_an_edited_cell_radius():
+    """Oracle: the uncached ``ObstacleMap.closest_cells``, which reads ``cell_radius`` live.
+
+    Catches (audit auditb5, F3): the feed's packed copy of ``ObstacleMap.cell_radius`` kept
+    after the attribute is edited (distances from the old radius, limit spheres of the new
+    one); the limit's sphere radii left at the old value when the fed cells stay the same."""
+    config, _controller_, limit, m, feed = _controller(True, ahead=0.07)
+    q = config.q.copy()
+    assert feed.update(q) > 0
+    old_radius = m.cell_radius
+    for radius in (1.5 * old_radius, 0.5 * old_radius):
+        m.cell_radius = radius
+        n = feed.update(q)
+        w0, w1 = feed.capsule_world(q)
+        query = m.closest_cells(w0, w1, feed.radii, max_distance=limit.influence_distance + feed.margin,
+                                per_capsule=feed.per_capsule, min_separation=feed.min_separation)  # fmt: skip
+        assert np.array_equal(feed._count, query.counts)
+        valid = query.indices >= 0
+        assert valid.any()
+        assert np.array_equal(feed._index[valid], query.indices[valid])
+        assert np.array_equal(feed._dist[valid], query.distances[valid])  # bit for bit
+        assert np.all(limit.cap_radius[feed._first : feed._first + n] == radius)
+
+
 def test_packed_feed_tick_is_the_45_argument_kernel_bit_for_bit():
     """The feed passes its arrays and constants to the compiled tick in two packed buffers (a
     dispatch-cost cut); oracle: the unpacked kernel ``_map_kernels.feed_tick`` run every tick on
