@@ -12,9 +12,9 @@ never a pair either way.
 from __future__ import annotations
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
+
+from harvest_qp._fma import fma as _fma
 
 
 @njit(cache=True)
@@ -51,19 +51,6 @@ def candidate_obstacles(
         out_offsets[n, 2] = oz
         n += 1
     return n
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """a * b + c rounded once (LLVM's fma: the FMA instruction where the CPU has one)."""
-    sig = types.float64(types.float64, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        double = ir.DoubleType()
-        function = builder.module.declare_intrinsic("llvm.fma", [double], ir.FunctionType(double, [double] * 3))
-        return builder.call(function, args)
-
-    return sig, codegen
 
 
 @njit(cache=True)

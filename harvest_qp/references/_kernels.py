@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import math
 
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
+
+from harvest_qp._fma import fma as _fma
 
 __all__: list[str] = []
 
@@ -31,19 +31,6 @@ __all__: list[str] = []
 
 # stretching_terms' out slots.
 FORCE_ALONG, Q0, W0, POSITION_ERROR, ALIGNMENT, STRETCH_SIZE = 0, 1, 4, 7, 8, 9
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """a * b + c rounded once (LLVM's ``llvm.fma``: correctly rounded on every machine)."""
-    sig = types.float64(types.float64, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        double = ir.DoubleType()
-        function = builder.module.declare_intrinsic("llvm.fma", [double], ir.FunctionType(double, [double] * 3))
-        return builder.call(function, args)
-
-    return sig, codegen
 
 
 @njit(cache=True)
