@@ -930,19 +930,9 @@ class Solver:
         problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
         problems.append(problem)
         try:
-            # DaqpBackend._update_solve inlined (the hot path): update's positional order is
-            # (H, f, A, bupper, blower, sense), the order of the layout tuple after H and f.
-            model = backend._model
-            if rows_changed and type(model) is NativeModel:  # DAQP's C calls in one compiled call
-                x, flag = model.update_solve(H, f, *backend._layout)
-            else:
-                if rows_changed:
-                    model.update(H, f, *backend._layout)
-                else:  # only bounds and cost moved: skip copying the constraint matrix
-                    model.update(H, f, None, backend._upper, backend._lower)
-                x, _, flag, _ = model.solve()
-            if flag < 0:
-                backend._raise_failure(problem, flag)
+            # The episode's levels take _solve_step's fused cascade; this general path calls
+            # the backend's own update and solve (raises on DAQP's failure flag).
+            x = backend._update_solve(problem, H, f, rows_changed)
             if below and count <= 3 and A.dtype is _FLOAT64:
                 stack = self._rows_buffer
                 if stack.shape[0] < m or stack.shape[1] != n:
