@@ -18,9 +18,8 @@ import harvest_qp.solver as solver_module
 from harvest_qp import Configuration, TaskController
 from harvest_qp import _daqp_native as native
 from harvest_qp.backends import DaqpBackend
-from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.robot.description import HOME_Q
-from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
+from tests.core.test_qp_speed_paths import _levels_problem  # tasks on levels 1, 2, ... and collision rows
 
 
 @pytest.fixture
@@ -148,27 +147,6 @@ def test_available_only_for_the_validated_daqp(native_state, monkeypatch):
     native_state.enabled = True
     native_state.checked = False
     assert native.available() == (installed == native.VALIDATED_VERSION)
-
-
-def _levels_problem(config, rng, counts):
-    """Tasks on levels 1, 2 with ``counts`` tasks each, and collision rows (as test_qp_speed_paths)."""
-    makers = [
-        lambda level: FrameTwistTask("camera", weight=np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]), level=level),
-        lambda level: FrameTwistTask("gripper", weight=np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]), level=level),
-        lambda level: FrameTwistTask("camera", weight=np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
-                                     weight_frame="local", level=level),
-        lambda level: PostureTask(HOME_Q, weight=np.r_[1e-3, 1e-3, np.zeros(10)], level=level),
-        lambda level: DampingTask(12, weight=np.r_[np.zeros(11), 1e-4], level=level),
-    ]
-    tasks, k = [], 0
-    for level, count in enumerate(counts, start=1):
-        for _ in range(count):
-            task = makers[k % len(makers)](level)
-            k += 1
-            if isinstance(task, FrameTwistTask):
-                task.set_reference(rng.normal(0, 0.05, 6))
-            tasks.append(task)
-    return tasks, [CollisionAvoidance.dual_ur5e(config, influence_distance=0.3)]
 
 
 def _outcome(call):
