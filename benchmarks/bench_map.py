@@ -14,7 +14,8 @@ The feed alone (``MapCollisionFeed.update`` at a fixed pose: between map changes
 its candidate cells) and the full query (``ObstacleMap._query``, the block search) are
 timed on this thread's CPU time (``_cpu_us`` keys) and on the wall clock.
 
-Usage: ``python benchmarks/bench_map.py [--frames 12] [--ticks 400] [--rounds 5]``.
+Usage: ``python benchmarks/bench_map.py [--frames 12] [--ticks 400] [--rounds 5] [--clear-rays 6000,3000]``
+(``--clear-rays``: also time the update with those clearing-ray budgets, each on a fresh map).
 The last line printed is one JSON object with the medians (update [ms], query and ticks [us]).
 """
 
@@ -75,17 +76,19 @@ def lab_frames(robot: SimRobot, downsample: int, n: int) -> list:
     return frames
 
 
-def time_updates(frames: list, exclude, repeats: int) -> tuple[float, float, dict]:
-    m = ObstacleMap()
+def time_updates(frames: list, exclude, repeats: int, clear_rays: int | None = None) -> tuple[float, float, dict]:
+    m = ObstacleMap() if clear_rays is None else ObstacleMap(clear_rays=clear_rays)
     m.update(frames[0], exclude=exclude)  # compile and warm up
-    wall, cpu = [], []
+    wall, cpu, rays = [], [], []
     for _ in range(repeats):
         for f in frames:
             t0, c0 = time.perf_counter(), time.process_time()
             stats = m.update(f, exclude=exclude)
             wall.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
-    info = {"points": int(np.median([len(f) for f in frames])), "rays": stats.rays, "occupied": m.num_occupied}
+            rays.append(stats.rays)
+    # Median over the frames (the last frame's count alone can be 0: a view with no point in the grid).
+    info = {"points": int(np.median([len(f) for f in frames])), "rays": int(np.median(rays)), "occupied": m.num_occupied}
     return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu)), info
 
 
@@ -153,7 +156,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=12, help="lab frames per resolution")
     parser.add_argument("--ticks", type=int, default=400, help="QP ticks per round and variant")
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--clear-rays", default="", help="comma-separated clearing-ray budgets to time besides the "
+                        "default (ObstacleMap's clear_rays), e.g. 6000,3000")
     args = parser.parse_args(argv)
+    budgets = [int(x) for x in args.clear_rays.split(",") if x.strip()]
 
     robot = SimRobot(camera=None)
     exclude = [held_cluster(robot)]
@@ -165,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
               f"({info['points']} points/frame, {info['rays']} clearing rays, {info['occupied']} occupied cells)")
         out[f"update_ms_{label}"] = round(wall, 3)
         out[f"update_cpu_ms_{label}"] = round(cpu, 3)
+        for n in budgets:  # a fresh map per budget, same frames (not interleaved: compare in one run only)
+            wall, cpu, info = time_updates(frames, exclude, repeats=3 if ds == 3 else 2, clear_rays=n)
+            print(f"  clear_rays={n}: median {wall:.2f} ms wall, {cpu:.2f} ms CPU ({info['rays']} clearing rays)")
+            out[f"update_cpu_ms_{label}_clear_rays_{n}"] = round(cpu, 3)
 
     m = ObstacleMap()
     for f in lab_frames(robot, 3, 20):
