@@ -174,3 +174,53 @@ def test_episode_step_equals_the_general_solve_bit_for_bit(rng, gains):
             for task in tasks[2:]:
                 task.level = 3
     assert len(taken) >= 10  # every tick but the first (the tasks bind there)
+
+
+def test_episode_step_resumes_and_relaxes_like_the_general_solve(rng, monkeypatch):
+    """Oracle: the general ``Solver._solve`` on a twin solver. Fuzz-like states of the episode's task
+    set (large joint offsets and previous commands: DAQP reporting infeasibility, relaxations) and,
+    every fourth state, every fused check rejecting (its tolerance set below zero: the loop resumes
+    from the fused call's results with the episode rows' ``(task, J, v)``, then ``_checked`` accepts):
+    the same outcome bit for bit, retries and relaxations included, or the same error.
+
+    Bug caught (planted and seen failing): ``by_level`` with the posture and damping tasks swapped
+    (the fused call, given ``flat``, is unaffected; the levels the loop resumes sum in another
+    order; the plain step test above does not see it)."""
+    import harvest_qp.solver as solver_module
+    from harvest_qp._daqp_native import CASCADE2
+
+    from tests.core.test_qp_speed_paths import _outcome, _same_outcome
+
+    stages = []
+    wrapped = {}
+    for key, kernel in CASCADE2.items():
+        def spy(*args, _kernel=kernel):
+            out = _kernel(*args)
+            stages.append(int(out[0]))
+            return out
+        wrapped[key] = spy
+    monkeypatch.setattr(solver_module, "CASCADE2", wrapped)
+    config = Configuration.dual_ur5e(HOME_Q)
+    tasks = _episode_tasks(rng)
+    limits = TaskController(config, tasks, [CollisionAvoidance.dual_ur5e(config, influence_distance=0.3)]).limits
+    fast, general = Solver(fallback_backends=("quadprog",)), Solver(fallback_backends=("quadprog",))
+    taken = []
+    inner = fast._episode_rows
+    fast._episode_rows = lambda *args: taken.append(1) or inner(*args)
+    relaxed = 0
+    for k in range(40):
+        q = np.clip(HOME_Q + rng.normal(0, 0.6, 12), config.lower_limits, config.upper_limits)
+        previous = rng.uniform(-0.5, 0.5, 12) * config.velocity_limits
+        config.update(q)
+        for task in tasks[:3]:
+            task.set_reference(rng.normal(0, 0.3, 6))
+        with monkeypatch.context() as m:
+            if k % 4 == 3:
+                m.setattr(solver_module, "FEASIBILITY_TOLERANCE", -1.0)
+            a = _outcome(lambda p=previous: fast._solve_step(config, tasks, limits, 0.002, p)[0])
+        b = _outcome(lambda p=previous: general._solve(config, tasks, limits, 0.002, p))
+        _same_outcome(a, b)
+        relaxed += not isinstance(a, tuple) and a.box_relaxation is not None
+    assert len(taken) >= 35
+    assert relaxed >= 2
+    assert {1, 3} <= set(stages), sorted(set(stages))
