@@ -593,6 +593,20 @@ def scaled_difference(gain, target, q):
     return out
 
 
+@njit(cache=True, _nrt=False)
+def episode_task_rows(R, J, v, J_local, v_local, roll_v, roll_local, gain, target, q, posture_v):
+    """The paper episode's task rows in one call (``Solver._episode_rows``), the same operations
+    as the tasks' own ``compute_rows``: the camera task's local-axes rows
+    (:func:`rotate_twist_rows` of ``J``, ``v`` into ``J_local``, ``v_local``), the roll task's
+    twist in the same axes (:func:`rotate_twist` of ``roll_v`` into ``roll_local``) and the
+    posture task's velocity ``gain * (target - q)`` (:func:`scaled_difference`) into ``posture_v``.
+    """
+    rotate_twist_rows(R, J, v, J_local, v_local)
+    rotate_twist(R, roll_v, roll_local)
+    for i in range(target.shape[0]):
+        posture_v[i] = gain * (target[i] - q[i])
+
+
 # The cascade's step between two DAQP levels in one compiled call (``Solver._solve_step``): the
 # upper level's ``check_clip_equalities_*`` and, only when its answer is accepted, the lower
 # level's ``assemble_load_*`` on the equalities just computed; the same operations in the same

@@ -45,6 +45,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import pinocchio as pin
 
 from harvest_qp._daqp_native import (
     CASCADE2,
@@ -87,6 +88,7 @@ from harvest_qp.qp_kernels import (
     check_clip_equalities_3,
     check_clip_rate,
     clip_inplace,
+    episode_task_rows,
     handover_1_1,
     handover_1_2,
     handover_1_3,
@@ -110,10 +112,16 @@ from harvest_qp.qp_kernels import (
     weighted_identity_rows,
     weighted_rows,
 )
+from harvest_qp.tasks.damping_task import DampingTask
+from harvest_qp.tasks.frame_twist_task import FrameTwistTask
+from harvest_qp.tasks.posture_task import PostureTask
+from harvest_qp.tasks.task import _STRUCTURE as _TASK_STRUCTURE
 from harvest_qp.tasks.task import HARD, Task
 from harvest_qp.validation import as_positive_scalar, as_vector
 
 _new = object.__new__
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_frame_jacobian = pin.getFrameJacobian
 _FLOAT64 = np.dtype(np.float64)
 # The fused DAQP level kernels by the level's task count (see Solver._daqp_level).
 _ASSEMBLE_LOAD = {1: assemble_load_1, 2: assemble_load_2, 3: assemble_load_3, 4: assemble_load_4}
@@ -307,6 +315,7 @@ class Solver:
         self.fallback_backends = tuple(name for name in names if name != backend)
         self._unavailable: set[str] = set()
         self._rows_buffer = np.empty((0, 0))
+        self._episode = None  # the cached plan of _episode_plan
 
     def _backend(self, level: int, name: str | None = None) -> Backend:
         key = (name or self.backend_name, level)
@@ -368,6 +377,21 @@ class Solver:
     def _rows_and_levels(self, configuration, tasks, dt, previous_qdot, n):
         """The row limits' stacked ``G``, ``h`` with ``(limit, its h)`` per limit that gave rows
         (which rows may be relaxed), and the tasks' ``(task, J, v)`` grouped by level."""
+        G, h, row_limits = self._limit_rows(configuration, dt, previous_qdot, n)
+        by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
+        for task in tasks:
+            J, v = task.compute_rows(configuration, dt)
+            # (get, then a fresh list only for a new level: setdefault built one per task)
+            level = task.level
+            entries = by_level.get(level)
+            if entries is None:
+                by_level[level] = [(task, J, v)]
+            else:
+                entries.append((task, J, v))
+        return G, h, row_limits, by_level
+
+    def _limit_rows(self, configuration, dt, previous_qdot, n):
+        """The row limits' stacked ``G``, ``h`` and ``(limit, its h)`` per limit that gave rows."""
         row_limits: list[tuple[Limit, np.ndarray]] = []  # (limit, its h): which rows may be relaxed
         G_rows, h_rows = [], []
         for limit in self._row_limits:
@@ -387,17 +411,84 @@ class Solver:
             G, h = np.vstack(G_rows), np.concatenate(h_rows)
         else:
             G, h = np.zeros((0, n)), np.zeros(0)
-        by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
-        for task in tasks:
-            J, v = task.compute_rows(configuration, dt)
-            # (get, then a fresh list only for a new level: setdefault built one per task)
-            level = task.level
-            entries = by_level.get(level)
-            if entries is None:
-                by_level[level] = [(task, J, v)]
-            else:
-                entries.append((task, J, v))
-        return G, h, row_limits, by_level
+        return G, h, row_limits
+
+    def _episode_plan(self, configuration, tasks):
+        """The cached plan for the paper episode's task set, or None (then each task's own
+        ``compute_rows`` runs). The set: exactly ``[camera, gripper, roll, posture, damping]`` of
+        the built-in classes (not subclasses: an override of ``compute_rows`` must run), the
+        camera and roll tasks :class:`FrameTwistTask` in local axes on one frame, the gripper's in
+        world axes, camera and gripper on one soft level and the other three on one level below
+        it, all bound to ``configuration``'s model. Rebuilt whenever a task's structure changes
+        (``tasks.task._STRUCTURE``: weight array, level, frame, axes or model binding).
+        """
+        plan = self._episode
+        model = configuration.model
+        if (plan is not None and plan[7] == _TASK_STRUCTURE[0] and plan[6] is model and len(tasks) == 5
+                and tasks[0] is plan[0] and tasks[1] is plan[1] and tasks[2] is plan[2] and tasks[3] is plan[3]
+                and tasks[4] is plan[4]):
+            return plan
+        self._episode = None
+        if len(tasks) != 5:
+            return None
+        camera, gripper, roll, posture, damping = tasks
+        if not (type(camera) is FrameTwistTask and type(gripper) is FrameTwistTask and type(roll) is FrameTwistTask
+                and type(posture) is PostureTask and type(damping) is DampingTask):
+            return None
+        if any(task._model is not model for task in tasks):  # not yet bound: compute_rows binds them
+            return None
+        upper, lower = camera._level, roll._level
+        if not (camera._local and not gripper._local and roll._local and camera._frame_id == roll._frame_id
+                and HARD < upper < lower and gripper._level == upper and posture._level == lower
+                and damping._level == lower and configuration.nv == posture.dim == damping.dim):
+            return None
+        self._episode_posture_v = np.empty(configuration.nv)
+        self._episode = plan = (camera, gripper, roll, posture, damping, camera._frame_id, model,
+                                _TASK_STRUCTURE[0], gripper._frame_id, upper, lower)
+        return plan
+
+    def _episode_rows(self, configuration, plan):
+        """The tasks' ``(task, J, v)`` by level for the episode's task set (:meth:`_episode_plan`):
+        what each task's ``compute_rows`` returns, bit for bit (the same pinocchio calls and
+        arithmetic), with the three compiled calls in one (:func:`episode_task_rows`).
+
+        Differences that change no number: the roll task is given the camera task's local rows
+        (``compute_rows`` gives it a copy of them through ``configuration._frame_rows``, which this
+        path does not fill: a later ``compute_rows`` on that frame computes them again), and the
+        posture velocity is written into a buffer of this solver (rewritten at the next step;
+        only this step's cascade reads it).
+        """
+        camera, gripper, roll, posture, damping, frame_id, model, _, gripper_id, upper, lower = plan
+        data = configuration.data
+        R = data.oMf[frame_id].rotation
+        J = _frame_jacobian(model, data, frame_id, _LWA)
+        gain = camera._gain
+        v = camera._reference if gain == 1.0 else gain * camera._reference
+        J_local, v_local = camera._J_local, camera._v_local
+        gain = roll._gain
+        roll_v = roll._reference if gain == 1.0 else gain * roll._reference
+        roll_local = roll._v_local
+        posture_v = self._episode_posture_v
+        episode_task_rows(R, J, v, J_local, v_local, roll_v, roll_local, posture._gain, posture._target,
+                          configuration.q, posture_v)
+        gain = gripper._gain
+        gripper_v = gripper._reference if gain == 1.0 else gain * gripper._reference
+        J_gripper = _frame_jacobian(model, data, gripper_id, _LWA)
+        w_camera, w_gripper, w_roll, w_posture, w_damping = (
+            camera._weight, gripper._weight, roll._weight, posture._weight, damping._weight
+        )
+        zeros = damping._zeros
+        by_level = {
+            upper: [(camera, J_local, v_local), (gripper, J_gripper, gripper_v)],
+            lower: [(roll, J_local, roll_local), (posture, None, posture_v), (damping, None, zeros)],
+        }
+        # The fused cascade's task arguments as _fused_two_levels builds them from by_level, and
+        # the rows the upper level's equalities stack (6 + 6 above no hard rows).
+        flat = (
+            (J_local, w_camera, v_local, J_gripper, w_gripper, gripper_v),
+            (J_local, w_roll, roll_local, IDENTITY_ROWS, w_posture, posture_v, IDENTITY_ROWS, w_damping, zeros),
+        )
+        return by_level, flat
 
     def _solve_step(self, configuration, tasks, limits, dt: float, previous_qdot: np.ndarray):
         """:meth:`_solve` for the controller's step, with the step's acceleration: ``(solution,
@@ -438,7 +529,13 @@ class Solver:
             conflicts = [
                 BoxConflict(int(j), type(box_list[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)
             ]
-        G, h, row_limits, by_level = self._rows_and_levels(configuration, tasks, dt, previous_qdot, n)
+        episode = self._episode_plan(configuration, tasks)
+        if episode is None:
+            G, h, row_limits, by_level = self._rows_and_levels(configuration, tasks, dt, previous_qdot, n)
+            flat = None
+        else:  # the paper episode's task set: its rows in fewer frames and one compiled call
+            G, h, row_limits = self._limit_rows(configuration, dt, previous_qdot, n)
+            by_level, flat = self._episode_rows(configuration, episode)
         hard = by_level.pop(HARD, None)
         A0, b0 = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
         retries: list[str] = []
@@ -479,7 +576,7 @@ class Solver:
             # (a DAQP failure or a rejected answer), the loop below resumes with its results.
             pre = (None,) * len(plan)
             if final == 1 and n_in > 0:
-                pre, fused = self._fused_two_levels(plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt)
+                pre, fused = self._fused_two_levels(plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt, flat)
                 if pre is None:  # both levels accepted: fused is (qdot, acceleration, the two problems)
                     problems += fused[2]
                     solution.qdot = fused[0]
@@ -603,12 +700,14 @@ class Solver:
             return solution, None
 
 
-    def _fused_two_levels(self, plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt):
+    def _fused_two_levels(self, plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt, flat=None):
         """The two levels of ``plan`` (each a :class:`NativeModel` set up for the size, rows present)
         in one compiled call (``cascade2_*``: the same calls in the same order as the loop of
         :meth:`_solve_step`). Returns ``(None, (qdot, rate, problems))`` when both levels were
         accepted, else ``(pre, block)`` for the loop to resume from: per level None (the loop does
-        it) or the fused call's results, and the upper level's assembled block (None: not native)."""
+        it) or the fused call's results, and the upper level's assembled block (None: not native).
+        ``flat``: the two levels' task arguments as built below from ``plan``, given by
+        :meth:`_episode_rows` (the episode's task set, no hard rows)."""
         (level1, entries1, backend1), (level2, entries2, backend2) = plan
         model1, model2 = backend1._model, backend2._model
         if type(model1) is not NativeModel or type(model2) is not NativeModel:
@@ -620,22 +719,26 @@ class Solver:
         block2 = np.zeros((n + 2, n))
         # The kernel's arguments in one call expression (no list grown argument by argument):
         # ~1 us less per tick than building a 50-item list (the same arrays in the same order).
-        rows1 = []
-        m = A0.shape[0]  # rows the upper level's equalities stack
-        for task, J, v in entries1:
-            weight = task.weight
-            if J is None:
-                m += weight.shape[0]
-                J = IDENTITY_ROWS
-            else:
-                m += J.shape[0]
-            rows1 += (J, weight, v)
+        if flat is None:
+            rows1 = []
+            m = A0.shape[0]  # rows the upper level's equalities stack
+            for task, J, v in entries1:
+                weight = task.weight
+                if J is None:
+                    m += weight.shape[0]
+                    J = IDENTITY_ROWS
+                else:
+                    m += J.shape[0]
+                rows1 += (J, weight, v)
+            rows2 = []
+            for task, J, v in entries2:
+                rows2 += (IDENTITY_ROWS if J is None else J, task.weight, v)
+        else:
+            rows1, rows2 = flat
+            m = 12  # the camera's and the gripper's 6 rows each, no hard rows above
         stack = self._rows_buffer
         if stack.shape[0] < m or stack.shape[1] != n:
             stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
-        rows2 = []
-        for task, J, v in entries2:
-            rows2 += (IDENTITY_ROWS if J is None else J, task.weight, v)
         stage, n_eq1, x1, flag1, rows, rhs, n_eq2, x2, flag2, rate = CASCADE2[len(entries1), len(entries2)](
             block1, self.regularization, *rows1, *native1, *backend1._layout, backend1._n_eq, block2, *rows2,
             *native2, *backend2._layout, backend2._n_eq, A0, b0, G, h, lower, upper, FEASIBILITY_TOLERANCE, 1e-9,

@@ -9,7 +9,7 @@ import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.qp_kernels import all_finite, rotate_twist, rotate_twist_rows
-from harvest_qp.tasks.task import Task
+from harvest_qp.tasks.task import Task, _structure_changed
 from harvest_qp.validation import as_choice, as_name, as_vector
 
 WEIGHT_FRAMES = ("world", "local")
@@ -65,6 +65,7 @@ class FrameTwistTask(Task):
     def frame(self, value: str) -> None:
         self._frame = as_name(value, f"{self._label()} frame")
         self._model = None  # the cached frame index belongs to the old name
+        _structure_changed()
 
     @property
     def weight_frame(self) -> str:
@@ -75,6 +76,7 @@ class FrameTwistTask(Task):
     def weight_frame(self, value: str) -> None:
         self._weight_frame = as_choice(value, f"{self._label()} weight_frame", WEIGHT_FRAMES)
         self._local = self._weight_frame == "local"
+        _structure_changed()
 
     @property
     def reference(self) -> np.ndarray:

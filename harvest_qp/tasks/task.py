@@ -25,6 +25,15 @@ HARD = 0
 #: Tasks defined in this package: their ``compute_rows`` sizes come from the checked model.
 _BUILT_IN_PREFIX = "harvest_qp.tasks."
 
+#: Bumped whenever a task's structure changes (weight array, level, frame, weight axes, model
+#: binding): the solver's cached plan for the paper episode's task set (``Solver._episode_plan``)
+#: is valid only while this holds its value, so the hot path checks one integer, not every task.
+_STRUCTURE = [0]
+
+
+def _structure_changed() -> None:
+    _STRUCTURE[0] += 1
+
 
 def _checked_compute_rows(compute_rows):
     """Wrap a user override of ``compute_rows`` so its rows are size-checked before the solver's kernels."""
@@ -93,6 +102,7 @@ class Task(ABC):
     @weight.setter
     def weight(self, value: float | np.ndarray) -> None:
         self._weight = as_nonnegative_vector(value, self._dim, f"{self._label()} weight")
+        _structure_changed()
 
     @property
     def level(self) -> int:
@@ -102,6 +112,7 @@ class Task(ABC):
     @level.setter
     def level(self, value: int) -> None:
         self._level = as_level(value, f"{self._label()} level")
+        _structure_changed()
 
     @property
     def gain(self) -> float:
@@ -134,6 +145,7 @@ class Task(ABC):
             self.check_configuration(configuration)
             self._model = model
             self._bind(configuration)
+            _structure_changed()
 
     def _bind(self, configuration: Configuration) -> None:  # noqa: B027 (an optional hook)
         """Hook: cache what depends on the model (frame indices, buffers); called after the check."""

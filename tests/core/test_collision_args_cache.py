@@ -1,0 +1,63 @@
+"""``CollisionAvoidance.compute`` keeps its kernel's argument tuple between ticks: every assignment to
+the limit or its tree must drop it. Oracle: a fresh limit built with the new settings (or given the
+new arrays before its first compute), computing at the same ``q``."""
+
+import numpy as np
+
+from harvest_qp import Configuration
+from harvest_qp.limits import CollisionAvoidance
+from harvest_qp.robot.description import HOME_Q
+
+
+def _rows(limit, config):
+    rows = limit.compute(config, 0.002)
+    k = limit.num_rows
+    return rows.G[:k].copy(), rows.h[:k].copy(), limit.active_pairs.copy()
+
+
+def _same(a, b):
+    for x, y in zip(a, b):
+        assert x.shape == y.shape and np.array_equal(x, y)
+
+
+def test_compute_follows_every_assignment_after_its_arguments_were_cached(rng):
+    """Each change below is made after a compute cached the arguments; the next compute must equal a
+    fresh limit's with that change. Bugs caught (planted and seen failing): the limit's __setattr__
+    not dropping the cache (a new gain and new obstacle spheres ignored); the tree's version not
+    compared (a replaced tree array ignored)."""
+    config = Configuration.dual_ur5e(HOME_Q)
+    centres = np.array([[0.3, 0.1, 0.9], [0.5, -0.2, 1.1], [0.4, 0.0, 1.0]])
+    cached = CollisionAvoidance.dual_ur5e(config, influence_distance=0.3)
+    cached.set_obstacle_spheres(centres, 0.02)
+    for _ in range(3):
+        config.update(HOME_Q + rng.normal(0, 0.3, 12))
+        fresh = CollisionAvoidance.dual_ur5e(config, influence_distance=0.3)
+        fresh.set_obstacle_spheres(centres, 0.02)
+        _same(_rows(cached, config), _rows(fresh, config))
+    # A setting assigned after the cache was made.
+    cached.gain = 0.2
+    fresh = CollisionAvoidance.dual_ur5e(config, influence_distance=0.3, gain=0.2)
+    fresh.set_obstacle_spheres(centres, 0.02)
+    _same(_rows(cached, config), _rows(fresh, config))
+    # New obstacle spheres (new buffers) and approach-only capsules.
+    centres2 = centres + 0.05
+    cached.set_obstacle_spheres(centres2, 0.03)
+    cached.set_approach_only(["grasp_left"] if "grasp_left" in cached.capsule_names else [cached.capsule_names[-4]])
+    fresh.set_obstacle_spheres(centres2, 0.03)
+    fresh.set_approach_only(cached.approach_only_capsules)
+    _same(_rows(cached, config), _rows(fresh, config))
+    # Obstacle spheres moved in place (the obstacle map's feed): the same buffers, seen at once.
+    cached.cap_p0[-3:] += 0.01
+    cached.cap_p1[-3:] += 0.01
+    fresh.cap_p0[-3:] += 0.01
+    fresh.cap_p1[-3:] += 0.01
+    _same(_rows(cached, config), _rows(fresh, config))
+    # A tree array replaced (the tree's own __setattr__): a shifted base of the first joint.
+    place_p = cached.tree.place_p.copy()
+    place_p[1] += np.array([0.0, 0.0, 0.05])
+    cached.tree.place_p = place_p
+    fresh.tree.place_p = place_p.copy()
+    _same(_rows(cached, config), _rows(fresh, config))
+    before = _rows(cached, config)
+    fresh.tree = cached.tree  # a whole tree assigned: the fresh limit's own cache dropped too
+    _same(_rows(fresh, config), before)
