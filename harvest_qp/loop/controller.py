@@ -216,6 +216,7 @@ _NAN3.setflags(write=False)
 _ZEROS6 = np.zeros(6)
 _ZEROS6.setflags(write=False)
 _FLOAT64 = np.dtype(np.float64)
+_INT64 = np.dtype(np.int64)
 #: Writable twins of _NAN3 / _ZEROS6, handed only to the compiled row copy (which reads them): numba
 #: compiles a read-only array argument as another type (a second compilation, not a second result).
 _NAN3_KERNEL = np.full(3, np.nan)
@@ -1427,7 +1428,7 @@ class HarvestController:
         if lim is None or self.mapper_kind != "qp":
             return lim, None
         active = getattr(lim, "active_pairs", ())
-        if type(active) is not np.ndarray or active.dtype != np.int64:
+        if type(active) is not np.ndarray or active.dtype is not _INT64:  # (identity: no dtype built)
             active = np.asarray(active, dtype=np.int64)
         return lim, (active if active.size else None)
 
@@ -1509,8 +1510,13 @@ class HarvestController:
             return []
         distances = getattr(lim, "_dist", None)
         # Python floats of float64 values (what _PairColumns' constructor made of the array).
-        distances = (np.asarray(distances[active], dtype=np.float64).tolist() if distances is not None
-                     else [math.nan] * active.size)
+        if distances is None:
+            distances = [math.nan] * active.size
+        else:
+            distances = distances[active]
+            if distances.dtype is not _FLOAT64:  # the limit's own are float64: no conversion
+                distances = np.asarray(distances, dtype=np.float64)
+            distances = distances.tolist()
         names = lim.capsule_names
         pair_a, pair_b = lim.pair_a, lim.pair_b
         key = active.tobytes()
