@@ -17,6 +17,7 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.exceptions import InvalidInputError, ModelError, UnknownFrameError
+from harvest_qp.qp_kernels import all_finite
 from harvest_qp.validation import as_scalar, as_vector, describe
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
@@ -106,6 +107,11 @@ class Configuration:
 
     def update(self, q: np.ndarray | Sequence[float]) -> None:
         """Set joint positions [rad] and recompute placements and joint Jacobians."""
+        # The control loop's case (every tick) first: as_vector's own fast path written out (a
+        # finite native float64 (nq,) array, copied), one call less; anything else is as_vector's.
+        if type(q) is np.ndarray and q.dtype is _FLOAT64 and q.shape == (self.model.nq,) and all_finite(q):
+            self._set_q(q.copy())
+            return
         self._set_q(as_vector(q, self.model.nq, "Configuration q"))
 
     def _set_q(self, q: np.ndarray) -> None:

@@ -443,8 +443,10 @@ def _as_command_fast(out: Any) -> Command:
         type(qd) is not np.ndarray
         or qd.dtype is not _FLOAT64
         or qd.shape != (N_JOINTS,)
-        # On the 12 Python floats: a third of np.isfinite(qd).all()'s time (two numpy calls).
-        or not all(map(math.isfinite, qd.tolist()))
+        # On the 12 Python floats (a fifth of np.isfinite(qd).all()'s time): a finite sum has
+        # only finite terms (a NaN or an infinity stays in a float sum). A sum that is not finite
+        # (a bad entry, or finite entries overflowing) takes _as_command's full check.
+        or not math.isfinite(sum(qd.tolist()))
         or type(out.status) is not str
     ):
         return _as_command(out)

@@ -216,6 +216,7 @@ _NAN3.setflags(write=False)
 _ZEROS6 = np.zeros(6)
 _ZEROS6.setflags(write=False)
 _FLOAT64 = np.dtype(np.float64)
+_INT64 = np.dtype(np.int64)
 #: Writable twins of _NAN3 / _ZEROS6, handed only to the compiled row copy (which reads them): numba
 #: compiles a read-only array argument as another type (a second compilation, not a second result).
 _NAN3_KERNEL = np.full(3, np.nan)
@@ -233,6 +234,9 @@ _LOGGED_VALUES = (
 _LAYOUT_WITH_MAP = _ValueLayout((("roll_error", ()), ("map_cells", ()), *_LOGGED_VALUES))
 _LAYOUT_WITHOUT_MAP = _ValueLayout((("roll_error", ()), *_LOGGED_VALUES))
 _NAN3_LIST = [math.nan] * 3
+# The phases as module constants for step's per-tick tests (a global read instead of an
+# attribute lookup on the enum class each; the same members, compared by == as before).
+_APPROACH, _BIMANUAL, _PRECUT, _ABORT = Phase.APPROACH, Phase.BIMANUAL, Phase.PRECUT, Phase.ABORT
 
 
 _ROW = np.dtype((np.void, 24))
@@ -519,11 +523,24 @@ class HarvestController:
         self._last_pair_names: tuple | None = None  # _active_pair_columns' last names (reused while unchanged)
         # _camera_references' kernel output and views of its roll slots (for np.arctan2's out=).
         self._references_buffers = _reference_buffers(np.empty(_tick_kernels.OUT_SIZE))
+        # (pinocchio data, its camera and gripper placements): live views of data.oMf's entries
+        # (indexing oMf builds a new proxy each time, ~0.5 us), made again for another data
+        # object and dropped on copy (__getstate__: a copied proxy would be a frozen copy).
+        self._pose_refs: tuple | None = None
+        # R_g R_hold^T, the approach's hold rotation before log3 (a scratch buffer of step's).
+        self._hold_rotation = np.empty((3, 3))
         self._filter_fractions_key: tuple | None = None
         self._filter_fractions = (0.0, 0.0)
         #: Set to a dict to collect wall-clock times [s] per tick: "perception" (per new
         #: frame), "references" and "mapper" (the QP step or the pseudo-inverse).
         self.timing: dict[str, list[float]] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The cached placement proxies are live views into this controller's pinocchio data;
+        # a copy (deepcopy, pickle) would hold frozen copies of them: made again on first use.
+        state = self.__dict__.copy()
+        state["_pose_refs"] = None
+        return state
 
     # ------------------------------------------------------------------ set-up
 
@@ -1088,7 +1105,10 @@ class HarvestController:
                 angle = (angle + math.pi / 2) % math.pi - math.pi / 2  # _wrap_half_turn
                 gain = s["roll"]["k_roll"] * angle
                 (_, _, z0, _), (_, _, z1, _), (_, _, z2, _) = rows
-                return V, np.array((0.0, 0.0, 0.0, gain * z0, gain * z1, gain * z2)), angle
+                # np.zeros and three items: the array np.array((0.0, 0.0, 0.0, ...)) built (cheaper).
+                roll = np.zeros(6)
+                roll[3], roll[4], roll[5] = gain * z0, gain * z1, gain * z2
+                return V, roll, angle
         V = self._camera_twist(T_c, dt, rows)
         roll, roll_error = self._roll_reference(T_c, direction, rows)
         return V, roll, roll_error
@@ -1111,6 +1131,19 @@ class HarvestController:
         v0, v1, v2 = linear.tolist()
         w0, w1, w2 = pin.log3(rotation).tolist()
         return [v0, v1, v2, k * w0, k * w1, k * w2]
+
+    def _hold_twist_array(self, T_g: np.ndarray) -> np.ndarray:
+        """:meth:`_hold_twist` for step: the kernel writes k (p_g - p_hold) into the new array's
+        first three slots and k log3(R_g R_hold^T) is stored into the last three (the same
+        products as :meth:`_hold_twist_floats`, without a list and an array built from it)."""
+        k = -self.settings["grasping"]["k_hold"]
+        st = self.state
+        twist = np.empty(6)
+        rotation = self._hold_rotation
+        _tick_kernels.hold_terms(T_g, st.hold_translation, st.hold_rotation_T, k, twist, rotation)
+        w0, w1, w2 = pin.log3(rotation).tolist()
+        twist[3], twist[4], twist[5] = k * w0, k * w1, k * w2
+        return twist
 
     def _keep_out(self, T_c: np.ndarray) -> np.ndarray:
         """Outward speed below the minimum distance from the ROI centre (beyond the paper).
@@ -1165,9 +1198,13 @@ class HarvestController:
             raise InvalidInputError(f"HarvestController.step: observation time must be finite [s], got {obs.time!r}")
         config = self.configuration
         config.update(obs.q)
-        oMf = config.data.oMf
-        T_c = _pose_matrix(oMf[self._camera_id])
-        T_g = _pose_matrix(oMf[self._gripper_id])
+        data = config.data
+        poses = self._pose_refs
+        if poses is None or poses[0] is not data:
+            poses = self._pose_refs = (data, data.oMf[self._camera_id], data.oMf[self._gripper_id])
+        # The same matrices as _pose_matrix(data.oMf[i]) (the proxies read the live placements).
+        T_c = poses[1].homogeneous
+        T_g = poses[2].homogeneous
         rows_c = T_c[:3].tolist()  # the camera pose's first three rows as floats, read by several laws
         timing = self.timing
         if obs.new_cloud and obs.cloud is not None:
@@ -1180,7 +1217,7 @@ class HarvestController:
         t_ref = time.perf_counter() if timing is not None else 0.0
 
         phase = st.phase
-        if phase == Phase.APPROACH:
+        if phase == _APPROACH:
             if st.p_sb is None and t > s["safety"]["no_stem_timeout"]:
                 self._abort(t, f"no stem base found within {s['safety']['no_stem_timeout']} s")
             else:
@@ -1198,7 +1235,7 @@ class HarvestController:
                         and self._angular_speed(T_c, start) < sw["max_angular_speed"]
                     ):
                         self._try_switch(t, obs)
-        elif phase == Phase.BIMANUAL or phase == Phase.PRECUT:
+        elif phase == _BIMANUAL or phase == _PRECUT:
             if t - st.last_stem_time > s["safety"]["stem_lost_timeout"]:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
@@ -1210,18 +1247,18 @@ class HarvestController:
         roll = None
         force_nc = float("nan")
         roi_distance = None
-        if st.phase != Phase.ABORT:
+        phase = st.phase
+        if phase != _ABORT:
             dt = self.dt
-            if st.phase == Phase.APPROACH:
+            if phase == _APPROACH:
                 direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
             else:
                 direction = self.stretching.n_c  # set at the switch (StemStretching.set_target)
             # V_cr + keep-out + V_cu (6 floats) and the roll reference of the blade across the stem.
             V, roll, roll_error = self._camera_references(T_c, dt, rows_c, direction)
             roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
-            if st.phase == Phase.APPROACH:
-                V_g_floats = self._hold_twist_floats(T_g)
-                V_g = np.array(V_g_floats)
+            if phase == _APPROACH:
+                V_g = self._hold_twist_array(T_g)
             else:
                 # The wrist force is the robot's reading: checked as StemStretching.update does
                 # (a float64 (3,) array's finiteness by the compiled law, before any state changes).
@@ -1251,7 +1288,8 @@ class HarvestController:
             V_c = np.array(V)
 
         t_map = time.perf_counter() if timing is not None else 0.0
-        if st.phase == Phase.ABORT:
+        phase = st.phase
+        if phase == _ABORT:
             qdot = self._safe_stop()
             status = f"abort: {st.abort_reason}"
             if st.t_at_rest is None and not np.any(qdot):
@@ -1268,7 +1306,8 @@ class HarvestController:
             backup_solver = self.qp_backup
             previous = self.qp.previous_qdot.copy() if backup_solver is not None else None
             result = self.qp._step(obs.q, reuse_kinematics=True)
-            if not result.ok and backup_solver is not None:
+            ok = result.ok
+            if not ok and backup_solver is not None:
                 # Stopgap until the QP core retries itself (issue 10 section 1): daqp answers
                 # slightly outside the constraints (2e-7..1e-6) and the core brakes; the same
                 # problem is re-solved by the backup backend from the same previous command.
@@ -1278,8 +1317,9 @@ class HarvestController:
                     st.backup_solves += 1
                     result = backup
                     result.status = f"{backup.status} (backup solver)"
+                    ok = True  # backup.ok: its status, with a suffix, starts as an ok status
             qdot, status = result.qdot, result.status
-            if result.ok:
+            if ok:
                 st.qp_failures_in_row = 0
             else:
                 st.qp_failures += 1
@@ -1290,8 +1330,10 @@ class HarvestController:
             t_end = time.perf_counter()
             timing.setdefault("references", []).append(t_map - t_ref)
             timing.setdefault("mapper", []).append(t_end - t_map)
-        qdot = np.asarray(qdot, float)
-        if st.phase != Phase.ABORT:
+        if type(qdot) is not np.ndarray or qdot.dtype is not _FLOAT64:
+            qdot = np.asarray(qdot, float)
+        phase = st.phase
+        if phase != _ABORT:
             self.qp.previous_qdot = qdot
         st.previous_qdot = qdot
 
@@ -1307,10 +1349,10 @@ class HarvestController:
             self._log_values(T_c, V_c, V_g, force_nc, into=values, roi_distance=roi_distance)
             pairs = self._active_pairs()
         done = False
-        if st.phase == Phase.PRECUT:
+        if phase == _PRECUT:
             end_after = s["episode"]["end_after_precut"]
             done = end_after is not None and t - st.t_precut >= end_after
-        elif st.phase == Phase.ABORT:
+        elif phase == _ABORT:
             done = st.t_at_rest is not None and t - st.t_at_rest >= s["episode"]["stop_after_abort"]
         return _command(qdot, status, values, pairs, done)
 
@@ -1386,7 +1428,7 @@ class HarvestController:
         if lim is None or self.mapper_kind != "qp":
             return lim, None
         active = getattr(lim, "active_pairs", ())
-        if type(active) is not np.ndarray or active.dtype != np.int64:
+        if type(active) is not np.ndarray or active.dtype is not _INT64:  # (identity: no dtype built)
             active = np.asarray(active, dtype=np.int64)
         return lim, (active if active.size else None)
 
@@ -1418,7 +1460,7 @@ class HarvestController:
         """
         st = self.state
         phase = st.phase
-        bimanual = phase == Phase.BIMANUAL or phase == Phase.PRECUT or st.t_switch is not None
+        bimanual = phase == _BIMANUAL or phase == _PRECUT or st.t_switch is not None
         reaching, stretching = self.reaching, self.stretching
         if roi_distance is None:
             offset = reaching.roi_centre - T_c[:3, 3]
@@ -1468,22 +1510,31 @@ class HarvestController:
             return []
         distances = getattr(lim, "_dist", None)
         # Python floats of float64 values (what _PairColumns' constructor made of the array).
-        distances = (np.asarray(distances[active], dtype=np.float64).tolist() if distances is not None
-                     else [math.nan] * active.size)
+        if distances is None:
+            distances = [math.nan] * active.size
+        else:
+            distances = distances[active]
+            if distances.dtype is not _FLOAT64:  # the limit's own are float64: no conversion
+                distances = np.asarray(distances, dtype=np.float64)
+            distances = distances.tolist()
         names = lim.capsule_names
-        a = lim.pair_a[active].tolist()
-        b = lim.pair_b[active].tolist()
+        pair_a, pair_b = lim.pair_a, lim.pair_b
+        key = active.tobytes()
         last = self._last_pair_names
         # Most ticks keep the last tick's pairs and names: the same name lists then (the
-        # runner's log also reuses its indices for them). Capsule indices and names compared
-        # by value (the map's feed renames obstacle slots in place).
-        if last is not None and last[0] == a and last[1] == b and last[2] == names:
+        # runner's log also reuses its indices for them). The limit replaces its pair tables,
+        # never changes them in place (CollisionAvoidance._active_pair_snapshot relies on it
+        # too): the same table objects and the same active indices (by bytes) are the same
+        # capsule index pairs. Names compared by value (the map's feed renames obstacle slots
+        # in place).
+        if (last is not None and last[0] is pair_a and last[1] is pair_b and last[5] == key
+                and last[2] == names):
             first, second = last[3], last[4]
         else:
             lookup = names.__getitem__
-            first = list(map(lookup, a))
-            second = list(map(lookup, b))
-            self._last_pair_names = (a, b, list(names), first, second)
+            first = list(map(lookup, pair_a[active].tolist()))
+            second = list(map(lookup, pair_b[active].tolist()))
+            self._last_pair_names = (pair_a, pair_b, list(names), first, second, key)
         return _PairColumns._built(first, second, distances)  # lists of one length: no check needed
 
     # ------------------------------------------------------------------ summary
