@@ -35,7 +35,7 @@ from harvest_qp.sim.contacts import (
     CONTACT_KINDS,
     ContactCertificate,
     ContactMonitor,
-    _certificate_holds_checked,
+    _certify_step,
     _count_kinds,
 )
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
@@ -658,29 +658,27 @@ class SimRobot(RobotInterface):
         # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
         certificate = self._certificate
-        opt = self._opt
-        flags = opt.disableflags
-        # certificate.certified(qpos) inlined (one Python frame less per step): the options and
-        # the contact-filter callback of the baseline, the model arrays it was built from
-        # (robot.model may have been edited since), then the motion bound.
-        if (
-            certificate._valid
-            and flags == certificate._disableflags
-            and opt.enableflags == certificate._enableflags
-            and (certificate._override is None or opt.o_margin == certificate._override)
-            and _get_contactfilter() is None
-            and _certificate_holds_checked(
-                self._qpos, certificate._ints, certificate._floats, certificate._live, certificate._snapshot
-            )
-        ):
+        # certificate.certified(qpos) inlined (one Python frame less per step): the
+        # contact-filter callback here; in one compiled call the options (read as words of
+        # the model struct: ~4 bindings accesses less per step), the model arrays the
+        # certificate was built from (robot.model may have been edited since) and the motion
+        # bound; when all hold, the call also sets mjDSBL_CONTACT in the live options.
+        flags = (
+            _certify_step(
+                self._qpos, certificate._ints, certificate._floats, certificate._live, certificate._snapshot,
+                certificate._opt_live, certificate._disable_index, _DSBL_CONTACT,
+            )  # fmt: skip
+            if certificate._valid and _get_contactfilter() is None
+            else -1
+        )
+        if flags >= 0:
             # No contact is possible at the new configuration (proven from the joints' motion
             # since the certificate's baseline): step1 without the collision detection, which
-            # would find nothing; the same result bit for bit.
-            opt.disableflags = flags | _DSBL_CONTACT
+            # would find nothing; the same result bit for bit. The flags are restored at once.
             try:
                 mujoco.mj_step1(m, d)
             finally:
-                opt.disableflags = flags
+                certificate._opt_flags[certificate._disable_index] = flags
         else:
             mujoco.mj_step1(m, d)
             certificate.rebase(d)
