@@ -92,7 +92,7 @@ class ContactMonitor:
         """Operands and state of :func:`_vine_near_search` in one int and one float buffer.
 
         ``_near_ints = [valid, n_near, geoms (ng), axes (ng), bounded index per pair (npairs;
-        -1: an exact pair), near list (npairs), candidates (nb)]``; ``_near_floats =
+        -1: an exact pair), near list (npairs), bounded pairs (nb), candidates (nb)]``; ``_near_floats =
         [threshold, halves (ng), radius sums (npairs), reaches (npairs), lower (nb),
         baseline ends (6 ng), ends (6 ng), displacements (ng), near bounds (npairs)]``.
         ``_lower`` and ``_candidates`` (what :meth:`min_vine_distance` reads) are views.
@@ -104,13 +104,13 @@ class ContactMonitor:
         reach = (self._arm_caps[1][:, None] + self._vine_caps[1][None, :]) + self._radius_sum
         self._near_ints = np.concatenate([
             [0, 0], self.arm_geoms, self.vine_geoms, self._arm_caps[0], self._vine_caps[0], bounded_index,
-            np.zeros(npairs + nb, np.int64),
+            np.zeros(npairs, np.int64), self._bounded_pairs, np.zeros(nb, np.int64),
         ]).astype(np.int64)  # fmt: skip
         self._near_floats = np.concatenate([
             [0.0], self._arm_caps[1], self._vine_caps[1], self._radius_sum.ravel(), reach.ravel(),
             np.zeros(nb + 13 * ng + npairs),
         ])  # fmt: skip
-        self._candidates = self._near_ints[2 + 2 * ng + 2 * npairs :]
+        self._candidates = self._near_ints[2 + 2 * ng + 2 * npairs + nb :]
         self._lower = self._near_floats[1 + ng + 2 * npairs :][:nb]
 
     def contact_counts(self, data: mujoco.MjData) -> dict[str, int]:
@@ -146,24 +146,27 @@ class ContactMonitor:
             self._near_ints[0] = 0  # a new data: no baseline yet
         na, nv = self._sizes
         # Only the few pairs that can still be nearest since a baseline are measured (see
-        # _vine_near_search): the same result as testing every pair's capsule.
-        best, k, n_candidates = _vine_near_search(
+        # _vine_near_search): the same result as testing every pair's capsule. It also
+        # returns the geoms of the best pair and of the nearest candidate (usually the only one).
+        best, self._hint, n_candidates, arm, vine, candidate_arm, candidate_vine = _vine_near_search(
             bound[1], bound[2], self._near_ints, self._near_floats, na, nv, self.max_distance, self._hint,
         )  # fmt: skip
-        self._hint = k
-        arm, vine = self._arm_list, self._vine_list
-        pair = (-1, -1) if k < 0 else (arm[k // nv], vine[k % nv])
         if n_candidates:
-            lower, bounded = self._lower, self._bounded_list
-            for i in self._candidates[:n_candidates].tolist():
-                if lower[i] >= best:
-                    break  # every remaining pair is at least this far apart
-                k = bounded[i]
-                ga, gv = arm[k // nv], vine[k % nv]
-                dist = mujoco.mj_geomDistance(self.model, data, ga, gv, best, self._fromto)
-                if dist < best:
-                    best, pair = float(dist), (ga, gv)
-        return float(best), pair[0], pair[1]
+            # The first candidate's bound is below the best by construction.
+            dist = mujoco.mj_geomDistance(self.model, data, candidate_arm, candidate_vine, best, self._fromto)
+            if dist < best:
+                best, arm, vine = float(dist), candidate_arm, candidate_vine
+            if n_candidates > 1:
+                lower, bounded, arms, vines = self._lower, self._bounded_list, self._arm_list, self._vine_list
+                for i in self._candidates[1:n_candidates].tolist():
+                    if lower[i] >= best:
+                        break  # every remaining pair is at least this far apart
+                    k = bounded[i]
+                    ga, gv = arms[k // nv], vines[k % nv]
+                    dist = mujoco.mj_geomDistance(self.model, data, ga, gv, best, self._fromto)
+                    if dist < best:
+                        best, arm, vine = float(dist), ga, gv
+        return float(best), arm, vine
 
 
 #: Safety margin [m] of the pruning in :func:`_vine_near_search`: far above the round-off of
@@ -182,11 +185,11 @@ def _vine_near_search(xpos, xmat, ints, floats, na, nv, max_distance, hint):
 
     Returns the smallest distance over the exact pairs (the capsules are the geoms) if it
     is below ``max_distance`` (else ``max_distance``), its pair index (-1: none; the
-    first such pair in pair order on a tie), and the number of bounded pairs (an
-    ellipsoid or other geom in its capsule) whose lower bound (written to ``lower``, by
-    bounded index) is below it, their bounded indices written to ``candidates`` nearest
-    first (ties in index order): the same as measuring every pair (a test holds it to
-    that). ``hint`` (an exact pair, e.g. the last call's answer) bounds the answer from
+    first such pair in pair order on a tie), the number of bounded pairs (an ellipsoid
+    or other geom in its capsule) whose lower bound (written to ``lower``, by bounded
+    index) is below it, their bounded indices written to ``candidates`` nearest first
+    (ties in index order): the same as measuring every pair (a test holds it to that);
+    then the geom ids of the best pair and of the first candidate (-1 for none). ``hint`` (an exact pair, e.g. the last call's answer) bounds the answer from
     above. Operands and state packed by ``ContactMonitor._pack_near``.
 
     Every pair's capsule
@@ -214,8 +217,9 @@ def _vine_near_search(xpos, xmat, ints, floats, na, nv, max_distance, hint):
     geoms, axes = ints[2 : 2 + ng], ints[2 + ng : 2 + 2 * ng]
     bounded_index = ints[2 + 2 * ng : 2 + 2 * ng + npairs]
     near = ints[2 + 2 * ng + npairs : 2 + 2 * ng + 2 * npairs]
-    candidates = ints[2 + 2 * ng + 2 * npairs :]
-    nb = candidates.shape[0]
+    nb = (ints.shape[0] - (2 + 2 * ng + 2 * npairs)) // 2
+    bounded_pairs = ints[2 + 2 * ng + 2 * npairs : 2 + 2 * ng + 2 * npairs + nb]
+    candidates = ints[2 + 2 * ng + 2 * npairs + nb :]
     halves = floats[1 : 1 + ng]
     radius_sum = floats[1 + ng : 1 + ng + npairs]
     lower = floats[1 + ng + 2 * npairs : 1 + ng + 2 * npairs + nb]
@@ -302,7 +306,13 @@ def _vine_near_search(xpos, xmat, ints, floats, na, nv, max_distance, hint):
             candidates[b + 1] = candidates[b]
             b -= 1
         candidates[b + 1] = j
-    return best, best_k, n
+    arm = vine = candidate_arm = candidate_vine = -1
+    if best_k >= 0:
+        arm, vine = geoms[best_k // nv], geoms[na + best_k % nv]
+    if n:
+        k = bounded_pairs[candidates[0]]
+        candidate_arm, candidate_vine = geoms[k // nv], geoms[na + k % nv]
+    return best, best_k, n, arm, vine, candidate_arm, candidate_vine
 
 
 @njit(cache=True, error_model="numpy")
@@ -311,7 +321,7 @@ def _vine_near_rebase(ends, ints, floats, na, nv, max_distance):
     ng, npairs = na + nv, na * nv
     bounded_index = ints[2 + 2 * ng : 2 + 2 * ng + npairs]
     near = ints[2 + 2 * ng + npairs : 2 + 2 * ng + 2 * npairs]
-    nb = ints.shape[0] - (2 + 2 * ng + 2 * npairs)
+    nb = (ints.shape[0] - (2 + 2 * ng + 2 * npairs)) // 2
     radius_sum = floats[1 + ng : 1 + ng + npairs]
     reach = floats[1 + ng + npairs : 1 + ng + 2 * npairs]
     w = 1 + ng + 2 * npairs + nb

@@ -576,8 +576,13 @@ class SimRobot(RobotInterface):
             arm_arm, arm_vine, arm_stand, arm_floor = _count_kinds(self._contacts.kind, contact.geom1, contact.geom2, ncon)
         else:
             arm_arm = arm_vine = arm_stand = arm_floor = 0
-        if self._vine_distance_tick < 0 or self._ticks - self._vine_distance_tick >= self.vine_distance_every:
-            self.min_vine_distance()  # measures now (and updates the minimum so far)
+        ticks = self._ticks
+        if self._vine_distance_tick < 0 or ticks - self._vine_distance_tick >= self.vine_distance_every:
+            # min_vine_distance() inlined: measure now and update the minimum so far (min()'s rule).
+            vine = self._vine_distance = self._contacts.min_vine_distance(d)
+            self._vine_distance_tick = ticks
+            if vine[0] < self._min_vine_distance:
+                self._min_vine_distance = vine[0]
         rotation, force = self._stem_force_operands
         return {
             "stem_tension": _stem_tension(

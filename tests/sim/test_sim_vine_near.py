@@ -61,12 +61,18 @@ def test_near_list_equals_every_pair_along_random_walks(seed):
         mujoco.mj_kinematics(m, d)
         reused += int(cm._near_ints[0])
         calls += 1
-        best, k, n = contacts_module._vine_near_search(
+        best, k, n, arm, vine, candidate_arm, candidate_vine = contacts_module._vine_near_search(
             d.geom_xpos, d.geom_xmat, cm._near_ints, cm._near_floats, na, nv, cm.max_distance, hint,
         )  # fmt: skip
         want = _every_pair(robot)
         got_candidates = cm._candidates[:n].tolist()
         assert (best, k, got_candidates, cm._lower[got_candidates].tolist()) == want
+        # The geoms of the best pair and of the nearest candidate, by pair index.
+        assert (arm, vine) == ((cm.arm_geoms[k // nv], cm.vine_geoms[k % nv]) if k >= 0 else (-1, -1))
+        first = cm._bounded_pairs[got_candidates[0]] if n else -1
+        assert (candidate_arm, candidate_vine) == (
+            (cm.arm_geoms[first // nv], cm.vine_geoms[first % nv]) if n else (-1, -1)
+        )
         hint = k
 
     for leg in range(6):
