@@ -113,6 +113,18 @@ class ContactMonitor:
         self._candidates = self._near_ints[2 + 2 * ng + 2 * npairs + nb :]
         self._lower = self._near_floats[1 + ng + 2 * npairs :][:nb]
 
+    @staticmethod
+    def ncon_view(data: mujoco.MjData) -> NDArray[np.int32] | None:
+        """A one-element live view of ``data.ncon`` (the int in MuJoCo's struct), or None where unknown.
+
+        Reading it costs a numpy item access instead of a bindings property (see
+        :func:`_probe_ncon_offset`); the view is checked against ``data.ncon`` here.
+        """
+        if _NCON_OFFSET is None:
+            return None
+        view = np.ctypeslib.as_array((ctypes.c_int32 * 1).from_address(data._address + _NCON_OFFSET))
+        return view if view[0] == data.ncon else None
+
     def contact_counts(self, data: mujoco.MjData) -> dict[str, int]:
         """Number of active contacts of each kind of :data:`CONTACT_KINDS` (penetrating or within margin)."""
         ncon = data.ncon
@@ -189,8 +201,9 @@ def _vine_near_search(xpos, xmat, ints, floats, na, nv, max_distance, hint):
     or other geom in its capsule) whose lower bound (written to ``lower``, by bounded
     index) is below it, their bounded indices written to ``candidates`` nearest first
     (ties in index order): the same as measuring every pair (a test holds it to that);
-    then the geom ids of the best pair and of the first candidate (-1 for none). ``hint`` (an exact pair, e.g. the last call's answer) bounds the answer from
-    above. Operands and state packed by ``ContactMonitor._pack_near``.
+    then the geom ids of the best pair and of the first candidate (-1 for none).
+    ``hint`` (an exact pair, e.g. the last call's answer) bounds the answer from above.
+    Operands and state packed by ``ContactMonitor._pack_near``.
 
     Every pair's capsule
     distance is 1-Lipschitz in the motion of its two segments: if every point of a
@@ -575,6 +588,41 @@ def _option_view(model: mujoco.MjModel) -> NDArray[np.int64] | None:
     ):
         return None
     return view
+
+
+def _probe_ncon_offset() -> int | None:
+    """Byte offset of ``ncon`` in MuJoCo's ``mjData`` struct (None if it cannot be told apart).
+
+    ``data.ncon`` through the bindings costs ~1-3 us per read inside an episode (cold);
+    :meth:`ContactMonitor.ncon_view` reads the int itself. Found on a throwaway model
+    whose contact count takes several values, with islands and constraint rows that do
+    not follow it (a box on the floor makes 4 contacts in one island): the one int between
+    the solver statistics and ``energy`` (both inside the struct) that equals ``ncon`` in
+    every state. The layout is fixed when the library is compiled.
+    """
+    bodies = "".join(
+        f'<body pos="{i} 0 1"><joint type="slide" axis="0 0 1"/><geom type="{kind}" size=".1 .1 .1"/></body>'
+        for i, kind in enumerate(("sphere", "sphere", "box"))
+    )
+    m = mujoco.MjModel.from_xml_string(f'<mujoco><worldbody><geom type="plane" size="5 5 .1"/>{bodies}</worldbody></mujoco>')
+    d = mujoco.MjData(m)
+    lo = d.solver_fwdinv.ctypes.data + d.solver_fwdinv.nbytes - d._address
+    hi = d.energy.ctypes.data - d._address
+    if not 0 < lo < hi:
+        return None
+    window = np.ctypeslib.as_array((ctypes.c_int32 * ((hi - lo) // 4)).from_address(d._address + lo))
+    found = None
+    for down in ((), (0,), (0, 1), (2,), (0, 2), (0, 1, 2)):
+        d.qpos[:] = [-0.95 if i in down else 0.0 for i in range(3)]
+        mujoco.mj_forward(m, d)
+        hits = set(np.flatnonzero(window == d.ncon).tolist())
+        found = hits if found is None else found & hits
+    if found is None or len(found) != 1:
+        return None
+    return lo + 4 * found.pop()
+
+
+_NCON_OFFSET = _probe_ncon_offset()
 
 
 class ContactCertificate:

@@ -247,6 +247,7 @@ class SimRobot(RobotInterface):
         self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
         self._cluster_xipos = d.xipos[self._cluster]
         self._cdof, self._subtree_com, self._qpos, self._ctrl, self._qvel = d.cdof, d.subtree_com, d.qpos, d.ctrl, d.qvel
+        self._ncon_view = ContactMonitor.ncon_view(d)  # None where MuJoCo's layout is not the probed one
         self._force.bind(d)
         self._pack_servo_operands()
         # ground_truth() inlines its parts unless a subclass (or the instance) overrides one.
@@ -570,8 +571,9 @@ class SimRobot(RobotInterface):
         # The same values as above (same calls underneath, same key order) without the
         # method layers: this runs every control tick of an episode.
         d = self.data
-        ncon = d.ncon
-        if ncon:
+        ncon_view = self._ncon_view  # data.ncon read as the int itself (a bindings read costs ~1-3 us cold)
+        if ncon_view[0] if ncon_view is not None else d.ncon:
+            ncon = d.ncon
             contact = d.contact
             arm_arm, arm_vine, arm_stand, arm_floor = _count_kinds(self._contacts.kind, contact.geom1, contact.geom2, ncon)
         else:

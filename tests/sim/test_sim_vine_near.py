@@ -132,3 +132,27 @@ def test_near_list_follows_a_capsule_turning_about_one_end():
         assert (got[0], got[1], cm._candidates[: got[2]].tolist()) == want[:3], step
         hint = got[1]
     assert _every_pair(robot)[0] < best  # it did come nearer
+
+
+def test_ncon_view_reads_the_contact_count():
+    """Bug caught: a view of the wrong int of MuJoCo's data struct (ne, nefc, nisland: they
+    follow ncon in some states and not in others), or one that does not follow the data.
+
+    Oracle: ``data.ncon`` through the bindings, over a robot pushed into the vine and its
+    stand and released (contacts come and go), and the robot's contact counts.
+    """
+    robot = SimRobot(None, camera=None)
+    m, d = robot.model, robot.data
+    view = robot._ncon_view
+    assert view is not None
+    rng = np.random.default_rng(2)
+    seen = set()
+    for _ in range(200):
+        d.qpos[robot._qpos_ids] = robot.scene.home_q + rng.normal(0, 0.6, 12)
+        mujoco.mj_forward(m, d)
+        assert view[0] == d.ncon
+        seen.add(int(d.ncon))
+        truth = robot.ground_truth()
+        want = robot._contacts.contact_counts(d)
+        assert [truth[f"contacts_{k}"] for k in want] == [float(v) for v in want.values()]
+    assert len(seen) > 3  # contacts came and went
