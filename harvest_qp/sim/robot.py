@@ -247,6 +247,8 @@ class SimRobot(RobotInterface):
         self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
         self._cluster_xipos = d.xipos[self._cluster]
         self._cdof, self._subtree_com, self._qpos, self._ctrl, self._qvel = d.cdof, d.subtree_com, d.qpos, d.ctrl, d.qvel
+        self._arm_qpos = None if self._qpos_slice is None else self._qpos[self._qpos_slice]
+        self._arm_qvel = None if self._dof_slice is None else self._qvel[self._dof_slice]
         self._ncon_view = ContactMonitor.ncon_view(d)  # None where MuJoCo's layout is not the probed one
         self._force.bind(d)
         self._pack_servo_operands()
@@ -362,18 +364,20 @@ class SimRobot(RobotInterface):
         return self._ticks * self.control_period
 
     def joint_positions(self) -> NDArray[np.float64]:
-        # self._qpos / self._qvel: data.qpos / data.qvel bound once (each data.qpos builds a new view).
-        if self._qpos_slice is not None:
-            return self._qpos[self._qpos_slice].copy()
+        # Live views of the arms' data.qpos / data.qvel entries, bound once (each data.qpos
+        # builds a new view, and slicing one per call costs another): one copy per call.
+        if self._arm_qpos is not None:
+            return self._arm_qpos.copy()
         return self._qpos[self._qpos_ids]  # fancy indexing copies
 
     def joint_velocities(self) -> NDArray[np.float64]:
-        if self._dof_slice is not None:
-            return self._qvel[self._dof_slice].copy()
+        if self._arm_qvel is not None:
+            return self._arm_qvel.copy()
         return self._qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
-        return self._force.reading()
+        force = self._force
+        return force._last - force._offset  # force.reading() without its call
 
     def tare_force(self) -> None:
         self._force.tare()
