@@ -101,10 +101,10 @@ class SimRobot(RobotInterface):
         settle_time: time the scene settles at reset before the clock starts [s].
         faults: sensor faults (lost camera frames, frame latency, force noise).
         vine_distance_every: :meth:`ground_truth` measures ``min_vine_distance`` on every
-            this many control ticks and repeats the last value in between (~35 us per
-            measurement inside the paper episode on the loaded 2-core machine, ~15 us hot:
-            a bounding-sphere broad phase, then MuJoCo's distance for the few pairs whose
-            capsule bound beats the best).
+            this many control ticks and repeats the last value in between (~20 us per
+            measurement inside the paper episode, most of it MuJoCo's distance of the
+            nearest leaf: capsule bounds of the few pairs that can be nearest since a
+            baseline, then MuJoCo's distance for those whose bound beats the best).
 
     The model's physics options (``model.opt.timestep`` among them), the servo's limits and
     the substep count are read when the robot is built: build a new robot to change them.
@@ -214,7 +214,6 @@ class SimRobot(RobotInterface):
         # Proves, step by step, when MuJoCo's collision detection cannot find a contact (see
         # ContactCertificate): mj_step1 then skips it, with the same result bit for bit.
         self._certificate = ContactCertificate(m)
-        self._opt = m.opt
         slide = ids["stem_slide"]
         self._slide_dof = int(m.jnt_dofadr[slide])
         self._slide_stiffness = float(m.jnt_stiffness[slide])
