@@ -78,11 +78,8 @@ class ContactMonitor:
         self._exact_pairs = np.flatnonzero(exact.ravel())
         self._bounded_pairs = np.flatnonzero(~exact.ravel())
         self._radius_sum = np.ascontiguousarray(self._arm_caps[2][:, None] + self._vine_caps[2][None, :])
-        self._static = (
-            self.arm_geoms, self._arm_caps[0], self._arm_caps[1],
-            self.vine_geoms, self._vine_caps[0], self._vine_caps[1],
-        )
-        self._pack()
+        self._sizes = (self.arm_geoms.size, self.vine_geoms.size)
+        self._pack_near()
         # The pair found by the last call: its distance now bounds this call's result.
         self._hint = -1
         # Plain-int copies for the per-call Python loop (numpy scalar indexing costs more).
@@ -91,26 +88,42 @@ class ContactMonitor:
         self._bounded_list = self._bounded_pairs.tolist()
         self._bound_data: mujoco.MjData | None = None
 
-    def _pack(self) -> None:
-        """The broad phase's operands in one int and one float buffer (see :func:`_capsule_bounds`).
+    def _pack_near(self) -> None:
+        """Operands and state of :func:`_vine_near_search` in one int and one float buffer.
 
-        A numba call costs ~0.06 us per array argument and more per tuple member; the
-        per-tick call takes 2 buffers instead of 16 arrays. ``_lower`` and ``_candidates``
-        are views into them (the call writes there).
+        ``_near_ints = [valid, n_near, geoms (ng), axes (ng), bounded index per pair (npairs;
+        -1: an exact pair), near list (npairs), bounded pairs (nb), candidates (nb)]``; ``_near_floats =
+        [threshold, halves (ng), radius sums (npairs), reaches (npairs), lower (nb),
+        baseline ends (6 ng), ends (6 ng), displacements (ng), near bounds (npairs)]``.
+        ``_lower`` and ``_candidates`` (what :meth:`min_vine_distance` reads) are views.
         """
         na, nv = self.arm_geoms.size, self.vine_geoms.size
-        nb = self._bounded_pairs.size
-        geoms = np.r_[self.arm_geoms, self.vine_geoms]
-        axes = np.r_[self._arm_caps[0], self._vine_caps[0]]
-        halves = np.r_[self._arm_caps[1], self._vine_caps[1]]
-        # reach[i, m] in the kernel's former order of operations: (half_a + half_v) + radius sum.
+        ng, npairs, nb = na + nv, na * nv, self._bounded_pairs.size
+        bounded_index = np.full(npairs, -1, dtype=np.int64)
+        bounded_index[self._bounded_pairs] = np.arange(nb)
         reach = (self._arm_caps[1][:, None] + self._vine_caps[1][None, :]) + self._radius_sum
-        self._ints = np.concatenate([geoms, axes, self._exact_pairs, self._bounded_pairs, np.zeros(nb, np.int64)]).astype(np.int64)
-        self._candidates = self._ints[2 * (na + nv) + self._exact_pairs.size + nb :]
-        n_work = 6 * (na + nv) + na * nv + 3 * nv
-        self._floats = np.concatenate([halves, self._radius_sum.ravel(), reach.ravel(), np.zeros(nb), np.zeros(n_work)])
-        self._lower = self._floats[na + nv + 2 * na * nv :][:nb]
-        self._sizes = (na, nv, int(self._exact_pairs.size), int(nb))
+        self._near_ints = np.concatenate([
+            [0, 0], self.arm_geoms, self.vine_geoms, self._arm_caps[0], self._vine_caps[0], bounded_index,
+            np.zeros(npairs, np.int64), self._bounded_pairs, np.zeros(nb, np.int64),
+        ]).astype(np.int64)  # fmt: skip
+        self._near_floats = np.concatenate([
+            [0.0], self._arm_caps[1], self._vine_caps[1], self._radius_sum.ravel(), reach.ravel(),
+            np.zeros(nb + 13 * ng + npairs),
+        ])  # fmt: skip
+        self._candidates = self._near_ints[2 + 2 * ng + 2 * npairs + nb :]
+        self._lower = self._near_floats[1 + ng + 2 * npairs :][:nb]
+
+    @staticmethod
+    def ncon_view(data: mujoco.MjData) -> NDArray[np.int32] | None:
+        """A one-element live view of ``data.ncon`` (the int in MuJoCo's struct), or None where unknown.
+
+        Reading it costs a numpy item access instead of a bindings property (see
+        :func:`_probe_ncon_offset`); the view is checked against ``data.ncon`` here.
+        """
+        if _NCON_OFFSET is None:
+            return None
+        view = np.ctypeslib.as_array((ctypes.c_int32 * 1).from_address(data._address + _NCON_OFFSET))
+        return view if view[0] == data.ncon else None
 
     def contact_counts(self, data: mujoco.MjData) -> dict[str, int]:
         """Number of active contacts of each kind of :data:`CONTACT_KINDS` (penetrating or within margin)."""
@@ -124,9 +137,11 @@ class ContactMonitor:
     def min_vine_distance(self, data: mujoco.MjData) -> tuple[float, int, int]:
         """Smallest signed distance [m] between an arm geom and a vine geom, and that pair.
 
-        Negative when they penetrate. A bounding-sphere lower bound orders the pairs and
-        only pairs whose bound beats the best distance so far are measured exactly
-        (``mujoco.mj_geomDistance``), a handful per call.
+        Negative when they penetrate. Enclosing capsules give every pair a lower bound
+        (exact for spheres and capsules); only the pairs whose bound beats the best distance
+        so far are measured exactly (``mujoco.mj_geomDistance``), a handful per call, and
+        only the pairs that can still be near since a baseline are bounded at all
+        (:func:`_vine_near_search`).
 
         Returns:
             (distance [m], arm geom id, vine geom id); (max_distance, -1, -1) when there is
@@ -140,122 +155,236 @@ class ContactMonitor:
         bound = self._bound_data
         if bound is None or bound[0] is not data:
             bound = self._bound_data = (data, data.geom_xpos, data.geom_xmat)  # live views, made once
-        na, nv, n_exact, n_bounded = self._sizes
-        best, k, n_candidates = _capsule_bounds(
-            bound[1], bound[2], self._ints, self._floats, na, nv, n_exact, n_bounded, self.max_distance, self._hint,
+            self._near_ints[0] = 0  # a new data: no baseline yet
+        na, nv = self._sizes
+        # Only the few pairs that can still be nearest since a baseline are measured (see
+        # _vine_near_search): the same result as testing every pair's capsule. It also
+        # returns the geoms of the best pair and of the nearest candidate (usually the only one).
+        best, self._hint, n_candidates, arm, vine, candidate_arm, candidate_vine = _vine_near_search(
+            bound[1], bound[2], self._near_ints, self._near_floats, na, nv, self.max_distance, self._hint,
         )  # fmt: skip
-        self._hint = k
-        arm, vine = self._arm_list, self._vine_list
-        pair = (-1, -1) if k < 0 else (arm[k // nv], vine[k % nv])
         if n_candidates:
-            lower, bounded = self._lower, self._bounded_list
-            for i in self._candidates[:n_candidates].tolist():
-                if lower[i] >= best:
-                    break  # every remaining pair is at least this far apart
-                k = bounded[i]
-                ga, gv = arm[k // nv], vine[k % nv]
-                dist = mujoco.mj_geomDistance(self.model, data, ga, gv, best, self._fromto)
-                if dist < best:
-                    best, pair = float(dist), (ga, gv)
-        return float(best), pair[0], pair[1]
+            # The first candidate's bound is below the best by construction.
+            dist = mujoco.mj_geomDistance(self.model, data, candidate_arm, candidate_vine, best, self._fromto)
+            if dist < best:
+                best, arm, vine = float(dist), candidate_arm, candidate_vine
+            if n_candidates > 1:
+                lower, bounded, arms, vines = self._lower, self._bounded_list, self._arm_list, self._vine_list
+                for i in self._candidates[1:n_candidates].tolist():
+                    if lower[i] >= best:
+                        break  # every remaining pair is at least this far apart
+                    k = bounded[i]
+                    ga, gv = arms[k // nv], vines[k % nv]
+                    dist = mujoco.mj_geomDistance(self.model, data, ga, gv, best, self._fromto)
+                    if dist < best:
+                        best, arm, vine = float(dist), ga, gv
+        return float(best), arm, vine
 
 
-#: Safety margin [m] of the bounding-sphere test in :func:`_capsule_bounds`: far above the
-#: round-off of the distances (~1e-15 m), so a pair it skips is certainly farther than the best.
+#: Safety margin [m] of the pruning in :func:`_vine_near_search`: far above the round-off of
+#: the distances (~1e-15 m), so a pair it skips is certainly farther than the best.
 _PRUNE_MARGIN = 1e-9
 
 
+#: Reach [m] of the near list of :func:`_vine_near_search`: pairs whose distance bound at a baseline
+#: is this much above the answer then stay out of it until a geom has moved ~half of it.
+_NEAR_HORIZON = 0.1
+
+
 @njit(cache=True, error_model="numpy")
-def _capsule_bounds(xpos, xmat, ints, floats, na, nv, n_exact, n_bounded, max_distance, hint=-1):
-    """Enclosing-capsule distances of every arm-vine pair (pair k = arm k // nv, vine k % nv).
+def _vine_near_search(xpos, xmat, ints, floats, na, nv, max_distance, hint):
+    """Enclosing-capsule distances of the arm-vine pairs that can be nearest (pair k = arm k // nv, vine k % nv).
 
-    Operands packed by :meth:`ContactMonitor._pack` (``nb = n_bounded``, ``ng = na + nv``):
-    ``ints = [geom ids (arm, then vine), capsule axes, exact_pairs, bounded_pairs,
-    candidates (nb, written)]``; ``floats = [half-lengths (ng), radius sums (na x nv),
-    reaches (na x nv: both half-lengths plus the radius sum), lower (nb, written), work]``.
-    Returns the smallest distance over ``exact_pairs`` (the capsules are the geoms) if it
-    is below ``max_distance`` (else ``max_distance``), its pair index (-1: none; the first
-    such pair in ``exact_pairs`` order on a tie), and the number of ``bounded_pairs``
-    whose lower bound (written to ``lower``) is below it, their indices written to
-    ``candidates`` nearest first (``lower`` is left unwritten for the others).
+    Returns the smallest distance over the exact pairs (the capsules are the geoms) if it
+    is below ``max_distance`` (else ``max_distance``), its pair index (-1: none; the
+    first such pair in pair order on a tie), the number of bounded pairs (an ellipsoid
+    or other geom in its capsule) whose lower bound (written to ``lower``, by bounded
+    index) is below it, their bounded indices written to ``candidates`` nearest first
+    (ties in index order): the same as measuring every pair (a test holds it to that);
+    then the geom ids of the best pair and of the first candidate (-1 for none).
+    ``hint`` (an exact pair, e.g. the last call's answer) bounds the answer from above.
+    Operands and state packed by ``ContactMonitor._pack_near``.
 
-    Broad phase: a pair whose capsules' bounding spheres are farther apart than the best
-    distance so far (or than the distance of the exact pair ``hint``, e.g. the last call's
-    answer, which bounds the minimum from above) by ``_PRUNE_MARGIN`` cannot be nearer, so
-    its segment distance is not computed: the result is the same as testing every pair.
-    The spheres' gaps (centre distance minus reach) are computed first for every pair in
-    one branch-free loop (vectorised square roots round as scalar ones do).
+    Every pair's capsule
+    distance is 1-Lipschitz in the motion of its two segments: if every point of a
+    geom's segment moved by at most ``disp`` since the baseline (``disp`` = the larger
+    move of its two ends, a segment's points being their convex combinations), the
+    pair's distance now is at least its baseline bound minus both geoms' ``disp``. So a
+    pair whose bound minus those moves is at least the current cut (the best distance so
+    far, or the hinted pair's distance, plus ``_PRUNE_MARGIN``) cannot be nearer and is
+    skipped: the same pairs win, ties included (exact pairs are compared as (distance,
+    pair index), the first minimum in pair order; candidates are sorted by (lower bound,
+    index), a stable sort's order). Before sim7 every call measured the bounding-sphere
+    gap of all ~540 pairs (~12 us of the episode's tick); now one call reads each geom's
+    pose once and measures a handful of pairs.
+
+    The baseline (taken when ``valid`` is 0 or when the largest moves reach the near
+    list's threshold) measures every pair: its bound is its capsule distance, or the
+    bounding spheres' gap where the segment distance takes a degenerate branch (a
+    segment shorter than ~1e-6 m but not a point, or near-parallel segments: only those
+    are not exact to round-off); the near list holds the pairs whose bound is below the
+    answer then plus :data:`_NEAR_HORIZON`, sorted by bound; every other pair's bound is
+    at least that ``threshold``.
     """
     ng, npairs = na + nv, na * nv
-    geoms, axes = ints[:ng], ints[ng : 2 * ng]
-    exact_pairs = ints[2 * ng : 2 * ng + n_exact]
-    bounded_pairs = ints[2 * ng + n_exact : 2 * ng + n_exact + n_bounded]
-    candidates = ints[2 * ng + n_exact + n_bounded :]
-    halves = floats[:ng]
-    radius_sum = floats[ng : ng + npairs].reshape(na, nv)
-    reach = floats[ng + npairs : ng + 2 * npairs].reshape(na, nv)
-    lower = floats[ng + 2 * npairs : ng + 2 * npairs + n_bounded]
-    work = floats[ng + 2 * npairs + n_bounded :]
-    ends = work[: 6 * ng].reshape(ng, 6)  # per geom: one end (0:3), the other (3:6)
-    gap = work[6 * ng : 6 * ng + npairs].reshape(na, nv)
-    centres = work[6 * ng + npairs : 6 * ng + npairs + 3 * nv].reshape(3, nv)
+    geoms, axes = ints[2 : 2 + ng], ints[2 + ng : 2 + 2 * ng]
+    bounded_index = ints[2 + 2 * ng : 2 + 2 * ng + npairs]
+    near = ints[2 + 2 * ng + npairs : 2 + 2 * ng + 2 * npairs]
+    nb = (ints.shape[0] - (2 + 2 * ng + 2 * npairs)) // 2
+    bounded_pairs = ints[2 + 2 * ng + 2 * npairs : 2 + 2 * ng + 2 * npairs + nb]
+    candidates = ints[2 + 2 * ng + 2 * npairs + nb :]
+    halves = floats[1 : 1 + ng]
+    radius_sum = floats[1 + ng : 1 + ng + npairs]
+    lower = floats[1 + ng + 2 * npairs : 1 + ng + 2 * npairs + nb]
+    w = 1 + ng + 2 * npairs + nb
+    base_ends = floats[w : w + 6 * ng].reshape(ng, 6)
+    ends = floats[w + 6 * ng : w + 12 * ng].reshape(ng, 6)
+    disp = floats[w + 12 * ng : w + 13 * ng]
+    near_bound = floats[w + 13 * ng : w + 13 * ng + npairs]
     for i in range(ng):
         g, ax, h = geoms[i], axes[i], halves[i]
         for c in range(3):
             off = h * xmat[g, 3 * c + ax]
             ends[i, c] = xpos[g, c] - off
             ends[i, 3 + c] = xpos[g, c] + off
-    for m in range(nv):
-        g = geoms[na + m]
-        for c in range(3):
-            centres[c, m] = xpos[g, c]
-    for i in range(na):
-        g = geoms[i]
-        ax, ay, az = xpos[g, 0], xpos[g, 1], xpos[g, 2]
-        for m in range(nv):
-            dx = ax - centres[0, m]
-            dy = ay - centres[1, m]
-            dz = az - centres[2, m]
-            gap[i, m] = math.sqrt(dx * dx + dy * dy + dz * dz) - reach[i, m]
-    best = max_distance
-    best_k = -1
     # An upper bound of the answer: the distance of the hinted pair (an exact one) now.
     upper = max_distance
     if hint >= 0:
-        i, m = hint // nv, hint % nv
-        upper = min(upper, _ends_distance(ends, i, na + m) - radius_sum[i, m])
+        upper = min(upper, _ends_distance(ends, hint // nv, na + hint % nv) - radius_sum[hint])
+    move = 0.0
+    if ints[0]:
+        arm_move = vine_move = 0.0
+        for i in range(ng):
+            s0 = s1 = 0.0
+            for c in range(3):
+                e0 = ends[i, c] - base_ends[i, c]
+                e1 = ends[i, 3 + c] - base_ends[i, 3 + c]
+                s0 += e0 * e0
+                s1 += e1 * e1
+            disp[i] = math.sqrt(max(s0, s1))
+            if i < na:
+                arm_move = max(arm_move, disp[i])
+            else:
+                vine_move = max(vine_move, disp[i])
+        move = arm_move + vine_move
+        # Every pair outside the near list must stay beyond the first cut (the loosest).
+        if not floats[0] - move >= min(max_distance, upper) + 2.0 * _PRUNE_MARGIN:
+            ints[0] = 0
+    if not ints[0]:
+        _vine_near_rebase(ends, ints, floats, na, nv, max_distance)
+        move = 0.0
+        for i in range(ng):
+            disp[i] = 0.0
+    n_near = ints[1]
+    best = max_distance
+    best_k = -1
     cut = min(best, upper) + _PRUNE_MARGIN
-    for j in range(n_exact):
-        k = exact_pairs[j]
-        i, m = k // nv, k % nv
-        if gap[i, m] >= cut:
+    for p in range(n_near):
+        k = near[p]
+        bound = near_bound[p]
+        if bound - move >= cut:
+            break  # every later pair is at least as far
+        if bounded_index[k] >= 0:
             continue
-        d = _ends_distance(ends, i, na + m) - radius_sum[i, m]
-        if d < best:
+        i, m = k // nv, k % nv
+        if bound - disp[i] - disp[na + m] >= cut:
+            continue
+        d = _ends_distance(ends, i, na + m) - radius_sum[k]
+        if d < best or (d == best and k < best_k):
             best, best_k = d, k
             cut = min(best, upper) + _PRUNE_MARGIN
     n = 0
     cut = best + _PRUNE_MARGIN
-    for j in range(n_bounded):
-        k = bounded_pairs[j]
-        i, m = k // nv, k % nv
-        if gap[i, m] >= cut:
+    for p in range(n_near):
+        k = near[p]
+        bound = near_bound[p]
+        if bound - move >= cut:
+            break
+        j = bounded_index[k]
+        if j < 0:
             continue
-        lower[j] = _ends_distance(ends, i, na + m) - radius_sum[i, m]
+        i, m = k // nv, k % nv
+        if bound - disp[i] - disp[na + m] >= cut:
+            continue
+        lower[j] = _ends_distance(ends, i, na + m) - radius_sum[k]
         if lower[j] < best:
             candidates[n] = j
             n += 1
-    # Nearest first: a stable insertion sort (the order of a stable argsort, ties kept in
-    # pair order) in place; there are a handful of candidates, argsort's arrays cost more.
+    # Nearest first, ties in index order (a stable sort's order over the bounded pairs).
     for a in range(1, n):
         j = candidates[a]
         key = lower[j]
         b = a - 1
-        while b >= 0 and lower[candidates[b]] > key:
+        while b >= 0 and (lower[candidates[b]] > key or (lower[candidates[b]] == key and candidates[b] > j)):
             candidates[b + 1] = candidates[b]
             b -= 1
         candidates[b + 1] = j
-    return best, best_k, n
+    arm = vine = candidate_arm = candidate_vine = -1
+    if best_k >= 0:
+        arm, vine = geoms[best_k // nv], geoms[na + best_k % nv]
+    if n:
+        k = bounded_pairs[candidates[0]]
+        candidate_arm, candidate_vine = geoms[k // nv], geoms[na + k % nv]
+    return best, best_k, n, arm, vine, candidate_arm, candidate_vine
+
+
+@njit(cache=True, error_model="numpy")
+def _vine_near_rebase(ends, ints, floats, na, nv, max_distance):
+    """The baseline of :func:`_vine_near_search` at ``ends`` (layout there): bounds, near list, threshold."""
+    ng, npairs = na + nv, na * nv
+    bounded_index = ints[2 + 2 * ng : 2 + 2 * ng + npairs]
+    near = ints[2 + 2 * ng + npairs : 2 + 2 * ng + 2 * npairs]
+    nb = (ints.shape[0] - (2 + 2 * ng + 2 * npairs)) // 2
+    radius_sum = floats[1 + ng : 1 + ng + npairs]
+    reach = floats[1 + ng + npairs : 1 + ng + 2 * npairs]
+    w = 1 + ng + 2 * npairs + nb
+    base_ends = floats[w : w + 6 * ng].reshape(ng, 6)
+    near_bound = floats[w + 13 * ng : w + 13 * ng + npairs]
+    eps = 1e-12
+    answer = max_distance
+    for k in range(npairs):
+        i, j = k // nv, na + k % nv
+        ux, uy, uz = ends[i, 3] - ends[i, 0], ends[i, 4] - ends[i, 1], ends[i, 5] - ends[i, 2]
+        vx, vy, vz = ends[j, 3] - ends[j, 0], ends[j, 4] - ends[j, 1], ends[j, 5] - ends[j, 2]
+        a = _dot(ux, uy, uz, ux, uy, uz)
+        e = _dot(vx, vy, vz, vx, vy, vz)
+        b = _dot(ux, uy, uz, vx, vy, vz)
+        d = _ends_distance(ends, i, j) - radius_sum[k]
+        if bounded_index[k] < 0 and d < answer:
+            answer = d
+        degenerate = (a > 0.0 and a <= eps) or (e > 0.0 and e <= eps) or (a > eps and e > eps and a * e - b * b <= eps)
+        if degenerate:
+            # Centre distance minus both half-lengths and radii: below any distance of the two capsules.
+            cx = 0.5 * (ends[i, 0] + ends[i, 3]) - 0.5 * (ends[j, 0] + ends[j, 3])
+            cy = 0.5 * (ends[i, 1] + ends[i, 4]) - 0.5 * (ends[j, 1] + ends[j, 4])
+            cz = 0.5 * (ends[i, 2] + ends[i, 5]) - 0.5 * (ends[j, 2] + ends[j, 5])
+            d = math.sqrt(cx * cx + cy * cy + cz * cz) - reach[k] - 1e-9
+        near_bound[k] = d  # scratch: bound per pair index, compacted below
+    threshold = answer + _NEAR_HORIZON
+    n = 0
+    for k in range(npairs):
+        if near_bound[k] < threshold:
+            near[n] = k
+            n += 1
+    # near_bound[p] must follow near[p]: move the selected bounds to the front (p <= k), then sort.
+    for p in range(n):
+        near_bound[p] = near_bound[near[p]]
+    for a in range(1, n):
+        k = near[a]
+        key = near_bound[a]
+        c = a - 1
+        while c >= 0 and near_bound[c] > key:
+            near[c + 1] = near[c]
+            near_bound[c + 1] = near_bound[c]
+            c -= 1
+        near[c + 1] = k
+        near_bound[c + 1] = key
+    for i in range(ng):
+        for c in range(6):
+            base_ends[i, c] = ends[i, c]
+    floats[0] = threshold
+    ints[1] = n
+    ints[0] = 1
 
 
 @njit(cache=True, inline="always")
@@ -404,6 +533,98 @@ _SNAPSHOT_ARRAYS = (
 )  # fmt: skip
 
 
+def _probe_option_window() -> tuple[int, int, int] | None:
+    """Where the options the certificate depends on lie in MuJoCo's ``mjModel`` struct.
+
+    Returns ``(byte offset, words, int32 index of disableflags)``: the 8-byte words from
+    ``opt.o_margin`` to ``opt.enableflags`` (``disableflags`` in between), found by writing
+    a sentinel through the bindings into each field of a throwaway model and seeing which
+    bytes change; None when the struct does not look as expected (the certificate is then
+    unsupported: full detection every step). The layout is the library's, fixed at its
+    compile time, so the offsets hold for every model.
+    """
+    m = mujoco.MjModel.from_xml_string("<mujoco/>")
+    opt = m.opt
+    # opt lies in the first ~1.1 KB of the struct, which is several KB long (~590 fields).
+    raw = np.ctypeslib.as_array((ctypes.c_uint8 * 2048).from_address(m._address))
+    found = {}
+    for name, sentinel, dtype in (
+        ("o_margin", 1.2345678e-7, np.float64), ("disableflags", 0x5A5A, np.int32), ("enableflags", 0x2A5A, np.int32),
+    ):  # fmt: skip
+        size = np.dtype(dtype).itemsize
+        before = raw.copy()
+        old = getattr(opt, name)
+        setattr(opt, name, sentinel)
+        changed = np.flatnonzero(before != raw)
+        at = int(changed[0]) - int(changed[0]) % size if changed.size else -1
+        # Only this field's bytes changed, and they read back as the sentinel.
+        ok = changed.size > 0 and changed[-1] < at + size and raw[at : at + size].view(dtype)[0] == sentinel
+        setattr(opt, name, old)
+        if not ok:
+            return None
+        found[name] = at
+    start, stop = found["o_margin"], found["enableflags"] + 4
+    if not start < found["disableflags"] < found["enableflags"] or start % 8:
+        return None
+    words = (stop - start + 7) // 8
+    return start, words, (found["disableflags"] - start) // 4
+
+
+_OPTION_WINDOW = _probe_option_window()
+
+
+def _option_view(model: mujoco.MjModel) -> NDArray[np.int64] | None:
+    """An int64 view of ``model``'s option words of :data:`_OPTION_WINDOW` (None if unknown or inconsistent)."""
+    if _OPTION_WINDOW is None:
+        return None
+    start, words, disable = _OPTION_WINDOW
+    view = np.ctypeslib.as_array((ctypes.c_int64 * words).from_address(model._address + start))
+    flags = view.view(np.int32)
+    # The same values as the bindings give (else the layout is not what the probe found).
+    if (
+        view[:1].view(np.float64)[0] != model.opt.o_margin
+        or flags[disable] != model.opt.disableflags
+        or flags[disable + 1] != model.opt.enableflags
+    ):
+        return None
+    return view
+
+
+def _probe_ncon_offset() -> int | None:
+    """Byte offset of ``ncon`` in MuJoCo's ``mjData`` struct (None if it cannot be told apart).
+
+    ``data.ncon`` through the bindings costs ~1-3 us per read inside an episode (cold);
+    :meth:`ContactMonitor.ncon_view` reads the int itself. Found on a throwaway model
+    whose contact count takes several values, with islands and constraint rows that do
+    not follow it (a box on the floor makes 4 contacts in one island): the one int between
+    the solver statistics and ``energy`` (both inside the struct) that equals ``ncon`` in
+    every state. The layout is fixed when the library is compiled.
+    """
+    bodies = "".join(
+        f'<body pos="{i} 0 1"><joint type="slide" axis="0 0 1"/><geom type="{kind}" size=".1 .1 .1"/></body>'
+        for i, kind in enumerate(("sphere", "sphere", "box"))
+    )
+    m = mujoco.MjModel.from_xml_string(f'<mujoco><worldbody><geom type="plane" size="5 5 .1"/>{bodies}</worldbody></mujoco>')
+    d = mujoco.MjData(m)
+    lo = d.solver_fwdinv.ctypes.data + d.solver_fwdinv.nbytes - d._address
+    hi = d.energy.ctypes.data - d._address
+    if not 0 < lo < hi:
+        return None
+    window = np.ctypeslib.as_array((ctypes.c_int32 * ((hi - lo) // 4)).from_address(d._address + lo))
+    found = None
+    for down in ((), (0,), (0, 1), (2,), (0, 2), (0, 1, 2)):
+        d.qpos[:] = [-0.95 if i in down else 0.0 for i in range(3)]
+        mujoco.mj_forward(m, d)
+        hits = set(np.flatnonzero(window == d.ncon).tolist())
+        found = hits if found is None else found & hits
+    if found is None or len(found) != 1:
+        return None
+    return lo + 4 * found.pop()
+
+
+_NCON_OFFSET = _probe_ncon_offset()
+
+
 class ContactCertificate:
     """Proves, before ``mj_step1``, that its collision detection would find no contact.
 
@@ -457,12 +678,15 @@ class ContactCertificate:
         self._pair_slack = np.zeros(0)
         self._disableflags = self._enableflags = -1  # the options at the baseline (see certified)
         self._live = self._snapshot = np.zeros(1, dtype=np.int64)
+        self._opt_live: NDArray[np.int64] | None = None
+        self._opt_flags: NDArray[np.int32] | None = None
+        self._disable_index = -1
         self._rebuild()
 
     def __getstate__(self) -> dict:
         # _live aliases this model's memory: a copy (pickle, deepcopy) binds its own model's.
         state = self.__dict__.copy()
-        state["_live"] = state["_snapshot"] = None
+        state["_live"] = state["_snapshot"] = state["_opt_live"] = state["_opt_flags"] = None
         state["_bound_data"] = None
         return state
 
@@ -485,11 +709,17 @@ class ContactCertificate:
     def _take_snapshot(self, m: mujoco.MjModel) -> None:
         """Bind one int64 view of the model's buffer over every array :meth:`_build` reads and copy them.
 
-        ``self._snapshot = [n_ranges, (start, n_words) per range, the words of each range]``
-        (starts in 8-byte words from the view's first word); :func:`_model_unchanged`
-        compares the live words with the copy. MuJoCo keeps all model arrays in one buffer
-        (``nbuffer`` bytes), each 8-byte aligned; anything else is refused (full detection).
+        ``self._snapshot = [n_ranges, (start, n_words) per range, the words of each range,
+        the option words]`` (starts in 8-byte words from the view's first word);
+        :func:`_model_unchanged` compares the live words with the copy. MuJoCo keeps all
+        model arrays in one buffer (``nbuffer`` bytes), each 8-byte aligned; anything else is
+        refused (full detection). The option words (``o_margin`` to ``enableflags`` of
+        ``model.opt``, :func:`_option_view`; they live in the model struct, not its buffer)
+        are copied at each baseline (:meth:`rebase`) and compared by :func:`_certified_now`.
         """
+        opt_live = _option_view(m)
+        if opt_live is None:
+            raise _Unsupported
         arrays = [getattr(m, name) for name in _SNAPSHOT_ARRAYS]
         spans = [(int(a.ctypes.data), int(a.nbytes)) for a in arrays if a.nbytes]
         base = min(addr for addr, _ in spans)
@@ -508,7 +738,12 @@ class ContactCertificate:
         header = [len(ranges)] + [v for start, stop in ranges for v in (start, stop - start)]
         words = [live[start:stop] for start, stop in ranges]
         self._live = live
-        self._snapshot = np.concatenate([np.array(header, dtype=np.int64)] + words).astype(np.int64)
+        self._snapshot = np.concatenate(
+            [np.array(header, dtype=np.int64)] + words + [np.zeros(opt_live.size, dtype=np.int64)]
+        ).astype(np.int64)
+        self._opt_live = opt_live
+        self._opt_flags = opt_live.view(np.int32)  # disableflags at _disable_index (the step's restore)
+        self._disable_index = _OPTION_WINDOW[2]
 
     def _build(self, m: mujoco.MjModel) -> None:
         if m.nflex:
@@ -703,6 +938,7 @@ class ContactCertificate:
             self._wait = _REBASE_BACKOFF
         # The options this baseline holds for (certified compares them every step).
         self._disableflags, self._enableflags = int(opt.disableflags), int(opt.enableflags)
+        self._snapshot[self._snapshot.size - self._opt_live.size :] = self._opt_live
 
     def invalidate(self) -> None:
         """Forget the baseline (the next step runs the full detection and takes a new one,
@@ -714,17 +950,14 @@ class ContactCertificate:
     def certified(self, qpos: NDArray[np.float64]) -> bool:
         """True when no contact is possible at the configuration ``qpos`` (see the class).
 
-        False as well when the model, its options or the contact-filter callback changed
-        since the baseline (``SimRobot._physics_step`` inlines these same tests).
+        False as well when the model, its options (``o_margin`` to ``enableflags``: any of
+        these words) or the contact-filter callback changed since the baseline
+        (``SimRobot._physics_step`` runs these same tests through :func:`_certify_step`).
         """
-        opt = self.model.opt
         return (
             self._valid
-            and opt.disableflags == self._disableflags
-            and opt.enableflags == self._enableflags
-            and (self._override is None or opt.o_margin == self._override)
             and mujoco.get_mjcb_contactfilter() is None
-            and _certificate_holds_checked(qpos, self._ints, self._floats, self._live, self._snapshot)
+            and _certified_now(qpos, self._ints, self._floats, self._live, self._snapshot, self._opt_live)
         )
 
 
@@ -885,6 +1118,35 @@ def _model_unchanged(live, snapshot):
 def _certificate_holds_checked(qpos, ints, floats, live, snapshot):
     """:func:`_certificate_holds`, only when the model is still the one the certificate was built from."""
     return _model_unchanged(live, snapshot) and _certificate_holds(qpos, ints, floats)
+
+
+@njit(cache=True, _nrt=False)
+def _certified_now(qpos, ints, floats, live, snapshot, opt_live):
+    """:func:`_certificate_holds_checked`, only when the option words ``opt_live`` (see
+    ``ContactCertificate._take_snapshot``) are those of the baseline (the last words of ``snapshot``)."""
+    n = opt_live.shape[0]
+    then = snapshot[snapshot.shape[0] - n :]
+    diff = 0
+    for i in range(n):
+        diff |= opt_live[i] ^ then[i]
+    return diff == 0 and _model_unchanged(live, snapshot) and _certificate_holds(qpos, ints, floats)
+
+
+@njit(cache=True, _nrt=False)
+def _certify_step(qpos, ints, floats, live, snapshot, opt_live, disable_index, contact_bit):
+    """:func:`_certified_now`, and if so ``contact_bit`` set in the live ``disableflags``.
+
+    Returns the flags as they were (the caller restores them right after ``mj_step1``), or
+    -1 when the step is not certified (nothing written) or the flags' sign bit is set.
+    """
+    if not _certified_now(qpos, ints, floats, live, snapshot, opt_live):
+        return -1
+    flags = opt_live.view(np.int32)
+    old = flags[disable_index]
+    if old < 0:
+        return -1
+    flags[disable_index] = old | contact_bit
+    return old
 
 
 @njit(cache=True)

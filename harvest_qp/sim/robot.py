@@ -35,7 +35,7 @@ from harvest_qp.sim.contacts import (
     CONTACT_KINDS,
     ContactCertificate,
     ContactMonitor,
-    _certificate_holds_checked,
+    _certify_step,
     _count_kinds,
 )
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
@@ -101,10 +101,10 @@ class SimRobot(RobotInterface):
         settle_time: time the scene settles at reset before the clock starts [s].
         faults: sensor faults (lost camera frames, frame latency, force noise).
         vine_distance_every: :meth:`ground_truth` measures ``min_vine_distance`` on every
-            this many control ticks and repeats the last value in between (~35 us per
-            measurement inside the paper episode on the loaded 2-core machine, ~15 us hot:
-            a bounding-sphere broad phase, then MuJoCo's distance for the few pairs whose
-            capsule bound beats the best).
+            this many control ticks and repeats the last value in between (~20 us per
+            measurement inside the paper episode, most of it MuJoCo's distance of the
+            nearest leaf: capsule bounds of the few pairs that can be nearest since a
+            baseline, then MuJoCo's distance for those whose bound beats the best).
 
     The model's physics options (``model.opt.timestep`` among them), the servo's limits and
     the substep count are read when the robot is built: build a new robot to change them.
@@ -214,7 +214,6 @@ class SimRobot(RobotInterface):
         # Proves, step by step, when MuJoCo's collision detection cannot find a contact (see
         # ContactCertificate): mj_step1 then skips it, with the same result bit for bit.
         self._certificate = ContactCertificate(m)
-        self._opt = m.opt
         slide = ids["stem_slide"]
         self._slide_dof = int(m.jnt_dofadr[slide])
         self._slide_stiffness = float(m.jnt_stiffness[slide])
@@ -247,6 +246,9 @@ class SimRobot(RobotInterface):
         self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
         self._cluster_xipos = d.xipos[self._cluster]
         self._cdof, self._subtree_com, self._qpos, self._ctrl, self._qvel = d.cdof, d.subtree_com, d.qpos, d.ctrl, d.qvel
+        self._arm_qpos = None if self._qpos_slice is None else self._qpos[self._qpos_slice]
+        self._arm_qvel = None if self._dof_slice is None else self._qvel[self._dof_slice]
+        self._ncon_view = ContactMonitor.ncon_view(d)  # None where MuJoCo's layout is not the probed one
         self._force.bind(d)
         self._pack_servo_operands()
         # ground_truth() inlines its parts unless a subclass (or the instance) overrides one.
@@ -361,18 +363,20 @@ class SimRobot(RobotInterface):
         return self._ticks * self.control_period
 
     def joint_positions(self) -> NDArray[np.float64]:
-        # self._qpos / self._qvel: data.qpos / data.qvel bound once (each data.qpos builds a new view).
-        if self._qpos_slice is not None:
-            return self._qpos[self._qpos_slice].copy()
+        # Live views of the arms' data.qpos / data.qvel entries, bound once (each data.qpos
+        # builds a new view, and slicing one per call costs another): one copy per call.
+        if self._arm_qpos is not None:
+            return self._arm_qpos.copy()
         return self._qpos[self._qpos_ids]  # fancy indexing copies
 
     def joint_velocities(self) -> NDArray[np.float64]:
-        if self._dof_slice is not None:
-            return self._qvel[self._dof_slice].copy()
+        if self._arm_qvel is not None:
+            return self._arm_qvel.copy()
         return self._qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
-        return self._force.reading()
+        force = self._force
+        return force._last - force._offset  # force.reading() without its call
 
     def tare_force(self) -> None:
         self._force.tare()
@@ -570,14 +574,20 @@ class SimRobot(RobotInterface):
         # The same values as above (same calls underneath, same key order) without the
         # method layers: this runs every control tick of an episode.
         d = self.data
-        ncon = d.ncon
-        if ncon:
+        ncon_view = self._ncon_view  # data.ncon read as the int itself (a bindings read costs ~1-3 us cold)
+        if ncon_view[0] if ncon_view is not None else d.ncon:
+            ncon = d.ncon
             contact = d.contact
             arm_arm, arm_vine, arm_stand, arm_floor = _count_kinds(self._contacts.kind, contact.geom1, contact.geom2, ncon)
         else:
             arm_arm = arm_vine = arm_stand = arm_floor = 0
-        if self._vine_distance_tick < 0 or self._ticks - self._vine_distance_tick >= self.vine_distance_every:
-            self.min_vine_distance()  # measures now (and updates the minimum so far)
+        ticks = self._ticks
+        if self._vine_distance_tick < 0 or ticks - self._vine_distance_tick >= self.vine_distance_every:
+            # min_vine_distance() inlined: measure now and update the minimum so far (min()'s rule).
+            vine = self._vine_distance = self._contacts.min_vine_distance(d)
+            self._vine_distance_tick = ticks
+            if vine[0] < self._min_vine_distance:
+                self._min_vine_distance = vine[0]
         rotation, force = self._stem_force_operands
         return {
             "stem_tension": _stem_tension(
@@ -658,29 +668,27 @@ class SimRobot(RobotInterface):
         # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
         certificate = self._certificate
-        opt = self._opt
-        flags = opt.disableflags
-        # certificate.certified(qpos) inlined (one Python frame less per step): the options and
-        # the contact-filter callback of the baseline, the model arrays it was built from
-        # (robot.model may have been edited since), then the motion bound.
-        if (
-            certificate._valid
-            and flags == certificate._disableflags
-            and opt.enableflags == certificate._enableflags
-            and (certificate._override is None or opt.o_margin == certificate._override)
-            and _get_contactfilter() is None
-            and _certificate_holds_checked(
-                self._qpos, certificate._ints, certificate._floats, certificate._live, certificate._snapshot
-            )
-        ):
+        # certificate.certified(qpos) inlined (one Python frame less per step): the
+        # contact-filter callback here; in one compiled call the options (read as words of
+        # the model struct: ~4 bindings accesses less per step), the model arrays the
+        # certificate was built from (robot.model may have been edited since) and the motion
+        # bound; when all hold, the call also sets mjDSBL_CONTACT in the live options.
+        flags = (
+            _certify_step(
+                self._qpos, certificate._ints, certificate._floats, certificate._live, certificate._snapshot,
+                certificate._opt_live, certificate._disable_index, _DSBL_CONTACT,
+            )  # fmt: skip
+            if certificate._valid and _get_contactfilter() is None
+            else -1
+        )
+        if flags >= 0:
             # No contact is possible at the new configuration (proven from the joints' motion
             # since the certificate's baseline): step1 without the collision detection, which
-            # would find nothing; the same result bit for bit.
-            opt.disableflags = flags | _DSBL_CONTACT
+            # would find nothing; the same result bit for bit. The flags are restored at once.
             try:
                 mujoco.mj_step1(m, d)
             finally:
-                opt.disableflags = flags
+                certificate._opt_flags[certificate._disable_index] = flags
         else:
             mujoco.mj_step1(m, d)
             certificate.rebase(d)

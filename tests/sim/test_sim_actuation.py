@@ -210,3 +210,27 @@ def test_servo_update_matches_the_speedj_law_step_by_step(default_scene):
         np.testing.assert_array_equal(d.ctrl[servo.ctrl_ids], expected_ctrl)
         qd_ref, q_ref = qd, expected_ref
     assert limits_hit > 10 and clamped > 10
+
+
+def test_unchecked_command_equals_the_checked_one_bit_for_bit(blind_robot):
+    """Bug caught: the runner's fast command path (``_command_unchecked``, in place) clipping
+    differently from :meth:`SpeedjServo.command` (np.clip), or keeping the caller's array.
+
+    Oracle: ``np.clip`` through the checked ``command``, on random commands around and beyond
+    the speed limit, the limit itself, -0.0 and tiny values; then the caller's array is
+    changed and the servo's command must not follow.
+    """
+    servo = blind_robot._servo
+    vmax = servo.config.max_velocity
+    rng = np.random.default_rng(4)
+    cases = [rng.normal(0.0, vmax, 12) for _ in range(200)]
+    cases += [np.full(12, vmax), np.full(12, -vmax), np.full(12, -0.0), np.full(12, 5e-324), np.linspace(-9, 9, 12)]
+    send = blind_robot._unchecked_sender()
+    for qdot in cases:
+        servo.command(qdot)
+        want = servo.qd_cmd.copy()
+        send(qdot)
+        assert want.tobytes() == servo.qd_cmd.tobytes()
+        kept = servo.qd_cmd.copy()
+        qdot += 1.0  # the caller reuses its array
+        assert kept.tobytes() == servo.qd_cmd.tobytes()

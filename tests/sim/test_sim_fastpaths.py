@@ -226,8 +226,8 @@ def test_pruned_vine_distance_search_equals_every_pair():
         want_k = int(cm._exact_pairs[np.argmax(exact == exact.min())]) if exact.min() < cm.max_distance else -1
         want_candidates = [j for j in range(cm._bounded_pairs.size) if flat[cm._bounded_pairs[j]] < want_best]
         for h in (hint, -1):
-            best, k, n = contacts_module._capsule_bounds(
-                d.geom_xpos, d.geom_xmat, cm._ints, cm._floats, *cm._sizes, cm.max_distance, h,
+            best, k, n, *_ = contacts_module._vine_near_search(
+                d.geom_xpos, d.geom_xmat, cm._near_ints, cm._near_floats, *cm._sizes, cm.max_distance, h,
             )  # fmt: skip
             assert best == pytest.approx(want_best, abs=1e-15) and k == want_k
             assert sorted(cm._candidates[:n].tolist()) == want_candidates
