@@ -214,6 +214,29 @@ def _span_distances(
             out[j] = t3 if (t3 >= 0.0 and (t < 0.0 or t3 < t)) else t
 
 
+@njit(cache=True, error_model="numpy")
+def _merge_span(dist, geomid, tbuf, row, ua, ub, bound, cutoff, g):
+    """The nearest-hit merge of a span's distances ``tbuf[ua..ub]`` into ``dist`` / ``geomid`` at
+    ``row + ua .. row + ub``, branch-free so that it vectorises: a pixel already hit closer than
+    ``bound`` keeps its hit, otherwise geom ``g`` takes it when its distance is in [0, cutoff]
+    and nearer (ties to the lower id). Every pixel is stored, with its old values where ``g``
+    does not take it."""
+    n = ub + 1 - ua
+    d = dist[row + ua : row + ub + 1]
+    ids = geomid[row + ua : row + ub + 1]
+    ts = tbuf[ua : ub + 1]
+    gid = np.int32(g)
+    for j in range(n):
+        best = d[j]
+        t = ts[j]
+        old = ids[j]
+        take = not (best >= 0.0 and best < bound) and (
+            t >= 0.0 and t <= cutoff and (best < 0.0 or t < best or (t == best and gid < old))
+        )
+        d[j] = t if take else best
+        ids[j] = gid if take else old
+
+
 @njit(cache=True)
 def _geom_local(gtype, size, ox, oy, oz, dx, dy, dz):
     """Distance along the ray to a geom in its local frame (ray origin o, direction d), or -1."""
@@ -705,15 +728,7 @@ def _draw(
                     gt, rays_x, rays_y, rays_z, (v - row0) * width, ua, ub, r00, r01, r02, r10, r11, r12, r20, r21, r22,
                     ox, oy, oz, s0, s1, s2, tbuf,
                 )  # fmt: skip
-                for u in range(ua, ub + 1):
-                    i = (v - row0) * width + u
-                    best = dist[i]
-                    if best >= 0.0 and best < bound:
-                        continue  # already hit closer than this geom can be
-                    t = tbuf[u]
-                    if t >= 0.0 and t <= cutoff and (best < 0.0 or t < best or (t == best and g < geomid[i])):
-                        dist[i] = t
-                        geomid[i] = g
+                _merge_span(dist, geomid, tbuf, row, ua, ub, bound, cutoff, g)
                 continue
             for u in range(ua, ub + 1):
                 i = (v - row0) * width + u
