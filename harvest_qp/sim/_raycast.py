@@ -7,9 +7,10 @@ tests/sim/test_camera.py) by testing each geom only against the pixels inside it
 projected bounding sphere (and, for ellipsoids, capsules and cylinders, its quadric's
 footprint on each row), with the same filters as ``mj_multiRay`` (transparent geoms,
 ``bodyexclude``, static geoms when ``flg_static`` is 0, geoms farther than ``cutoff``).
-Spheres, ellipsoids and capsules are intersected a row span at a time in vectorised loops
-(the same operations per pixel as the scalar code: its results bit for bit, see
-tests/sim/test_sim_fastpaths.py).
+Planes, spheres, ellipsoids and capsules are intersected a row span at a time in vectorised
+loops, and the span's hits merged into the image by another branch-free loop (the same
+operations per pixel as the scalar code: its results bit for bit, see
+tests/sim/test_sim_fastpaths.py and tests/sim/test_sim_camera_planes.py).
 It handles planes, spheres, capsules, ellipsoids, cylinders and boxes; a model with
 other geom types (meshes, height fields, SDFs) must use ``mj_multiRay``.
 """
@@ -714,7 +715,9 @@ def _draw(
             if gt == 0 or gt == 2 or gt == 3 or gt == 4:
                 # The span's distances first, in a branch-free loop the compiler vectorises
                 # (the scalar code's operations on every pixel; SIMD square roots and
-                # divisions round exactly as scalar ones), then the nearest-hit merge.
+                # divisions round exactly as scalar ones), then the nearest-hit merge, also
+                # branch-free (selects instead of a branch per pixel: 0.66-0.79 -> 0.49-0.66 ms
+                # per 283x160 frame of the paper episode, with the planes' spans vectorised).
                 # Pixels at the span's ends already hit nearer than this geom can be are skipped
                 # by the merge anyway: leave them out of the distances too.
                 row = (v - row0) * width
