@@ -147,8 +147,9 @@ def hold_terms(pose, hold_translation, hold_rotation_T, k, linear, rotation):  #
     3x3 dgemm sums each entry as the same fused chain as its ddot, tests/loop/test_tick_kernels.py).
 
     ``pose``: the gripper pose, float64 ``(4, 4)``; ``hold_translation`` float64 ``(3,)``;
-    ``hold_rotation_T`` float64 ``(3, 3)``; ``k`` = -k_hold; ``linear`` float64 ``(3,)`` and
-    ``rotation`` float64 ``(3, 3)`` receive the results.
+    ``hold_rotation_T`` float64 ``(3, 3)``; ``k`` = -k_hold; ``linear`` float64 ``(3,)`` or longer
+    (slots 0-2 written: the loop hands its new ``(6,)`` twist) and ``rotation`` float64 ``(3, 3)``
+    receive the results.
     """
     for i in range(3):
         linear[i] = k * (pose[i, 3] - hold_translation[i])

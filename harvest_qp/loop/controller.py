@@ -1240,7 +1240,6 @@ class HarvestController:
                 self._abort(t, f"stem not seen for {s['safety']['stem_lost_timeout']} s in the bimanual phase")
 
         roll_error = None  # logged as value/roll_error when the references ran
-        V_g_floats = None  # V_g as Python floats (the approach's hold twist)
         map_cells = None  # logged as value/map_cells when the map fed the QP
         V_c = _ZEROS6
         V_g = _ZEROS6
