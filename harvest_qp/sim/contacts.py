@@ -658,9 +658,10 @@ class ContactCertificate:
     bodies' types, sizes, poses, margins, gaps, bitmasks and tree, the joints' positions,
     the explicit pairs and the options. Every one of those model arrays is compared with
     a copy taken at the last :meth:`_build` on every certified step (one compiled pass
-    over ~16 KB, :func:`_model_unchanged`); the caller also compares the options
-    (``disableflags``, ``enableflags``, ``o_margin`` under override) and the
-    contact-filter callback with those of the baseline (:meth:`certified`). Any
+    over ~16 KB, :func:`_model_unchanged`); the same call compares the option words from
+    ``o_margin`` to ``enableflags`` (``disableflags`` among them; read in the model struct,
+    see :func:`_option_view`) with those at the baseline, and the caller checks that no
+    contact-filter callback is installed (:meth:`certified`). Any
     difference: no certificate for that step (the full detection runs), and the next
     :meth:`rebase` rebuilds the certificate from the edited model. ``data.qpos`` edited
     directly is covered by the motion bound itself (joint travel since the baseline's
