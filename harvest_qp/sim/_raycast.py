@@ -649,6 +649,24 @@ def _setup(
     return order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum
 
 
+#: Geoms whose pixel rectangle has at most this many pixels are first checked for being hidden
+#: whole (:func:`_occluded`); on larger ones the check could cost more than it saves.
+_SMALL_RECT = 1024
+
+
+@njit(cache=True)
+def _occluded(dist, va, vb, u0, u1, row0, width, bound):
+    """True when every pixel of rows va..vb, columns u0..u1 is already hit closer than ``bound``
+    (then a geom whose hits are all at least ``bound`` away changes none of them)."""
+    for v in range(va, vb + 1):
+        row = (v - row0) * width
+        for u in range(u0, u1 + 1):
+            d = dist[row + u]
+            if not (d >= 0.0 and d < bound):
+                return False
+    return True
+
+
 @njit(cache=True)
 def _draw(
     v_lo, v_hi, row0, order, rects, rgs, locs, near, cens, nsub, rsub, quad, qw, qsum, height, width, focal,
@@ -667,6 +685,9 @@ def _draw(
         size = geom_size[g]
         bound = near[g]
         u0, u1, v0, v1 = rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3]
+        va, vb = max(v0, v_lo), min(v1, v_hi)
+        if (u1 - u0 + 1) * (vb - va + 1) <= _SMALL_RECT and _occluded(dist, va, vb, u0, u1, row0, width, bound):
+            continue  # every pixel it could cover is already hit closer than it can be: nothing to draw
         plane = gt == 0
         n0, n1, n2 = rg[0, 2], rg[1, 2], rg[2, 2]
         k_plane = oz / cutoff if plane else 0.0
