@@ -200,7 +200,7 @@ class ObstacleMap(Section):
     arms: expect(Literal["camera", "both"], "one of: camera, both") = _f(
         "both", "whose capsules get the map's rows (the grasping arm's only stop it: no further approach "
                 "inside d_s, never a push)")
-    clear_rays: PositiveInt = _f(12000, "clearing rays per frame (about)")
+    clear_rays: PositiveInt = _f(6000, "clearing rays per frame (about)")
     per_capsule: PositiveInt = _f(4, "closest cells per arm capsule within d_i + margin")
     max_cells: PositiveInt = _f(24, "cells fed to the collision limit in all (the closest)")
     min_separation: NonNegative = _f(0.03, "[m] one capsule's cells at least this far apart (near-parallel rows "

@@ -162,7 +162,7 @@ def test_near_the_camera_the_coarser_clearing_grid_still_clears_moved_leaves_in_
     size = (192, 256)
     near, far = leaf_at(0.25, y=-0.05), leaf_at(0.95, y=0.15)  # side by side in the image
     back = ([1.3, 0.0, 1.0], [0.0, 0.6, 0.0], [0.0, 0.0, 0.5], OBSTACLE)  # beyond the grid: rays only
-    maps = [ObstacleMap(bounds=SMALL), ObstacleMap(bounds=SMALL)]
+    maps = [ObstacleMap(bounds=SMALL, clear_stride=2), ObstacleMap(bounds=SMALL, clear_stride=2)]
     for _ in range(20):
         for m in maps:
             m.update(cast(CAM, [back, near, far], size=size))
