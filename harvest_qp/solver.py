@@ -277,6 +277,20 @@ def _least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tupl
     return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
 
 
+
+_FRAME_TWIST_COMPUTE_ROWS = FrameTwistTask.compute_rows
+_POSTURE_COMPUTE_ROWS = PostureTask.compute_rows
+_DAMPING_COMPUTE_ROWS = DampingTask.compute_rows
+
+
+def _builtin_compute_rows_intact(tasks) -> bool:
+    """True when the episode plan's five tasks would run the library's own ``compute_rows``:
+    neither their classes' method replaced (e.g. ``mock.patch.object``) nor one set on a task
+    object (``task.compute_rows = f``), so building their rows in one compiled call is exact."""
+    return (FrameTwistTask.compute_rows is _FRAME_TWIST_COMPUTE_ROWS and PostureTask.compute_rows is _POSTURE_COMPUTE_ROWS
+            and DampingTask.compute_rows is _DAMPING_COMPUTE_ROWS
+            and not any("compute_rows" in vars(task) for task in tasks))
+
 class Solver:
     """Reusable QP solver: keeps the backend's workspace between control steps.
 
@@ -424,16 +438,19 @@ class Solver:
         """
         plan = self._episode
         model = configuration.model
+        # An override of compute_rows on the classes (a patch) or on a task object must run, as
+        # in the generic path (an audit patched it and the plan skipped it): checked every tick.
         if (plan is not None and plan[7] == _TASK_STRUCTURE[0] and plan[6] is model and len(tasks) == 5
                 and tasks[0] is plan[0] and tasks[1] is plan[1] and tasks[2] is plan[2] and tasks[3] is plan[3]
-                and tasks[4] is plan[4]):
+                and tasks[4] is plan[4] and _builtin_compute_rows_intact(tasks)):
             return plan
         self._episode = None
         if len(tasks) != 5:
             return None
         camera, gripper, roll, posture, damping = tasks
         if not (type(camera) is FrameTwistTask and type(gripper) is FrameTwistTask and type(roll) is FrameTwistTask
-                and type(posture) is PostureTask and type(damping) is DampingTask):
+                and type(posture) is PostureTask and type(damping) is DampingTask
+                and _builtin_compute_rows_intact(tasks)):
             return None
         if any(task._model is not model for task in tasks):  # not yet bound: compute_rows binds them
             return None

@@ -400,10 +400,12 @@ class CollisionAvoidance(Limit):
         # limit's and its tree's arrays and settings, the same objects every tick (the obstacle
         # map's feed writes into them): they are read once, and again after any assignment to an
         # attribute of the limit or the tree (both __setattr__ drop the cached tuple).
+        # A subclass may compute a setting in a property (an audit's gain read from a dict
+        # edited in place): its arguments are read every tick.
         state = self.__dict__
         args = state["_step_args"] if "_step_args" in state else None
         tree = self.tree
-        if args is None or state["_step_tree"] != (tree, tree.__dict__.get("_version")):
+        if args is None or state["_step_tree"] != (tree, tree.__dict__.get("_version")) or type(self) is not CollisionAvoidance:
             args = self._kernel_args()
         n_pairs, n_rows = kernels.collision_step_clamped(configuration.q, *args)
         # Rows 0..n_pairs-1 belong to active_pairs in order; end-point rows follow (written into

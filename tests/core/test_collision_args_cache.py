@@ -61,3 +61,34 @@ def test_compute_follows_every_assignment_after_its_arguments_were_cached(rng):
     before = _rows(cached, config)
     fresh.tree = cached.tree  # a whole tree assigned: the fresh limit's own cache dropped too
     _same(_rows(fresh, config), before)
+
+
+def test_a_subclass_setting_computed_in_a_property_is_read_every_compute():
+    """Oracle: a fresh limit built with the new gain. A subclass whose ``gain`` property reads a
+    settings dict edited in place (no assignment to the limit) must get rows with the new gain.
+
+    Bug caught (an audit's reproducer; planted by caching the arguments for subclasses too, seen
+    failing): the cached argument tuple kept the first gain, 1.18 m/s off in h."""
+    settings = {"gain": 0.5}
+
+    class ScheduledGain(CollisionAvoidance):
+        @property
+        def gain(self):
+            return settings["gain"]
+
+        @gain.setter
+        def gain(self, value):
+            settings["gain"] = float(value)
+
+    config = Configuration.dual_ur5e(HOME_Q + 0.3)
+    centres = np.random.default_rng(0).normal([0.6, 0.0, 0.4], 0.2, (20, 3))
+    limit = ScheduledGain.dual_ur5e(config, influence_distance=0.3)
+    limit.set_obstacle_spheres(centres, 0.03)
+    limit.compute(config, 0.002)
+    settings["gain"] = 3.0
+    h = limit.compute(config, 0.002).h[: limit.num_rows].copy()
+    fresh = CollisionAvoidance.dual_ur5e(config, influence_distance=0.3, gain=3.0)
+    fresh.set_obstacle_spheres(centres, 0.03)
+    h_fresh = fresh.compute(config, 0.002).h[: fresh.num_rows]
+    assert limit.num_rows == fresh.num_rows > 0
+    assert np.array_equal(h, h_fresh)

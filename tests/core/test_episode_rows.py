@@ -224,3 +224,41 @@ def test_episode_step_resumes_and_relaxes_like_the_general_solve(rng, monkeypatc
     assert len(taken) >= 35
     assert relaxed >= 2
     assert {1, 3} <= set(stages), sorted(set(stages))
+
+
+@pytest.mark.parametrize("where", ["instance", "class"])
+def test_a_compute_rows_override_runs_every_step_as_in_the_general_path(rng, where, monkeypatch):
+    """Oracle: the override itself (it counts its calls and zeroes the gripper's reference
+    velocity, so the grasping arm must not move). ``compute_rows`` set on a task object or patched
+    on its class must run every step, as the general path runs it.
+
+    Bug caught (an audit's reproducer; planted by dropping ``_builtin_compute_rows_intact`` from the
+    plan's per-tick check, seen failing): the cached plan built the rows itself after the first
+    step, calling the override once in 3 steps, and the gripper arm moved at up to 0.04 rad/s."""
+    config = Configuration.dual_ur5e(HOME_Q)
+    tasks = _episode_tasks(rng)
+    gripper = tasks[1]
+    controller = TaskController(config, tasks)
+    q = HOME_Q.copy()
+    config.update(q)
+    for _ in range(2):  # the first step binds the tasks, the second caches the plan
+        config.update(q)
+        controller._step(q, reuse_kinematics=True)
+    assert controller.solver._episode is not None
+    calls = []
+    original = FrameTwistTask.compute_rows
+
+    def frozen(self, configuration, dt):
+        calls.append(self)
+        J, v = original(self, configuration, dt)
+        return J, (np.zeros_like(v) if self is gripper else v)
+
+    if where == "instance":
+        gripper.compute_rows = frozen.__get__(gripper)
+    else:
+        monkeypatch.setattr(FrameTwistTask, "compute_rows", frozen)
+    for _ in range(3):
+        config.update(q)
+        out = controller._step(q, reuse_kinematics=True)
+    assert sum(task is gripper for task in calls) == 3
+    assert np.abs(out.qdot[6:]).max() < 1e-9

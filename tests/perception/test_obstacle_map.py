@@ -14,7 +14,7 @@ import pytest
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
-from harvest_qp.perception.obstacle_map import ExclusionRegion, MapCollisionFeed, ObstacleMap
+from harvest_qp.perception.obstacle_map import DEFAULT_CLEAR_RAYS, ExclusionRegion, MapCollisionFeed, ObstacleMap
 
 RES = 0.01
 # A small grid for the synthetic scenes (fast to allocate).
@@ -1217,3 +1217,28 @@ def test_bounded_feed_skips_only_candidates_that_cannot_change_the_closest_cells
             _occupy(m, cells[rng.integers(0, len(cells), 20)], value=-0.5)  # some cells cleared
             _occupy(m, rng.integers((-12, -12, 88), (12, 12, 112), size=(15, 3)))  # some new ones
         tick(centre - axis, centre + axis, radii)
+
+
+def test_at_the_default_ray_budget_moved_leaves_clear_within_eleven_frames():
+    """The default budget (DEFAULT_CLEAR_RAYS = 6000: stride 3 on this 192x256 image). A leaf
+    0.25 m away (in the near-camera zone, only the coarser grid clears) leaves the map in 9 frames
+    (a fully occupied cell needs 9 misses); one 0.95 m away, where the stride-3 rays are 1.2 cells
+    apart, by frame 11 (measured: 9 with stride 2, 18 with stride 4).
+
+    Catches a default budget too small to cross the far leaf's cells within a few frames (planted
+    with clear_rays=3000, stride 4: the far leaf is still there at frame 11)."""
+    size = (192, 256)
+    near, far = leaf_at(0.25, y=-0.05), leaf_at(0.95, y=0.15)
+    back = ([1.3, 0.0, 1.0], [0.0, 0.6, 0.0], [0.0, 0.0, 0.5], OBSTACLE)
+    m = ObstacleMap(bounds=SMALL)
+    assert m.clear_rays == DEFAULT_CLEAR_RAYS
+    for _ in range(20):
+        m.update(cast(CAM, [back, near, far], size=size))
+    assert m.is_occupied(np.vstack([cells_of(near), cells_of(far)])).all()
+    for frame in range(1, 12):
+        m.update(cast(CAM, [back], size=size))
+        if frame == 8:
+            assert m.is_occupied(cells_of(near)).any()
+        if frame == 9:
+            assert not m.is_occupied(cells_of(near)).any()
+    assert not m.is_occupied(np.vstack([cells_of(near), cells_of(far)])).any()
