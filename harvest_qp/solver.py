@@ -277,7 +277,6 @@ def _least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tupl
     return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
 
 
-
 _FRAME_TWIST_COMPUTE_ROWS = FrameTwistTask.compute_rows
 _POSTURE_COMPUTE_ROWS = PostureTask.compute_rows
 _DAMPING_COMPUTE_ROWS = DampingTask.compute_rows
@@ -287,9 +286,15 @@ def _builtin_compute_rows_intact(tasks) -> bool:
     """True when the episode plan's five tasks would run the library's own ``compute_rows``:
     neither their classes' method replaced (e.g. ``mock.patch.object``) nor one set on a task
     object (``task.compute_rows = f``), so building their rows in one compiled call is exact."""
-    return (FrameTwistTask.compute_rows is _FRAME_TWIST_COMPUTE_ROWS and PostureTask.compute_rows is _POSTURE_COMPUTE_ROWS
-            and DampingTask.compute_rows is _DAMPING_COMPUTE_ROWS
-            and not any("compute_rows" in vars(task) for task in tasks))
+    if (FrameTwistTask.compute_rows is not _FRAME_TWIST_COMPUTE_ROWS
+            or PostureTask.compute_rows is not _POSTURE_COMPUTE_ROWS
+            or DampingTask.compute_rows is not _DAMPING_COMPUTE_ROWS):
+        return False
+    for task in tasks:
+        if "compute_rows" in task.__dict__:
+            return False
+    return True
+
 
 class Solver:
     """Reusable QP solver: keeps the backend's workspace between control steps.
@@ -752,7 +757,7 @@ class Solver:
                 rows2 += (IDENTITY_ROWS if J is None else J, task.weight, v)
         else:
             rows1, rows2 = flat
-            m = 12  # the camera's and the gripper's 6 rows each, no hard rows above
+            m = rows1[0].shape[0] + rows1[3].shape[0]  # the camera's and the gripper's rows, no hard rows above
         stack = self._rows_buffer
         if stack.shape[0] < m or stack.shape[1] != n:
             stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))

@@ -405,7 +405,8 @@ class CollisionAvoidance(Limit):
         state = self.__dict__
         args = state["_step_args"] if "_step_args" in state else None
         tree = self.tree
-        if args is None or state["_step_tree"] != (tree, tree.__dict__.get("_version")) or type(self) is not CollisionAvoidance:
+        if (args is None or state["_step_tree"] != (tree, tree.__dict__.get("_version"))
+                or type(self) is not CollisionAvoidance):
             args = self._kernel_args()
         n_pairs, n_rows = kernels.collision_step_clamped(configuration.q, *args)
         # Rows 0..n_pairs-1 belong to active_pairs in order; end-point rows follow (written into

@@ -1116,26 +1116,11 @@ class HarvestController:
     def _hold_twist(self, T_g: np.ndarray) -> np.ndarray:
         """V_g of the approach: the grasping arm held at its initial pose (gain ``grasping.k_hold``).
 
-        -k_hold [p_g - p_hold; log3(R_g R_hold^T)], element-wise on Python floats (bit-identical
-        to the numpy expression, tests/loop/test_fast_paths.py)."""
-        return np.array(self._hold_twist_floats(T_g))
-
-    def _hold_twist_floats(self, T_g: np.ndarray) -> list[float]:
-        """:meth:`_hold_twist` as 6 Python floats (the loop logs them without reading the array back)."""
-        st = self.state
-        k = -self.settings["grasping"]["k_hold"]
-        # k (p_g - p_hold) and R_g R_hold^T in one compiled call (numpy's matrix product bit for
-        # bit, _tick_kernels.hold_terms); log3 stays pinocchio's.
-        linear, rotation = np.empty(3), np.empty((3, 3))
-        _tick_kernels.hold_terms(T_g, st.hold_translation, st.hold_rotation_T, k, linear, rotation)
-        v0, v1, v2 = linear.tolist()
-        w0, w1, w2 = pin.log3(rotation).tolist()
-        return [v0, v1, v2, k * w0, k * w1, k * w2]
-
-    def _hold_twist_array(self, T_g: np.ndarray) -> np.ndarray:
-        """:meth:`_hold_twist` for step: the kernel writes k (p_g - p_hold) into the new array's
-        first three slots and k log3(R_g R_hold^T) is stored into the last three (the same
-        products as :meth:`_hold_twist_floats`, without a list and an array built from it)."""
+        -k_hold [p_g - p_hold; log3(R_g R_hold^T)] in a new array: k (p_g - p_hold) and
+        R_g R_hold^T in one compiled call (numpy's expression bit for bit,
+        _tick_kernels.hold_terms, which writes the first three slots; the rotation goes to a
+        scratch buffer), then k log3(...) (pinocchio's log3) into the last three
+        (tests/loop/test_fast_paths.py, tests/loop/test_tick_caches.py)."""
         k = -self.settings["grasping"]["k_hold"]
         st = self.state
         twist = np.empty(6)
@@ -1257,7 +1242,7 @@ class HarvestController:
             V, roll, roll_error = self._camera_references(T_c, dt, rows_c, direction)
             roi_distance = self.reaching.distance  # |p_r - p_c| with this tick's filtered p_r
             if phase == _APPROACH:
-                V_g = self._hold_twist_array(T_g)
+                V_g = self._hold_twist(T_g)
             else:
                 # The wrist force is the robot's reading: checked as StemStretching.update does
                 # (a float64 (3,) array's finiteness by the compiled law, before any state changes).

@@ -87,10 +87,14 @@ def test_camera_twist_without_unveiling_keeps_the_sign_of_zero(controller):
 
 
 def test_hold_twist_equals_the_numpy_formula(controller):
-    """Catches: the hold gain's sign or the rotation error taken as R_hold R_g^T."""
+    """``_hold_twist`` (step's approach path) is -k_hold [p_g - p_hold; log3(R_g R_hold^T)], the
+    same bits when called again, in a new array each call (its scratch rotation is not handed out).
+    Catches: the hold gain's sign, the rotation error taken as R_hold R_g^T, the rotation part
+    written into the wrong slots, one array reused between calls."""
     c = controller
     rng = np.random.default_rng(12)
     k = c.settings["grasping"]["k_hold"]
+    previous = None
     for _ in range(300):
         hold = pin.SE3(random_pose(rng))
         c.state.hold_translation, c.state.hold_rotation_T = hold.translation, hold.rotation.T
@@ -98,7 +102,12 @@ def test_hold_twist_equals_the_numpy_formula(controller):
         expected = np.zeros(6)
         expected[:3] = -k * (T_g[:3, 3] - hold.translation)
         expected[3:] = -k * pin.log3(T_g[:3, :3] @ hold.rotation.T)
-        assert_as_numpy(c._hold_twist(T_g), expected)
+        got = c._hold_twist(T_g)
+        assert got.shape == (6,) and got.dtype == np.float64
+        assert_as_numpy(got, expected)
+        assert got.tobytes() == c._hold_twist(T_g).tobytes()
+        assert got is not previous and got.base is None
+        previous = got
 
 
 def _roll_reference_numpy(k_roll: float, T_c: np.ndarray, direction: np.ndarray):

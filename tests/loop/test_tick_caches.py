@@ -4,8 +4,6 @@
   from tick to tick: the logged camera pose must be the configuration's frame pose at the
   tick's q, also in a deep copy of the controller and after the configuration's data object is
   replaced (oracle: a separate :class:`Configuration` at the same q, pinocchio's own placement).
-* The approach's hold twist is built in one array (``_hold_twist_array``): it must equal the
-  numpy formula (the same oracle as ``_hold_twist``'s test).
 * ``_active_pair_columns`` reuses the last tick's name lists while the limit's pair tables are
   the same objects and the active indices the same: a replaced table must not be read as the
   old one (oracle: the limit's own ``active_pair_distances``).
@@ -15,7 +13,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pinocchio as pin
 import pytest
 
 from harvest_qp.configuration import Configuration
@@ -24,7 +21,6 @@ from harvest_qp.loop.controller import HarvestController
 from harvest_qp.loop.settings import check_settings
 from harvest_qp.robot.description import HOME_Q
 from harvest_qp.runner import Observation
-from tests.helpers import assert_as_numpy, random_pose
 
 
 class _Robot:
@@ -87,33 +83,6 @@ def test_logged_camera_pose_is_the_configurations(controller):
     twin.__dict__.update(c.__getstate__())
     q = home + 0.05 * rng.normal(size=12)
     _assert_logged_pose_is_pinocchios(twin.step(_observation(0.03, q)), q)
-
-
-def test_hold_twist_array_equals_the_numpy_formula(controller):
-    """``_hold_twist_array`` (step's approach path) is -k_hold [p_g - p_hold; log3(R_g R_hold^T)],
-    as ``_hold_twist`` is, in a new array each call (the scratch rotation is not handed out).
-    Catches: the rotation part written into the wrong slots, the gain's sign, one array reused."""
-    c = controller
-    rng = np.random.default_rng(13)
-    k = c.settings["grasping"]["k_hold"]
-    saved = c.state.hold_translation, c.state.hold_rotation_T
-    try:
-        previous = None
-        for _ in range(200):
-            hold = pin.SE3(random_pose(rng))
-            c.state.hold_translation, c.state.hold_rotation_T = hold.translation, hold.rotation.T
-            T_g = random_pose(rng)
-            expected = np.zeros(6)
-            expected[:3] = -k * (T_g[:3, 3] - hold.translation)
-            expected[3:] = -k * pin.log3(T_g[:3, :3] @ hold.rotation.T)
-            got = c._hold_twist_array(T_g)
-            assert got.shape == (6,) and got.dtype == np.float64
-            assert_as_numpy(got, expected)
-            assert got.tobytes() == c._hold_twist(T_g).tobytes()
-            assert got is not previous and got.base is None
-            previous = got
-    finally:
-        c.state.hold_translation, c.state.hold_rotation_T = saved
 
 
 def test_pair_columns_follow_a_replaced_pair_table(controller):
