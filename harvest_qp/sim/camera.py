@@ -331,7 +331,8 @@ class RayCastCamera(DepthCamera):
         keep, noise, (points, labels, rgb, z, pixels) = self._frame_arrays(dist.shape[0])
         h, w = self._hw
         count = _raycast.compact_rays(
-            dist, geom, self._ray_x, self._ray_y, self._ray_z, np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
+            dist, geom, self._ray_x, self._ray_y, self._ray_z,
+            np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
             cfg.min_depth, cfg.max_depth, cfg.stem_range, noise, cfg.depth_noise, keep, self._geom_ok,
             self._labels, self._colors, STEM, OBSTACLE, points, labels, rgb, z, pixels, h, w,
         )  # fmt: skip

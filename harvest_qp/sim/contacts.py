@@ -604,7 +604,9 @@ def _probe_ncon_offset() -> int | None:
         f'<body pos="{i} 0 1"><joint type="slide" axis="0 0 1"/><geom type="{kind}" size=".1 .1 .1"/></body>'
         for i, kind in enumerate(("sphere", "sphere", "box"))
     )
-    m = mujoco.MjModel.from_xml_string(f'<mujoco><worldbody><geom type="plane" size="5 5 .1"/>{bodies}</worldbody></mujoco>')
+    m = mujoco.MjModel.from_xml_string(
+        f'<mujoco><worldbody><geom type="plane" size="5 5 .1"/>{bodies}</worldbody></mujoco>'
+    )
     d = mujoco.MjData(m)
     lo = d.solver_fwdinv.ctypes.data + d.solver_fwdinv.nbytes - d._address
     hi = d.energy.ctypes.data - d._address
@@ -1116,14 +1118,9 @@ def _model_unchanged(live, snapshot):
 
 
 @njit(cache=True, _nrt=False)
-def _certificate_holds_checked(qpos, ints, floats, live, snapshot):
-    """:func:`_certificate_holds`, only when the model is still the one the certificate was built from."""
-    return _model_unchanged(live, snapshot) and _certificate_holds(qpos, ints, floats)
-
-
-@njit(cache=True, _nrt=False)
 def _certified_now(qpos, ints, floats, live, snapshot, opt_live):
-    """:func:`_certificate_holds_checked`, only when the option words ``opt_live`` (see
+    """:func:`_certificate_holds`, only when the model is still the one the certificate was built
+    from (:func:`_model_unchanged`) and the option words ``opt_live`` (see
     ``ContactCertificate._take_snapshot``) are those of the baseline (the last words of ``snapshot``)."""
     n = opt_live.shape[0]
     then = snapshot[snapshot.shape[0] - n :]

@@ -245,7 +245,8 @@ class SimRobot(RobotInterface):
         self._warning_counts = d.warning.number
         self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
         self._cluster_xipos = d.xipos[self._cluster]
-        self._cdof, self._subtree_com, self._qpos, self._ctrl, self._qvel = d.cdof, d.subtree_com, d.qpos, d.ctrl, d.qvel
+        self._cdof, self._subtree_com = d.cdof, d.subtree_com
+        self._qpos, self._ctrl, self._qvel = d.qpos, d.ctrl, d.qvel
         self._arm_qpos = None if self._qpos_slice is None else self._qpos[self._qpos_slice]
         self._arm_qvel = None if self._dof_slice is None else self._qvel[self._dof_slice]
         self._ncon_view = ContactMonitor.ncon_view(d)  # None where MuJoCo's layout is not the probed one
@@ -375,8 +376,7 @@ class SimRobot(RobotInterface):
         return self._qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
-        force = self._force
-        return force._last - force._offset  # force.reading() without its call
+        return self._force.reading()
 
     def tare_force(self) -> None:
         self._force.tare()
@@ -578,7 +578,9 @@ class SimRobot(RobotInterface):
         if ncon_view[0] if ncon_view is not None else d.ncon:
             ncon = d.ncon
             contact = d.contact
-            arm_arm, arm_vine, arm_stand, arm_floor = _count_kinds(self._contacts.kind, contact.geom1, contact.geom2, ncon)
+            arm_arm, arm_vine, arm_stand, arm_floor = _count_kinds(
+                self._contacts.kind, contact.geom1, contact.geom2, ncon
+            )
         else:
             arm_arm = arm_vine = arm_stand = arm_floor = 0
         ticks = self._ticks
