@@ -24,22 +24,26 @@ from harvest_qp.sweep.command import CommandEpisode
 from harvest_qp.sweep.runner import run_sweep
 from harvest_qp.sweep.seeds import parse_seeds
 
-EpisodeFactory = Callable[[Path, Path], Callable[[int], Mapping[str, Any]]]
+EpisodeFactory = Callable[[Path, Path, tuple[str, ...]], Callable[[int], Mapping[str, Any]]]
 
 
-def run_command_episode(config: Path, runs_dir: Path) -> Callable[[int], Mapping[str, Any]]:
-    """The default episode: ``python -m harvest_qp.cli run CONFIG --seed N --out RUNS_DIR/seed_N`` per seed.
+def run_command_episode(
+    config: Path, runs_dir: Path, overrides: tuple[str, ...] = ()
+) -> Callable[[int], Mapping[str, Any]]:
+    """The default episode: ``python -m harvest_qp.cli run CONFIG [--set K=V ...] --seed N --out RUNS_DIR/seed_N``.
 
     One interpreter per episode (its crash or leak stays there); each seed keeps its run folder.
+    ``overrides`` are ``section.key=value`` items passed to every episode as ``--set``.
     """
-    return CommandEpisode((sys.executable, "-m", "harvest_qp.cli", "run", str(config)), runs_dir=str(runs_dir))
+    sets = tuple(arg for item in overrides for arg in ("--set", item))
+    return CommandEpisode((sys.executable, "-m", "harvest_qp.cli", "run", str(config), *sets), runs_dir=str(runs_dir))
 
 
-def config_fingerprint(config: Path) -> dict[str, str]:
+def config_fingerprint(config: Path, overrides: tuple[str, ...] = ()) -> dict[str, str]:
     """What identifies a sweep's experiment: the config's name and the hash of its RESOLVED settings.
 
-    The hash covers the settings the episodes run with (``extends`` followed, every default
-    filled in, canonical JSON), not the file's text: editing a comment or spelling out a default
+    The hash covers the settings the episodes run with (``extends`` followed, ``--set`` overrides
+    applied, every default filled in, canonical JSON), not the file's text: editing a comment or spelling out a default
     keeps the fingerprint (the sweep resumes), while changing a value in a file this one
     ``extends`` changes it (the sweep refuses to mix the two experiments).
 
@@ -48,7 +52,7 @@ def config_fingerprint(config: Path) -> dict[str, str]:
     """
     from harvest_qp.loop.settings import load_settings
 
-    settings = load_settings(config)
+    settings = load_settings(config, list(overrides))
     canonical = json.dumps(settings, sort_keys=True, separators=(",", ":"), default=str)
     return {"config": config.name, "settings_sha256": hashlib.sha256(canonical.encode()).hexdigest()}
 
@@ -65,6 +69,11 @@ def add_sweep_parser(subparsers: Any) -> argparse.ArgumentParser:
     sweep.add_argument("config", type=Path, help="YAML config of the episode")
     sweep.add_argument(
         "--seeds", default="0:100", help="'0:100' (seeds 0..99), '3', '1,2,5' or '0:10:2' (default 0:100)"
+    )
+    sweep.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override a key of the config for every episode, as for `run` (repeatable), "
+        "e.g. --set camera.frame_loss=0.3 --set force_sensor.noise_std=0.2",
     )
     sweep.add_argument("--workers", type=int, default=None, help="parallel episodes (default: the CPUs available)")
     sweep.add_argument("--out", type=Path, default=None, help="sweep folder (default: runs/sweep-<config name>)")
@@ -86,7 +95,8 @@ def sweep_main(args: argparse.Namespace, *, episode_for: EpisodeFactory = run_co
 
     Args:
         args: from the parser of :func:`add_sweep_parser`.
-        episode_for: ``(config, runs_dir) -> episode``; the default runs ``harvest-qp run`` per seed.
+        episode_for: ``(config, runs_dir, overrides) -> episode``; the default runs ``harvest-qp run`` per
+            seed with ``--set`` for each override.
 
     Raises:
         InvalidInputError: a missing config, bad seeds or arguments (the CLI turns it into exit code 2).
@@ -97,9 +107,10 @@ def sweep_main(args: argparse.Namespace, *, episode_for: EpisodeFactory = run_co
         raise InvalidInputError(f"CONFIG: {str(config)!r} is not a file")
     seeds = parse_seeds(args.seeds)
     out = Path(args.out) if args.out is not None else Path("runs") / f"sweep-{config.stem}"
-    fingerprint = config_fingerprint(config)
+    overrides = tuple(args.set)
+    fingerprint = config_fingerprint(config, overrides)
     result = run_sweep(
-        episode_for(config.resolve(), (out / "episodes").resolve()),
+        episode_for(config.resolve(), (out / "episodes").resolve(), overrides),
         seeds,
         out_dir=out,
         workers=args.workers,

@@ -347,7 +347,7 @@ def test_command_episode_runs_one_process_per_seed(tmp_path):
     assert (tmp_path / "runs" / "seed_1" / "metrics.json").exists()
 
 
-def pure_factory(config, runs_dir):
+def pure_factory(config, runs_dir, overrides=()):
     """An episode factory for ``sweep_main`` (the CLI's default runs ``harvest-qp run`` per seed)."""
     return pure_episode
 
@@ -373,6 +373,38 @@ def test_cli_sweep_subcommand(tmp_path, capsys):
         sweep_main(parser.parse_args(argv), episode_for=pure_factory)
     with pytest.raises(InvalidInputError, match="is not a file"):
         sweep_main(parser.parse_args(["sweep", str(tmp_path / "missing.yaml")]), episode_for=pure_factory)
+
+
+def test_cli_sweep_set_reaches_every_episode_and_the_fingerprint(tmp_path):
+    """`harvest-qp sweep CONFIG --set camera.frame_loss=0.3`: each episode's command carries the override,
+    the experiment's fingerprint is that of the overridden settings, and a bad key fails before any episode."""
+    import argparse
+
+    from harvest_qp.exceptions import ConfigError
+    from harvest_qp.loop.settings import load_settings
+    from harvest_qp.sweep.cli import add_sweep_parser, config_fingerprint, run_command_episode, sweep_main
+
+    parser = argparse.ArgumentParser(prog="harvest-qp")
+    add_sweep_parser(parser.add_subparsers(dest="command"))
+    config = tmp_path / "paper.yaml"
+    config.write_text("episode: {duration: 1.0}\n")
+    seen = []
+
+    def factory(config_path, runs_dir, overrides=()):
+        seen.append(run_command_episode(config_path, runs_dir, overrides).argv)
+        return pure_episode
+
+    argv = ["sweep", str(config), "--seeds", "0:2", "--workers", "1", "--out", str(tmp_path / "out"), "--quiet",
+            "--set", "camera.frame_loss=0.3", "--set", "force_sensor.noise_std=0.2"]
+    assert sweep_main(parser.parse_args(argv), episode_for=factory) == 0
+    assert seen[0][-4:] == ("--set", "camera.frame_loss=0.3", "--set", "force_sensor.noise_std=0.2")
+    overridden = load_settings(config, ["camera.frame_loss=0.3", "force_sensor.noise_std=0.2"])
+    assert overridden["camera"]["frame_loss"] == 0.3 and overridden["force_sensor"]["noise_std"] == 0.2
+    plain, faulty = config_fingerprint(config), config_fingerprint(config, ("camera.frame_loss=0.3",))
+    assert plain["settings_sha256"] != faulty["settings_sha256"]
+    with pytest.raises(ConfigError, match="frame_los"):
+        sweep_main(parser.parse_args([*argv[:8], "--set", "camera.frame_los=0.3"]), episode_for=factory)
+    assert len(seen) == 1  # the bad key stopped the sweep before any episode
 
 
 # ---------------------------------------------------------------------------------------------
