@@ -145,10 +145,16 @@ def run_sim_demo(
 
 def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: str | None = None,
               duration: float | None = None, overrides: list[str] | None = None, figures: bool = True,
-              viewer: str = "none", realtime: bool = True, host: str = "127.0.0.1", port: int = 7000) -> dict:
-    """``harvest-qp run``: one paper episode; returns its metrics (also written to ``out``)."""
+              viewer: str = "none", realtime: bool = True, host: str = "127.0.0.1", port: int = 7000,
+              progress: bool | None = None) -> dict:
+    """``harvest-qp run``: one paper episode; returns its metrics (also written to ``out``).
+
+    ``progress``: draw a line with the simulated time, the phase and the real-time factor on standard
+    error (default: when standard error is a terminal).
+    """
     from harvest_qp.loop.episode import run_paper_episode
     from harvest_qp.loop.settings import load_settings
+    from harvest_qp.progress import ProgressController, wants_progress
 
     settings = load_settings(config, overrides or [])
     if duration is not None and not (np.isfinite(duration) and duration > 0):
@@ -156,6 +162,15 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
     if seed < 0:
         raise HarvestQPError(f"--seed must be an integer >= 0; got {seed}")
     live = None
+    shown = None
+
+    def wrap(robot, controller):
+        # The progress line and the viewer only observe: they wrap the controller.
+        nonlocal shown
+        if progress if progress is not None else wants_progress():
+            length = duration if duration is not None else settings["episode"]["duration"]
+            controller = shown = ProgressController(controller, duration=length)
+        return with_viewer(robot, controller) if viewer == "meshcat" else controller
 
     def with_viewer(robot, controller):
         # The viewer only observes: it wraps the controller, nothing in the loop imports it.
@@ -170,8 +185,10 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
     try:
         report = run_paper_episode(settings, seed=seed, mapper=mapper, duration=duration, out_dir=out,
                                    config_name=Path(config).stem, figures=figures,
-                                   wrap_controller=with_viewer if viewer == "meshcat" else None)
+                                   wrap_controller=wrap)
     finally:
+        if shown is not None:
+            shown.finish()
         if live is not None:
             live.close()  # draws the last tick, stops the worker and the server
     if live is not None and live.error is not None:
@@ -274,6 +291,9 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                      help="override a setting, e.g. --set grasping.f_d=2.5 (repeatable)")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    run.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                     help="a progress line (simulated time, phase, real-time factor) on standard error "
+                     "(default: when it is a terminal)")
     run.add_argument("--viewer", choices=("none", "meshcat"), default="none",
                      help="show the episode live in a browser (meshcat)")
     speed = run.add_mutually_exclusive_group()
@@ -317,7 +337,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "run":
             metrics = run_paper(args.config, seed=args.seed, out=args.out, mapper=args.mapper,
                                 duration=args.duration, overrides=args.overrides, figures=not args.no_figures,
-                                viewer=args.viewer, realtime=args.realtime, host=args.host, port=args.port)
+                                viewer=args.viewer, realtime=args.realtime, host=args.host, port=args.port,
+                                progress=args.progress)
             _print_summary(f"harvest_qp paper episode ({args.config.name}, seed {args.seed}, "
                            f"{metrics['mapper']})", {k: metrics.get(k) for k in _RUN_SUMMARY})
             if not metrics["success"]:
