@@ -1,4 +1,4 @@
-"""Regenerate the README's pictures of the paper episode: meshcat viewer screenshots and MuJoCo renders.
+"""Regenerate the pictures of the paper episode in README.md, docs/viewer.md and docs/robot.md: meshcat and MuJoCo.
 
 Runs the paper's episode (``tasks/paper.yaml``, seed 0) through the library API, keeps the
 state at three moments (the approach, the switch to the bimanual phase, the end), then
