@@ -280,7 +280,9 @@ class DualUR5eRobot(RobotInterface):
             except RuntimeError as err:
                 self._trip(f"lost connection to the {arm.role} at {arm.host}: speedJ failed: {err}")
             if accepted is False:
-                self._trip(f"the {arm.role} at {arm.host} refused speedJ (its control script is not running)")
+                # The robot's own state says why (a protective stop between two reads), if it does.
+                self._trip(self._read() or f"the {arm.role} at {arm.host} refused speedJ (its control script is "
+                           "not running)")
         self._wait()
         reason = self._read()
         if reason is not None:

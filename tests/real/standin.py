@@ -108,7 +108,7 @@ class LabCell:
             def initPeriod(self) -> datetime.timedelta:
                 return datetime.timedelta(seconds=cell.clock())
 
-            def waitPeriod(self, t_cycle_start: datetime.timedelta) -> None:
+            def waitPeriod(self, arg0: datetime.timedelta) -> None:
                 if self.arm == 0:
                     cell.tick()
 
