@@ -47,7 +47,10 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
                            f"logged its values: {lines[0] if lines else 'no error message'}")
     st = controller.state
     f_d = float(settings["grasping"]["f_d"])
-    phase = log["value/phase"]
+
+    def finite(x: float) -> float | None:
+        return float(x) if x is not None and math.isfinite(float(x)) else None
+
     frame_time, frame_stem = log["frame_time"], log["frame_stem_points"]
     start = int(frame_stem[0]) if len(frame_stem) else 0
     end = int(np.median(frame_stem[frame_time >= frame_time[-1] - 0.5])) if len(frame_stem) else 0
@@ -59,13 +62,16 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
     last = t >= t[-1] - 1.0 + 1e-9
     force_mean = float(np.nanmean(force_nc[last])) if np.any(np.isfinite(force_nc[last])) else math.nan
     force_max = float(np.nanmax(force_nc)) if np.any(np.isfinite(force_nc)) else math.nan
-    position_error = float(log["value/position_error"][-1])
-    alignment = float(np.degrees(log["value/alignment"][-1]))
-    reached = Phase(int(phase[-1]))
-    error = str(log.get("error", ""))
+    def last(key: str) -> float:
+        """The last finite value of a per-tick series (the failing tick of an episode logs NaN)."""
+        values = np.asarray(log[key], dtype=float)
+        finite_values = values[np.isfinite(values)]
+        return float(finite_values[-1]) if len(finite_values) else math.nan
 
-    def finite(x: float) -> float | None:
-        return float(x) if x is not None and math.isfinite(float(x)) else None
+    position_error = last("value/position_error")
+    alignment = math.degrees(last("value/alignment"))
+    reached = Phase(int(last("value/phase")))
+    error = str(log.get("error", ""))
 
     metrics: dict[str, Any] = {
         "robot": "ur",
@@ -76,8 +82,8 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
         "phase_reached": "abort" if reached == Phase.ABORT else reached.name.lower(),
         "t_bimanual_start": finite(st.t_switch) if st.t_switch is not None else None,
         "t_precut": finite(st.t_precut) if st.t_precut is not None else None,
-        "final_distance_to_estimated_roi_center": float(log["value/roi_distance"][-1]),
-        "final_theta_estimated_roi_deg": float(np.degrees(log["value/theta"][-1])),
+        "final_distance_to_estimated_roi_center": finite(last("value/roi_distance")),
+        "final_theta_estimated_roi_deg": finite(math.degrees(last("value/theta"))),
         "visible_stem_points_start": start,
         "visible_stem_points_switch": at_switch,
         "visible_stem_points_end": end,
