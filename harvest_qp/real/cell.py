@@ -72,7 +72,7 @@ class CameraCellConfig:
     min_depth: float = 0.1
     max_depth: float = 2.0
     stem_detector: Any = "red"
-    robot_margin: float = 0.02
+    robot_margin: float = 0.005
 
 
 @dataclass(frozen=True)
