@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import pytest
 import pyrealsense2 as rs
+import pytest
 
 from harvest_qp.interface import ROBOT, STEM
 from harvest_qp.real.cell import CameraCellConfig
