@@ -202,11 +202,13 @@ def load_calibration(path: str | Path) -> Calibration:
 
 
 def detect_board(image: NDArray[np.uint8], board: Board, K: NDArray, dist: NDArray | None = None,
-                 min_corners: int = 6) -> NDArray[np.float64] | None:
+                 min_corners: int = 6, max_rms: float = 1.0) -> NDArray[np.float64] | None:
     """The board's pose (4x4) in the camera optical frame from one image, or None if not found.
 
-    ChArUco corners (``cv2.aruco.CharucoDetector``) then ``cv2.solvePnP`` with the intrinsics
-    ``K`` (3x3) and distortion ``dist`` (OpenCV order; None: none).
+    ChArUco corners (``cv2.aruco.CharucoDetector``), then ``cv2.solvePnP`` (IPPE, planar) refined
+    by ``cv2.solvePnPRefineLM`` with the intrinsics ``K`` (3x3) and distortion ``dist`` (OpenCV
+    order; None: none). Views whose corners lie on one line, or whose reprojection error exceeds
+    ``max_rms`` [px], give None.
     """
     cv2 = _cv2()
     grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
@@ -215,9 +217,18 @@ def detect_board(image: NDArray[np.uint8], board: Board, K: NDArray, dist: NDArr
     if corners is None or ids is None or len(ids) < min_corners:
         return None
     obj, img = cv_board.matchImagePoints(corners, ids)
+    obj, img = obj.reshape(-1, 3).astype(np.float64), img.reshape(-1, 2).astype(np.float64)
+    # Corners along one line (a single visible row) leave the pose undetermined.
+    if np.linalg.svd(obj[:, :2] - obj[:, :2].mean(axis=0), compute_uv=False)[1] < 0.5 * board.square:
+        return None
     dist = np.zeros(5) if dist is None else np.asarray(dist, float)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, np.asarray(K, float), dist, flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
+    K = np.asarray(K, float)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)  # planar target
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    projected, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    if np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - img) ** 2, axis=1))) > max_rms:
         return None
     return _transform(cv2.Rodrigues(rvec)[0], tvec)
 
