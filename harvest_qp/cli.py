@@ -21,7 +21,7 @@ from harvest_qp.configuration import Configuration
 from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import ConfigError, HarvestQPError
 from harvest_qp.limits import CollisionAvoidance
-from harvest_qp.real.cli import add_calibrate_parser, add_run_options, calibrate_main, run_ur
+from harvest_qp.real.cli import add_calibrate_parser, add_run_options, calibrate_main, check_sim_run, run_ur
 from harvest_qp.robot.paths import tasks_dir
 from harvest_qp.sweep.cli import add_sweep_parser, sweep_main
 from harvest_qp.tasks import FramePoseTask
@@ -319,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "run" and args.robot == "ur":
             return run_ur(args)
+        if args.command == "run":
+            check_sim_run(args)
         if args.command == "calibrate":
             return calibrate_main(args)
         if args.command == "run":

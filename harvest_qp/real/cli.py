@@ -17,7 +17,7 @@ import yaml
 
 from harvest_qp.exceptions import HarvestQPError
 
-__all__ = ["add_run_options", "run_ur", "add_calibrate_parser", "calibrate_main"]
+__all__ = ["add_run_options", "check_sim_run", "run_ur", "add_calibrate_parser", "calibrate_main"]
 
 
 def add_run_options(run: argparse.ArgumentParser) -> None:
@@ -35,6 +35,15 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
     group.add_argument("--dry-run", action="store_true",
                        help="with --robot ur: connect, read and print the state (joints, force, one cloud, the "
                        "calibration); moves nothing")
+
+
+def check_sim_run(args: argparse.Namespace) -> None:
+    """The real-robot options are errors on the lab (``--robot sim``), not silently ignored."""
+    given = [name for name, value in (("--camera-arm", args.camera_arm), ("--grasp-arm", args.grasp_arm),
+                                      ("--serial", args.serial), ("--cell", args.cell), ("--dry-run", args.dry_run))
+             if value]
+    if given:
+        raise HarvestQPError(f"{', '.join(given)} only apply with --robot ur (the lab is --robot sim, the default)")
 
 
 def run_ur(args: argparse.Namespace, **test_hooks: Any) -> int:

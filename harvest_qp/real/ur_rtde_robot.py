@@ -82,7 +82,11 @@ def tool_wrench(reading: NDArray, R_world_frame: NDArray, R_world_sensor: NDArra
     external_force = R_f @ reading[:3] + R_s @ sensor_offset[:3]
     external_torque = R_f @ reading[3:] + R_s @ sensor_offset[3:]
     weight = mass * GRAVITY
-    return weight - external_force, np.cross(R_s @ np.asarray(com, float), weight) - external_torque
+    c = R_s @ np.asarray(com, float)
+    # c x weight (np.cross costs ~15 us per call, a tenth of the adapter's tick)
+    moment = np.array([c[1] * weight[2] - c[2] * weight[1], c[2] * weight[0] - c[0] * weight[2],
+                       c[0] * weight[1] - c[1] * weight[0]])
+    return weight - external_force, moment - external_torque
 
 
 def _probe(host: str, role: str, timeout: float) -> None:
@@ -162,6 +166,7 @@ class DualUR5eRobot(RobotInterface):
         self._camera_configuration = Configuration.dual_ur5e()  # used by the camera's thread only
         self._camera_lock = threading.Lock()
         self._base_rotation = {prefix: mount_transform(prefix)[:3, :3] for _, prefix, _ in _ARMS}
+        self._tool_com = np.array(self.cell.force.tool_com, dtype=float)
         self.watchdog = Watchdog(self.cell.watchdog, self.control_period, self._configuration.lower_limits,
                                  self._configuration.upper_limits, joint_names())
         self._arms: list[_Arm] = []
@@ -445,9 +450,8 @@ class DualUR5eRobot(RobotInterface):
             if removed == 0.0 or np.linalg.norm(now) < 0.5 * removed:
                 self._sensor_offset = self._sensor_offset + self._pending_zero
                 self._pending_zero = None
-        force = self.cell.force
         self._force, self._torque = tool_wrench(self._reading, R_frame, R_sensor, self._sensor_offset,
-                                                force.tool_mass, np.asarray(force.tool_com))
+                                                self.cell.force.tool_mass, self._tool_com)
 
     def _remember(self) -> None:
         self._history.append((self._stamp, self.clock(), self._q.copy()))

@@ -64,3 +64,8 @@ def test_calibrate_board_and_solve_commands(tmp_path, capsys):
     assert position < 2e-3 and angle < 0.5
     assert main(["calibrate", "solve", str(tmp_path / "nothing"), "--out", str(tmp_path / "c.yaml")]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_real_robot_options_are_errors_in_the_lab(capsys):
+    assert main(["run", "tasks/paper.yaml", "--dry-run", "--camera-arm", "10.0.0.1"]) == 2
+    assert "--camera-arm, --dry-run only apply with --robot ur" in capsys.readouterr().err
