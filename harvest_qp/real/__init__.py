@@ -5,7 +5,7 @@
 * :mod:`harvest_qp.real.realsense` -- :class:`RealSenseSource`, D415 frames as the lab's ``PointCloud``;
 * :mod:`harvest_qp.real.stem_detector` -- pluggable stem detectors (default: the red threshold);
 * :mod:`harvest_qp.real.calibration` -- hand-eye and base-to-base calibration (OpenCV), YAML files;
-* :mod:`harvest_qp.real.cell` -- the cell file (``tasks/real_ur5e.yaml``);
+* :mod:`harvest_qp.real.cell` -- the cell file (``tasks/real/ur5e.yaml``);
 * :mod:`harvest_qp.real.episode` -- ``harvest-qp run CONFIG --robot ur`` and its ``--dry-run``.
 
 The hardware packages (``pip install -e ".[robot]"``: ur-rtde, pyrealsense2, opencv-python-headless)

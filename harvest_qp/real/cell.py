@@ -1,4 +1,4 @@
-"""The cell file (``tasks/real_ur5e.yaml``): what the real cell needs beyond the episode's settings.
+"""The cell file (``tasks/real/ur5e.yaml``): what the real cell needs beyond the episode's settings.
 
 The episode's settings file (``tasks/paper.yaml``) stays the same for the lab and the real cell;
 the cell file names the calibration file and holds the wrist F/T interpretation, the speedJ
@@ -96,10 +96,10 @@ class CellConfig:
 
 
 def default_cell_path() -> Path:
-    """``tasks/real_ur5e.yaml`` of this checkout (or of the installed package)."""
+    """``tasks/real/ur5e.yaml`` of this checkout (or of the installed package)."""
     from harvest_qp.robot.paths import tasks_dir
 
-    return tasks_dir() / "real_ur5e.yaml"
+    return tasks_dir() / "real" / "ur5e.yaml"
 
 
 def _build(kind, data: Any, where: str):

@@ -31,7 +31,7 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
                        help="the camera of --robot ur (none: arms only, e.g. for a dry run)")
     group.add_argument("--serial", default=None, help="the RealSense's serial number (default: the only one)")
     group.add_argument("--cell", type=Path, default=None,
-                       help="the cell file (default tasks/real_ur5e.yaml): calibration, F/T, watchdog, camera")
+                       help="the cell file (default tasks/real/ur5e.yaml): calibration, F/T, watchdog, camera")
     group.add_argument("--dry-run", action="store_true",
                        help="with --robot ur: connect, read and print the state (joints, force, one cloud, the "
                        "calibration); moves nothing")

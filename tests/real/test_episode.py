@@ -57,7 +57,7 @@ def test_dry_run_reads_and_moves_nothing(scene_lab, capsys, tmp_path):
     assert run_ur(args, **hooks) == 0
     out = capsys.readouterr().out
     assert "nothing moved" in out and "camera arm joints [rad]" in out and "wrist force, world, untared [N]" in out
-    assert "real_calibration_example.yaml" in out and "stem" in out and "points of 80x142" in out
+    assert "tasks/real/calibration_example.yaml" in out and "stem" in out and "points of 80x142" in out
     assert "speedJ" not in cell.methods_called()
     np.testing.assert_array_equal(scene_lab.joint_positions(), q0)
     assert _closed_both(cell)
