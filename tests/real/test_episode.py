@@ -68,7 +68,7 @@ def test_paper_episode_through_the_adapter_reaches_precut_like_the_lab(scene_lab
     scene_lab.reset()
     cell, hooks = _hooks(scene_lab)
     metrics = run_real(PAPER, camera_arm=CAMERA_HOST, grasp_arm=GRASP_HOST, overrides=OVERRIDES, out=tmp_path,
-                       figures=False, **hooks)
+                       figures=True, **hooks)
     assert metrics["episode_status"] == "completed" and metrics["phase_reached"] == "precut"
     assert metrics["criteria"]["precut_reached"] and metrics["abort_reason"] is None
     stored = traces.load(0)
@@ -84,6 +84,7 @@ def test_paper_episode_through_the_adapter_reaches_precut_like_the_lab(scene_lab
         both = np.isfinite(ours) & np.isfinite(theirs)
         assert np.max(np.abs(ours[both] - theirs[both])) <= traces.TOLERANCES[key], key
     assert (tmp_path / "metrics.json").exists()
+    assert {"fig_exp_f.png", "fig_exp_reach.png", "fig_exp_unv.png"} <= {p.name for p in tmp_path.glob("*.png")}
     assert _closed_both(cell)
     assert cell.methods_called(GRASP_HOST, "control").count("zeroFtSensor") == 1  # the controller's tare
 
