@@ -21,7 +21,7 @@ import numpy as np
 
 from harvest_qp.exceptions import ConfigError, EpisodeError
 from harvest_qp.interface import ROBOT, STEM
-from harvest_qp.real.calibration import Calibration, load_calibration, pose_error
+from harvest_qp.real.calibration import Calibration, load_calibration
 from harvest_qp.real.cell import CellConfig, load_cell
 from harvest_qp.real.errors import CalibrationError
 
@@ -266,8 +266,3 @@ def run_real(config: Path, *, camera_arm: str, grasp_arm: str, camera: str | Non
         if in_main:
             signal.signal(signal.SIGTERM, previous)
 
-
-def pose_summary(T: np.ndarray) -> str:
-    """A pose as 'x y z [m], angle [deg]' for messages."""
-    angle = pose_error(np.eye(4), T)[1]
-    return f"{np.round(T[:3, 3], 4).tolist()} m, rotated {angle:.2f} deg"
