@@ -21,6 +21,7 @@ from harvest_qp.configuration import Configuration
 from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import ConfigError, HarvestQPError
 from harvest_qp.limits import CollisionAvoidance
+from harvest_qp.real.cli import add_calibrate_parser, add_run_options, calibrate_main, check_sim_run, run_ur
 from harvest_qp.robot.paths import tasks_dir
 from harvest_qp.sweep.cli import add_sweep_parser, sweep_main
 from harvest_qp.tasks import FramePoseTask
@@ -304,6 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--host", default="127.0.0.1",
                      help="viewer address (default 127.0.0.1: this machine only; 0.0.0.0 serves every interface)")
     run.add_argument("--port", type=int, default=7000, help="viewer web port (an error if it is taken)")
+    add_run_options(run)
     replay = sub.add_parser("replay", help="replay a saved episode in the browser (meshcat, time slider)")
     replay.add_argument("run_dir", type=Path, help="run directory holding episode.npz, or a .npz file")
     replay.add_argument("--html", type=Path, default=None,
@@ -312,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     replay.add_argument("--host", default="127.0.0.1", help="viewer address (default 127.0.0.1)")
     replay.add_argument("--port", type=int, default=7000, help="viewer web port (an error if it is taken)")
     add_sweep_parser(sub)
+    add_calibrate_parser(sub)
     demo = sub.add_parser("demo", help="run the QP demo headless on the MuJoCo vine scene and print a summary")
     demo.add_argument("--config", type=Path, default=None,
                       help="YAML task config (default: tasks/sim_reach_stem.yaml; "
@@ -334,6 +337,12 @@ def main(argv: list[str] | None = None) -> int:
     schema.add_argument("--markdown", type=Path, default=None, help="also write the config reference (markdown)")
     args = parser.parse_args(argv)
     try:
+        if args.command == "run" and args.robot == "ur":
+            return run_ur(args)
+        if args.command == "run":
+            check_sim_run(args)
+        if args.command == "calibrate":
+            return calibrate_main(args)
         if args.command == "run":
             metrics = run_paper(args.config, seed=args.seed, out=args.out, mapper=args.mapper,
                                 duration=args.duration, overrides=args.overrides, figures=not args.no_figures,
