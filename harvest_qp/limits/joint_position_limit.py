@@ -6,10 +6,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from harvest_qp.configuration import Configuration
+from harvest_qp.configuration import Configuration, as_configuration
 from harvest_qp.limits.limit import Limit, LimitRows
 from harvest_qp.qp_kernels import position_limit_bounds
-from harvest_qp.validation import as_bounds, as_configuration, as_nonnegative_vector, as_positive_scalar, as_scalar
+from harvest_qp.validation import as_bounds, as_nonnegative_vector, as_positive_scalar, as_scalar
 
 
 class JointPositionLimit(Limit):

@@ -6,9 +6,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from harvest_qp.configuration import Configuration
+from harvest_qp.configuration import Configuration, as_configuration
 from harvest_qp.limits.limit import Limit, LimitRows
-from harvest_qp.validation import as_configuration, as_nonnegative_vector
+from harvest_qp.validation import as_nonnegative_vector
 
 
 class JointVelocityLimit(Limit):

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import functools
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
 
-from harvest_qp.configuration import Configuration
-from harvest_qp.exceptions import DimensionError
-from harvest_qp.validation import as_configuration, check_limit_rows
+from harvest_qp.configuration import Configuration, as_configuration
+from harvest_qp.exceptions import DimensionError, InvalidInputError
+from harvest_qp.validation import check_limit_rows, describe
 
 #: Limits defined in this package: their rows' sizes come from the checked model.
 _BUILT_IN_PREFIX = "harvest_qp.limits."
@@ -135,3 +136,28 @@ class Limit(ABC):
     @abstractmethod
     def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
         """Rows of this limit at the configuration's state, for a step of ``dt`` [s]."""
+
+
+def check_limits(
+    limits: Iterable[Limit], configuration: Configuration | None = None, *, name: str = "limits"
+) -> list[Limit]:
+    """The limits as a list (may be empty), after checking each is a :class:`Limit`.
+
+    With a ``configuration``, each limit's sizes are also checked against its model.
+
+    Raises:
+        InvalidInputError: not a sequence of limits, or an item that is not a Limit (the
+            message names its position and type, e.g. ``limits[1] must be a Limit, got int``).
+        DimensionError: a limit's size disagrees with the model.
+    """
+    if isinstance(limits, (Limit, str, bytes)) or not isinstance(limits, Iterable):
+        raise InvalidInputError(f"{name} must be a sequence of Limit objects, got {describe(limits)}")
+    items = list(limits)
+    for i, limit in enumerate(items):
+        if not isinstance(limit, Limit):
+            raise InvalidInputError(f"{name}[{i}] must be a Limit, got {type(limit).__name__}: {describe(limit)}")
+    if configuration is not None:
+        as_configuration(configuration)
+        for limit in items:
+            limit.check_configuration(configuration)
+    return items

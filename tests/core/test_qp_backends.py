@@ -231,4 +231,4 @@ def test_solutions_just_outside_the_tolerance_from_every_backend_do_not_brake(co
     for name in ("daqp", "proxsuite", "quadprog"):
         far._backends[(name, 1)] = _Inaccurate(x_ref, 1e-3)
     with pytest.raises(SolverError):
-        far._solve_qp(1, reference.problems[-1], [])
+        far.solve(configuration, tasks, limits, 0.002)
