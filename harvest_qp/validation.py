@@ -10,7 +10,7 @@ numpy would make of it.
 from __future__ import annotations
 
 import numbers
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -223,6 +223,26 @@ def as_bounds(
             f" (crossed at {crossed.tolist()})"
         )
     return lo, hi
+
+
+def as_instances(items: Any, kind: type, name: str, *, allow_empty: bool = True) -> list:
+    """``items`` as a list after checking each is a ``kind`` (e.g. the tasks or limits of a QP).
+
+    Raises:
+        InvalidInputError: ``items`` is not a sequence (a single ``kind``, a string), is empty when
+            ``allow_empty`` is False, or holds another type: the message names the position and
+            the type, e.g. ``tasks[1] must be a Task, got str: 'posture'``.
+    """
+    kind_name = kind.__name__
+    if isinstance(items, (kind, str, bytes)) or not isinstance(items, Iterable):
+        raise InvalidInputError(f"{name} must be a sequence of {kind_name} objects, got {describe(items)}")
+    listed = list(items)
+    if not listed and not allow_empty:
+        raise InvalidInputError(f"{name} must hold at least one {kind_name}, got an empty {type(items).__name__}")
+    for i, item in enumerate(listed):
+        if not isinstance(item, kind):
+            raise InvalidInputError(f"{name}[{i}] must be a {kind_name}, got {type(item).__name__}: {describe(item)}")
+    return listed
 
 
 def check_task_rows(task: Any, J: np.ndarray | None, v: np.ndarray, nv: int) -> None:

@@ -11,8 +11,8 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration, as_configuration
-from harvest_qp.exceptions import DimensionError, InvalidInputError
-from harvest_qp.validation import check_limit_rows, describe
+from harvest_qp.exceptions import DimensionError
+from harvest_qp.validation import as_instances, as_positive_scalar, check_limit_rows
 
 #: Limits defined in this package: their rows' sizes come from the checked model.
 _BUILT_IN_PREFIX = "harvest_qp.limits."
@@ -138,6 +138,35 @@ class Limit(ABC):
         """Rows of this limit at the configuration's state, for a step of ``dt`` [s]."""
 
 
+class BoxLimit(Limit):
+    """A limit that is a velocity box ``lower <= qdot <= upper`` [rad/s] and no rows.
+
+    Subclasses write the box in :meth:`fill_box` (the solver calls it every tick with its own
+    buffers); :meth:`compute` returns it in fresh arrays.
+    """
+
+    has_box = True
+
+    def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
+        """The velocity box [rad/s] for a step of ``dt`` [s] at the configuration's state."""
+        dt = as_positive_scalar(dt, f"{type(self).__name__} dt")
+        self._ensure_bound(configuration)
+        lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
+        self.fill_box(configuration, dt, previous_qdot, lower, upper)
+        return LimitRows(lower=lower, upper=upper)
+
+    @abstractmethod
+    def fill_box(
+        self,
+        configuration: Configuration,
+        dt: float,
+        previous_qdot: np.ndarray | None,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> None:
+        """Write this limit's box [rad/s] into ``lower`` and ``upper`` (one entry per joint)."""
+
+
 def check_limits(
     limits: Iterable[Limit], configuration: Configuration | None = None, *, name: str = "limits"
 ) -> list[Limit]:
@@ -150,12 +179,7 @@ def check_limits(
             message names its position and type, e.g. ``limits[1] must be a Limit, got int``).
         DimensionError: a limit's size disagrees with the model.
     """
-    if isinstance(limits, (Limit, str, bytes)) or not isinstance(limits, Iterable):
-        raise InvalidInputError(f"{name} must be a sequence of Limit objects, got {describe(limits)}")
-    items = list(limits)
-    for i, limit in enumerate(items):
-        if not isinstance(limit, Limit):
-            raise InvalidInputError(f"{name}[{i}] must be a Limit, got {type(limit).__name__}: {describe(limit)}")
+    items = as_instances(limits, Limit, name, allow_empty=True)
     if configuration is not None:
         as_configuration(configuration)
         for limit in items:

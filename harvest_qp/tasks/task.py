@@ -10,15 +10,14 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration, as_configuration
-from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.validation import (
+    as_instances,
     as_integer,
     as_level,
     as_nonnegative_vector,
     as_positive_scalar,
     as_vector,
     check_task_rows,
-    describe,
 )
 
 #: Level of hard tasks: they become equality constraints of every QP in the stack.
@@ -183,14 +182,7 @@ def check_tasks(
         DimensionError: a task's size disagrees with the model.
         UnknownFrameError: a task names a frame the model lacks.
     """
-    if isinstance(tasks, (Task, str, bytes)) or not isinstance(tasks, Iterable):
-        raise InvalidInputError(f"{name} must be a sequence of Task objects, got {describe(tasks)}")
-    items = list(tasks)
-    if not items:
-        raise InvalidInputError(f"{name} must hold at least one Task, got an empty {type(tasks).__name__}")
-    for i, task in enumerate(items):
-        if not isinstance(task, Task):
-            raise InvalidInputError(f"{name}[{i}] must be a Task, got {type(task).__name__}: {describe(task)}")
+    items = as_instances(tasks, Task, name, allow_empty=False)
     if configuration is not None:
         as_configuration(configuration)
         for task in items:
