@@ -215,6 +215,20 @@ def top_up_diagonal(H, floor, value):
 
 
 @njit(cache=True)
+def weighted_rows(J, w, out, start):
+    """Rows ``sqrt(w_r) J_r`` of the rows with ``w_r > 0`` (``(np.sqrt(w)[:, None] * J)[w > 0]``),
+    written from row ``start`` of ``out``; returns the row after the last one written."""
+    r_out = start
+    for r in range(J.shape[0]):
+        if w[r] > 0.0:
+            scale = np.sqrt(w[r])
+            for c in range(J.shape[1]):
+                out[r_out, c] = scale * J[r, c]
+            r_out += 1
+    return r_out
+
+
+@njit(cache=True)
 def load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper, n_eq_before, inf):
     """Write one QP into DAQP's fixed layout: ``n`` bounds, ``n`` equality slots, the inequality rows.
 

@@ -71,6 +71,7 @@ from harvest_qp.qp_kernels import (
     max_violation,
     orthonormal_rows_qr,
     top_up_diagonal,
+    weighted_rows,
 )
 from harvest_qp.tasks.task import HARD, Task, check_tasks
 from harvest_qp.validation import as_positive_scalar, as_vector
@@ -154,22 +155,19 @@ class Solution:
 
 
 # ---------------------------------------------------------------------- the QP's parts
-def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: int):
-    """Intersect velocity boxes in priority order; later boxes yield where they conflict.
+def combine_boxes(box_limits: Sequence[Limit], lowers: np.ndarray, uppers: np.ndarray, n: int):
+    """Intersect velocity boxes [rad/s] in priority order; later boxes yield where they conflict.
 
-    ``limits_rows``: ``(limit, lower, upper)`` per box limit. Returns ``(lower, upper,
-    conflicts)``; a conflict names the joint and the limit that yielded.
+    ``box_limits`` in priority order, row ``i`` of ``lowers`` / ``uppers`` the box of ``box_limits[i]``.
+    Returns ``(lower, upper, conflicts)``; a conflict names the joint and the limit that yielded.
     """
-    ordered = sorted(limits_rows, key=lambda item: item[0].priority)
-    if not ordered:
+    if not box_limits:
         return np.full(n, -INF), np.full(n, INF), []
-    lowers = np.array([lo for _, lo, _ in ordered], dtype=float).reshape(len(ordered), n)
-    uppers = np.array([hi for _, _, hi in ordered], dtype=float).reshape(len(ordered), n)
     lower, upper = np.empty(n), np.empty(n)
     conflict = np.empty(n, dtype=np.int64)
     conflicts = []
     if intersect_boxes(lowers, uppers, lower, upper, conflict):
-        conflicts = [BoxConflict(int(j), type(ordered[conflict[j]][0]).__name__) for j in np.flatnonzero(conflict >= 0)]
+        conflicts = [BoxConflict(int(j), type(box_limits[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)]
     return lower, upper, conflicts
 
 
@@ -203,14 +201,33 @@ def least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = RANK_TOLERANCE
     return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
 
 
-def task_rows(entries, n: int) -> np.ndarray:
-    """The weighted rows ``sqrt(w_r) J_r`` (``w_r > 0``) of a level's ``(task, J, v)`` entries (``J`` None: ``I``)."""
-    blocks = []
+def level_equalities(A: np.ndarray, entries, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal equality rows that hold a level's optimum ``x`` for the levels below it.
+
+    ``A`` (the rows of the levels above) stacked over each task's weighted rows ``sqrt(w_r) J_r``
+    (``w_r > 0``; ``J`` None is the identity), with ``rows @ x`` as right-hand side.
+    """
+    n = x.shape[0]
+    m = A.shape[0] + sum(task.weight.shape[0] for task, _, _ in entries)
+    rows = np.empty((m, n))
+    end = A.shape[0]
+    rows[:end] = A
     for task, J, _ in entries:
-        w = task.weight
-        J = np.eye(n) if J is None else J
-        blocks.append((np.sqrt(w)[:, None] * J)[w > 0])
-    return np.vstack(blocks) if blocks else np.zeros((0, n))
+        end = weighted_rows(_identity(n) if J is None else J, task.weight, rows, end)
+    rows = rows[:end]
+    return orthonormal_rows(rows, rows @ x)
+
+
+_IDENTITIES: dict[int, np.ndarray] = {}
+
+
+def _identity(n: int) -> np.ndarray:
+    """A read-only ``I`` (n x n), made once per size."""
+    eye = _IDENTITIES.get(n)
+    if eye is None:
+        eye = _IDENTITIES[n] = np.eye(n)
+        eye.flags.writeable = False
+    return eye
 
 
 def assemble_level(entries, n: int, regularization: float) -> tuple[np.ndarray, np.ndarray]:
@@ -311,10 +328,10 @@ class Solver:
         lowers, uppers = np.empty((len(box_limits), n)), np.empty((len(box_limits), n))
         for limit, lower_row, upper_row in zip(box_limits, lowers, uppers):
             limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
-        lower, upper, conflicts = combine_boxes(list(zip(box_limits, lowers, uppers)), n)
+        lower, upper, conflicts = combine_boxes(box_limits, lowers, uppers, n)
 
         # Inequality rows G x <= h, and which of them ask for separation (relaxable).
-        G_rows, h_rows, separating = [np.zeros((0, n))], [np.zeros(0)], [np.zeros(0, dtype=bool)]
+        G_rows, h_rows, separating = [], [], []
         for limit in limits:
             if limit.has_box:
                 continue
@@ -328,7 +345,12 @@ class Solver:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
                 separating.append(np.full(rows.h.shape[0], _is_separating(limit)))
-        G, h, separating = np.vstack(G_rows), np.concatenate(h_rows), np.concatenate(separating)
+        if len(G_rows) == 1:  # (the usual case: one collision limit; no copy)
+            G, h, separating = G_rows[0], h_rows[0], separating[0]
+        elif G_rows:
+            G, h, separating = np.vstack(G_rows), np.concatenate(h_rows), np.concatenate(separating)
+        else:
+            G, h, separating = np.zeros((0, n)), np.zeros(0), np.zeros(0, dtype=bool)
 
         # The tasks' rows, grouped by level.
         by_level: dict[int, list] = {}
@@ -364,8 +386,7 @@ class Solver:
             x = clip_inplace(self._solve_level(level, problem, retries, confirm), lower, upper)
             if i + 1 < len(levels) and entries:
                 # The optimal set of this level: its weighted task velocities stay as found.
-                rows = np.vstack([A, task_rows(entries, n)])
-                A, b = orthonormal_rows(rows, rows @ x)
+                A, b = level_equalities(A, entries, x)
         return Solution(qdot=x, problems=problems, lower=lower, upper=upper, retries=retries)
 
     def _solve_level(self, level: int, problem: QPProblem, retries: list[str], confirm: int | None) -> np.ndarray:
@@ -424,10 +445,9 @@ class Solver:
     def _relaxed(self, err, levels, box_limits, lowers, uppers, lower, upper, A, b, G, h, separating,
                  retries) -> Solution:
         """The cascade after it failed with ``err``: under the least relaxation, or ``err`` raised."""
-        safe = [i for i, limit in enumerate(box_limits) if limit.priority < RELAXABLE_PRIORITY]
-        safe_lower, safe_upper, _ = combine_boxes(
-            [(box_limits[i], lowers[i], uppers[i]) for i in safe], lower.shape[0]
-        )
+        # The safety boxes (speed, position) come first in priority order.
+        k = sum(limit.priority < RELAXABLE_PRIORITY for limit in box_limits)
+        safe_lower, safe_upper, _ = combine_boxes(box_limits[:k], lowers[:k], uppers[:k], lower.shape[0])
         # First ignore a widening below the solvers' noise; if that leaves the QP
         # infeasible after all, take the widening exactly as computed.
         for tolerance in (RELAXATION_TOLERANCE, 0.0):

@@ -244,8 +244,8 @@ def _spy_on_solver_kernels(monkeypatch) -> list[str]:
 
 
 def _assembly(calls: list[str]) -> list[str]:
-    """The Hessian-assembly kernels among ``calls`` (per task, or one fused call per level)."""
-    return [name for name in calls if name.startswith(("accumulate_", "assemble_level_"))]
+    """The Hessian-assembly kernels among ``calls`` (one per task)."""
+    return [name for name in calls if name.startswith("accumulate_")]
 
 
 @pytest.mark.parametrize(
