@@ -46,7 +46,7 @@ and :meth:`Solver._relaxed`:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -262,6 +262,10 @@ class Solver:
             (keeps the Hessian definite without perturbing damped problems).
         fallback_backends: backends tried in order when ``backend`` fails
             (default: quadprog, then proxsuite; those not installed are skipped).
+        backend_factory: ``factory(name, level)`` makes the backend ``name`` for priority ``level``
+            (one workspace per level, kept between steps; ``level`` None: a fresh one for a
+            relaxation QP). Default: :func:`~harvest_qp.backends.make_backend` ``(name)``. A hook to
+            configure or wrap backends (e.g. a stand-in that fails, to test the fallbacks).
     """
 
     def __init__(
@@ -270,6 +274,7 @@ class Solver:
         *,
         regularization: float = 1e-10,
         fallback_backends: Sequence[str] | None = None,
+        backend_factory: Callable[[str, int | None], Backend] | None = None,
     ) -> None:
         problem = backend_name_problem(backend)
         if problem is not None:
@@ -283,6 +288,7 @@ class Solver:
         self.regularization = as_positive_scalar(regularization, "regularization", allow_zero=True)
         names = DEFAULT_FALLBACK_BACKENDS if fallback_backends is None else tuple(fallback_backends)
         self.fallback_backends = tuple(name for name in names if name != backend)
+        self._make = backend_factory if backend_factory is not None else (lambda name, level: make_backend(name))
         self._backends: dict[tuple[str, int], Backend] = {}
         self._unavailable: set[str] = set()
 
@@ -290,7 +296,7 @@ class Solver:
         """The backend ``name`` for priority ``level`` (one workspace per level, kept between steps)."""
         key = (name, level)
         if key not in self._backends:
-            self._backends[key] = make_backend(name)
+            self._backends[key] = self._make(name, level)
         return self._backends[key]
 
     # ------------------------------------------------------------------ public
@@ -536,7 +542,7 @@ class Solver:
             if reports >= CONFIRMING_REPORTS:
                 break
             try:
-                return make_backend(name).solve(problem)
+                return self._make(name, None).solve(problem)
             except SolverNotAvailableError:
                 self._unavailable.add(name)
             except InfeasibleProblemError:

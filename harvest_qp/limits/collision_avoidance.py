@@ -268,6 +268,11 @@ class CollisionAvoidance(Limit):
         """Robot capsules whose obstacle-sphere rows never ask for separation (:meth:`set_approach_only`)."""
         return [n for n, hold in zip(self._robot["names"], self._approach_only) if hold]
 
+    @property
+    def approach_only_pairs(self) -> list[tuple[str, str]]:
+        """Candidate pairs (by capsule name) whose rows never ask for separation (:meth:`set_approach_only`)."""
+        return [self.pair_names()[k] for k in np.flatnonzero(self._approach_pair)]
+
     def _update_approach_pairs(self) -> None:
         """Which candidate pairs are (approach-only capsule, obstacle sphere)."""
         nr = len(self._robot["names"])
@@ -354,6 +359,12 @@ class CollisionAvoidance(Limit):
     def distances(self, configuration: Configuration) -> np.ndarray:
         """Exact surface distance [m] of every candidate pair (no broadphase), in pair order."""
         return self._distances(configuration, np.inf).copy()
+
+    def capsule_segments(self, configuration: Configuration) -> tuple[np.ndarray, np.ndarray]:
+        """World end points [m] (two arrays, one row per capsule, in ``capsule_names`` order) at
+        the configuration's ``q``."""
+        self._distances(configuration, 0.0)
+        return self._w0.copy(), self._w1.copy()
 
     def pair_names(self) -> list[tuple[str, str]]:
         """Candidate pairs by capsule name, in the order of :meth:`distances`."""
