@@ -7,9 +7,7 @@ same-arm, arm-to-arm, arm-to-stand and 8 obstacle-sphere candidate pairs. Every
 contender is timed in the same process, in closed loop (q += qdot dt), from the
 kinematics update to the solved joint velocities.
 
-Usage: ``python benchmarks/bench_qp.py [-n 2000] [--peers placo,mink,pink] [--episode 20]``;
-``python benchmarks/bench_qp.py --native-ab [--episode 20] [--rounds 5] [--flush 3]``: only the
-episode's QP step with DAQP's C API called directly against ``daqp.Model``, paired per tick.
+Usage: ``python benchmarks/bench_qp.py [-n 2000] [--peers placo,mink,pink] [--episode 20]``.
 The last line printed is one JSON object with the medians [us].
 
 ``--episode S`` (0: off) adds ``harvest_qp_episode_us``: the paper episode's own QP
@@ -19,7 +17,7 @@ from the first ``S`` simulated seconds of the default episode (every ``--episode
 tick: joint positions, previous command, the three task references and the map cells fed
 to the collision limit) and replayed problem by problem on the episode's own
 :class:`~harvest_qp.TaskController` the way the loop calls it (the tick's kinematics updated
-first, untimed, then ``TaskController._step(q, reuse_kinematics=True)`` timed), next to
+first, untimed, then ``TaskController.step(q, kinematics_updated=True)`` timed), next to
 ``harvest_qp_collision_us`` timed the same way (thread CPU time, interleaved rounds): the
 like-for-like figure for the in-episode QP step of ``bench_episode.py`` (issue 7 section 7).
 """
@@ -210,7 +208,7 @@ class EpisodeProblems:
         difference [rad/s] between the replayed and the episode's commands."""
         times = np.empty(len(self.ticks))
         worst = 0.0
-        step = self.qp._step
+        step = self.qp.step
         update = self.qp.configuration.update
         for j, tick in enumerate(self.ticks):
             self.load(tick)
@@ -218,7 +216,7 @@ class EpisodeProblems:
             # reference laws) and reused by it, so they are not part of the step's time.
             update(tick.q)
             t0 = clock()
-            result = step(tick.q, reuse_kinematics=True)
+            result = step(tick.q, kinematics_updated=True)
             times[j] = clock() - t0
             worst = max(worst, float(np.max(np.abs(result.qdot - tick.qdot))))
         return times, worst
@@ -251,68 +249,6 @@ def time_episode_problems(
     }
 
 
-def time_native_ab(episode: EpisodeProblems, rounds: int, flush_mb: float = 0.0,
-                   clock=time.thread_time) -> dict[str, float]:
-    """The episode's QP step with DAQP's C API called directly (``harvest_qp._daqp_native``) against
-    the same step with ``daqp.Model``, paired tick by tick in one process (the same controller, its
-    DAQP backends swapped; which goes first alternates), optionally "cold": ``flush_mb`` MB written
-    before each timed step (3 MB reproduces the in-episode cost: the rest of the tick evicts L2).
-    Every replayed command must equal the episode's bit for bit. Medians [us] and the median of
-    the per-tick differences (native minus daqp.Model)."""
-    from harvest_qp import _daqp_native
-
-    if not _daqp_native.available():
-        raise RuntimeError(f"native DAQP path not available: {_daqp_native.disabled_reason()}")
-    qp = episode.qp
-    solver = qp.solver
-    update = qp.configuration.update
-    flush = np.zeros(int(flush_mb * (1 << 17)))
-
-    def step(tick) -> float:
-        episode.load(tick)
-        update(tick.q)
-        if flush.shape[0]:
-            np.add(flush, 1.0, out=flush)
-        t0 = clock()
-        result = qp._step(tick.q, reuse_kinematics=True)
-        elapsed = clock() - t0
-        if not np.array_equal(result.qdot, tick.qdot):
-            raise RuntimeError("a replayed command differs from the episode's")
-        return elapsed
-
-    native_backends = solver._backends
-    step(episode.ticks[0])  # the native models set up (the recording made them)
-    _daqp_native.set_enabled(False)
-    try:
-        solver._backends = {}
-        step(episode.ticks[0])  # daqp.Model backends set up, untimed
-        python_backends = solver._backends
-    finally:
-        _daqp_native.set_enabled(True)
-    kinds = {type(b._model).__name__ for b in python_backends.values() if getattr(b, "_model", None) is not None}
-    if kinds != {"Model"}:
-        raise RuntimeError(f"the comparison's backends are not daqp.Model: {kinds}")
-    native, python = [], []
-    try:
-        for r in range(rounds):
-            for j, tick in enumerate(episode.ticks):
-                order = ((native_backends, native), (python_backends, python))
-                for backends, out in order if (j + r) % 2 == 0 else order[::-1]:
-                    solver._backends = backends
-                    out.append(step(tick))
-    finally:
-        solver._backends = native_backends
-    a, b = 1e6 * np.array(native), 1e6 * np.array(python)
-    return {
-        "native_daqp_us": float(np.median(a)),
-        "daqp_model_us": float(np.median(b)),
-        "median_paired_difference_us": float(np.median(a - b)),
-        "native_faster_fraction": float(np.mean(a < b)),
-        "flush_mb": flush_mb,
-        "steps": int(a.shape[0]),
-    }
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-n", type=int, default=2000, help="timed steps per contender (split over the rounds)")
@@ -323,23 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episode", type=float, default=20.0,
                         help="simulated seconds of the paper episode whose QP problems are replayed (0: skip)")
     parser.add_argument("--episode-every", type=int, default=10, help="record every N-th tick of that episode")
-    parser.add_argument("--native-ab", action="store_true",
-                        help="only: the episode's QP step with DAQP's C API called directly against daqp.Model, "
-                             "paired per tick (--rounds rounds, --flush MB written before each step)")
-    parser.add_argument("--flush", type=float, default=3.0,
-                        help="with --native-ab: MB written before each timed step (0: hot)")
     args = parser.parse_args(argv)
 
-    if args.native_ab:
-        episode = EpisodeProblems(args.episode or 20.0, args.episode_every)
-        figures = time_native_ab(episode, max(args.rounds, 1), args.flush)
-        print(f"paper episode's QP step, {figures['steps']} paired steps ({len(episode.ticks)} problems x "
-              f"{args.rounds} rounds, flush {args.flush:g} MB), thread CPU time: native DAQP "
-              f"{figures['native_daqp_us']:.1f} us, daqp.Model {figures['daqp_model_us']:.1f} us, median paired "
-              f"difference {figures['median_paired_difference_us']:+.1f} us (native faster on "
-              f"{figures['native_faster_fraction']:.0%}); every command equal to the episode's")
-        print(json.dumps(figures))
-        return 0
     problem = peers.BenchProblem()
     print(peers.describe_problem(problem))
     if args.differences:

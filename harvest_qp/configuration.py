@@ -107,52 +107,34 @@ class Configuration:
 
     def update(self, q: np.ndarray | Sequence[float]) -> None:
         """Set joint positions [rad] and recompute placements and joint Jacobians."""
-        # The control loop's case (every tick) first: as_vector's own fast path written out (a
-        # finite native float64 (nq,) array, copied), one call less; anything else is as_vector's.
+        self._set_q(self._checked_q(q))
+
+    def update_if_changed(self, q: np.ndarray | Sequence[float]) -> bool:
+        """:meth:`update`, skipping the kinematics when ``q`` is bitwise the ``q`` of the last update.
+
+        For a control loop that updates the configuration for its reference laws and then
+        hands the same ``q`` to the QP step. Returns True when the kinematics were recomputed.
+        """
+        q = self._checked_q(q)
+        if q.tobytes() == self._q_kinematics:  # bit patterns: 0.0 and -0.0 differ
+            self._q = q
+            return False
+        self._set_q(q)
+        return True
+
+    def _checked_q(self, q: np.ndarray | Sequence[float]) -> np.ndarray:
+        """A private float64 copy of ``q`` after :func:`as_vector`'s checks (size nq, finite)."""
         if type(q) is np.ndarray and q.dtype is _FLOAT64 and q.shape == (self.model.nq,) and all_finite(q):
-            self._set_q(q.copy())
-            return
-        self._set_q(as_vector(q, self.model.nq, "Configuration q"))
+            return q.copy()  # the control loop's case, without building the error message's name
+        return as_vector(q, self.model.nq, "Configuration q")
 
     def _set_q(self, q: np.ndarray) -> None:
-        """:meth:`update` for a ``q`` already checked by :func:`as_vector` (a private copy)."""
         self._q = q
         # The bytes of the q the kinematics were computed at, apart from ``self._q`` (which
         # the ``q`` property hands out, so a caller could change it in place).
         self._q_kinematics = q.tobytes()
-        # Rows computed from these kinematics and shared between tasks (FrameTwistTask's
-        # frame-axis Jacobians and the frame's rotation, by frame index): stale once the
-        # kinematics change.
-        self._frame_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
-
-    def _update_if_changed(self, q: np.ndarray) -> None:
-        """:meth:`update` for the library's own control loop, skipped when nothing changed.
-
-        ``q`` must already be checked (:func:`as_vector`: a finite float64 copy of size nq).
-        When it is bitwise equal to the ``q`` of the last update, the placements and Jacobians
-        are already those of ``q`` and are kept (a controller tick updates the same
-        configuration twice: once for its reference laws, once in the QP step).
-        """
-        if q.tobytes() == self._q_kinematics:  # bit patterns: 0.0 and -0.0 differ
-            self._q = q
-            return
-        self._set_q(q)
-
-    def _reuse_current_q(self, q: object) -> np.ndarray | None:
-        """For the library's own control loop: when ``q`` is a native float64 vector whose bytes
-        equal those of the ``q`` the kinematics were last computed at, store a copy of it as
-        :meth:`_update_if_changed` would and return that copy; else None (nothing changed).
-
-        The bytes of the last checked ``q`` (:func:`as_vector`: finite, size nq) are only equal
-        to ``q``'s when ``q`` passes the same check, so the check is not repeated.
-        """
-        if type(q) is np.ndarray and q.dtype is _FLOAT64 and q.ndim == 1 and q.tobytes() == self._q_kinematics:
-            q = q.copy()
-            self._q = q
-            return q
-        return None
 
     def integrate(self, qdot: np.ndarray | Sequence[float], dt: float) -> np.ndarray:
         """Joint positions [rad] after applying ``qdot`` [rad/s] for ``dt`` [s] (does not update)."""
@@ -228,3 +210,12 @@ class Configuration:
         """Raise :class:`InvalidInputError` if ``q`` holds NaN or inf."""
         if not np.all(np.isfinite(self.q)):
             raise InvalidInputError(f"q must be finite, got {self.q}")
+
+
+def as_configuration(value: object, name: str = "configuration") -> Configuration:
+    """``value`` if it is a :class:`Configuration`, else :class:`InvalidInputError` naming it."""
+    if not isinstance(value, Configuration):
+        raise InvalidInputError(
+            f"{name} must be a harvest_qp Configuration, got {type(value).__name__}: {describe(value)}"
+        )
+    return value

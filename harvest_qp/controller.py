@@ -25,10 +25,10 @@ from harvest_qp.limits.collision_avoidance import CollisionAvoidance, pairs_from
 from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
 from harvest_qp.limits.joint_position_limit import JointPositionLimit
 from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
-from harvest_qp.limits.limit import Limit
+from harvest_qp.limits.limit import Limit, check_limits
 from harvest_qp.solver import Solver
-from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_nonnegative_vector, as_positive_scalar, as_vector, check_limits, check_tasks
+from harvest_qp.tasks.task import Task, check_tasks
+from harvest_qp.validation import as_nonnegative_vector, as_positive_scalar
 
 OK = "ok"
 FALLBACK = "fallback"
@@ -90,11 +90,6 @@ ControlStep.active_pairs = property(
     doc="Collision pairs that were rows of the QP this tick: both bodies' names and the surface "
     "distance [m] (from every CollisionAvoidance among the limits); built on first access.",
 )
-
-
-def _new_control_step(_new=object.__new__, _cls=ControlStep) -> ControlStep:
-    """An empty :class:`ControlStep` (the hot path fills its ``__dict__`` as ``__init__`` would)."""
-    return _new(_cls)
 
 
 class _BrakeTask(Task):
@@ -162,18 +157,14 @@ class TaskController:
         if q is not None:
             self.configuration.update(q)
 
-    def step(self, q: np.ndarray) -> ControlStep:
-        """Joint velocities [rad/s] for the measured joint positions ``q`` [rad]. Never raises."""
-        return self._step(q, reuse_kinematics=False)
+    def step(self, q: np.ndarray, *, kinematics_updated: bool = False) -> ControlStep:
+        """Joint velocities [rad/s] for the measured joint positions ``q`` [rad]. Never raises.
 
-    def _step(self, q: np.ndarray, *, reuse_kinematics: bool) -> ControlStep:
-        """:meth:`step`; with ``reuse_kinematics`` the caller has just updated the configuration.
-
-        The paper episode's controller updates the shared configuration to this very ``q``
-        for its reference laws and then asks for the QP step: with ``reuse_kinematics`` the
-        kinematics are recomputed only when ``q``'s bytes differ from that update's. The
-        public :meth:`step` always recomputes (a caller may have moved ``configuration.data``
-        with pinocchio in between).
+        With ``kinematics_updated`` the caller has just updated ``configuration`` to this very
+        ``q`` (a control loop that runs its reference laws first): the kinematics are then
+        recomputed only when ``q``'s bytes differ from that update's
+        (:meth:`Configuration.update_if_changed`). By default they are always recomputed (a
+        caller may have moved ``configuration.data`` with pinocchio in between).
         """
         measured = False
         if self.previous_qdot is None:
@@ -181,28 +172,14 @@ class TaskController:
             # and the acceleration box both need a vector).
             self.previous_qdot = np.zeros(self.configuration.nv)
         try:
-            configuration = self.configuration
-            # The loop has just updated the configuration to this very q (checked there): the
-            # copy then needs neither the check nor the kinematics again.
-            current = configuration._reuse_current_q(q) if reuse_kinematics else None
-            if current is None:
-                q = as_vector(q, configuration.model.nq, "Configuration q")
-                if reuse_kinematics:
-                    configuration._update_if_changed(q)
-                else:
-                    configuration._set_q(q)
-            measured = True
-            # previous_qdot is this controller's own finite output: skip re-validating it.
-            previous = self.previous_qdot
-            if reuse_kinematics:
-                # The loop's path: the same solve in fewer frames and compiled calls, with the
-                # acceleration computed in its last compiled call (None: not computed there).
-                solution, accel = self.solver._solve_step(configuration, self.tasks, self.limits, self.dt, previous)
-                if accel is None:
-                    accel = (solution.qdot - previous) / self.dt
+            if kinematics_updated:
+                self.configuration.update_if_changed(q)
             else:
-                solution = self.solver._solve(configuration, self.tasks, self.limits, self.dt, previous)
-                accel = (solution.qdot - previous) / self.dt
+                self.configuration.update(q)
+            measured = True
+            previous = self.previous_qdot
+            solution = self.solver.solve(self.configuration, self.tasks, self.limits, self.dt, previous_qdot=previous)
+            accel = (solution.qdot - previous) / self.dt
             self.solver_solution = solution
             status = OK
             if solution.relaxed:
@@ -212,12 +189,7 @@ class TaskController:
                 status = f"{OK}: separation asked lowered by up to {np.max(solution.row_relaxation):.3g} m/s"
             elif solution.retries:
                 status = f"{OK}: retried after {'; '.join(solution.retries)}"
-            # The dataclass constructor, without its call overhead (and without routing
-            # ``active_pairs = []`` through the property setter): the same instance state.
-            result = _new_control_step()
-            result.__dict__.update(
-                qdot=solution.qdot, status=status, conflicts=solution.conflicts, acceleration=accel, _active_pairs=[]
-            )
+            result = ControlStep(qdot=solution.qdot, status=status, conflicts=solution.conflicts, acceleration=accel)
         except Exception as err:  # the loop must keep commanding the robot: stop it safely
             self.last_error = err
             qdot, how = self._safe_stop_command(measured)
@@ -227,17 +199,21 @@ class TaskController:
                 acceleration=(qdot - np.nan_to_num(self.previous_qdot)) / self.dt,
             )
         if measured and self._collisions:
-            result.__dict__["_pair_snapshots"] = [limit._active_pair_snapshot() for limit in self._collisions]
+            result.__dict__["_pair_snapshots"] = [limit.active_pair_snapshot() for limit in self._collisions]
         self.previous_qdot = result.qdot
         return result
+
+    def _step(self, q: np.ndarray, *, reuse_kinematics: bool) -> ControlStep:
+        """Deprecated alias of :meth:`step` (``reuse_kinematics`` is ``kinematics_updated``)."""
+        return self.step(q, kinematics_updated=reuse_kinematics)
 
     def _safe_stop_command(self, measured: bool) -> tuple[np.ndarray, str]:
         """The stop QP when the state is known, else the joint-wise brake; and a note for the status."""
         if measured and np.all(np.isfinite(self.previous_qdot)):
             self._brake.target[:] = self.safe_stop()
             try:
-                solution = self._stop_solver._solve(
-                    self.configuration, [self._brake], self.limits, self.dt, self.previous_qdot
+                solution = self._stop_solver.solve(
+                    self.configuration, [self._brake], self.limits, self.dt, previous_qdot=self.previous_qdot
                 )
                 return solution.qdot, ""
             except Exception as err:  # noqa: BLE001 - fall through to the plain brake

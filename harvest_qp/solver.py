@@ -1,4 +1,4 @@
-"""Build and solve the task-priority velocity QP.
+"""Build and solve the task-priority velocity QP: one strict-priority cascade.
 
 For each priority level ``k = 1, 2, ...`` (in increasing order) the solver computes
 
@@ -10,8 +10,11 @@ For each priority level ``k = 1, 2, ...`` (in increasing order) the solver compu
 
 so that a lower level only optimises within the optimal set of the levels above
 it: a cascade of QPs (strict priorities). With a single soft level it is one QP.
-The equality rows of earlier levels are compressed to an orthonormal basis (a Householder
-QR with column pivoting), so redundant rows never make the solver see dependent equalities.
+Each task enters only through its public ``compute_rows(configuration, dt)`` (``J``, ``v``;
+``J`` None for joint-space tasks) and ``weight``; each limit through ``fill_box`` (box
+limits) or ``compute`` (rows ``G``, ``h``). The equality rows of earlier levels are
+compressed to an orthonormal basis (a Householder QR with column pivoting), so redundant
+rows never make the solver see dependent equalities.
 
 ``E`` is a diagonal regularization that only tops the Hessian's diagonal up to
 ``regularization`` where joint-space tasks (damping, posture) do not already put
@@ -19,7 +22,8 @@ that much weight: with a ``DampingTask`` of weight ``lambda^2 >= regularization`
 the QP is exactly the damped least-squares problem (a constant ``eps I`` made
 "QP == damped pseudo-inverse" wrong by 3.4e-5 at lambda = 1e-3, FINDINGS "QP core").
 
-Robustness (nothing here runs when the first backend succeeds):
+Robustness (nothing here runs when the first backend succeeds), all in :meth:`Solver._solve_level`
+and :meth:`Solver._relaxed`:
 
 1. A backend failure of any kind (accuracy, cycling, infeasibility report) is
    retried with the next backend of ``fallback_backends`` (quadprog called directly,
@@ -36,105 +40,42 @@ Robustness (nothing here runs when the first backend succeeds):
    feasible, and the separation speed that collision rows ask of pairs already
    inside the safety distance is lowered, at most to "no further approach", by the
    least amount that fits in that box. Only when even that is infeasible (e.g. a
-   hard task beyond the speed limit) is the failure reported.
+   hard task beyond the speed limit) is the failure reported (a
+   :class:`~harvest_qp.exceptions.SolverError` carrying the QP).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import pinocchio as pin
 
-from harvest_qp._daqp_native import (
-    CASCADE2,
-    LAYOUT_REFUSED,
-    NativeModel,
-    update_solve,
-    update_solve_check_clip_rate,
-)
 from harvest_qp.backends import (
     ACCEPTABLE_VIOLATION,
-    FEASIBILITY_TOLERANCE,
+    INF,
     Backend,
-    DaqpBackend,
-    _checked,
+    SolverAccuracyError,
     backend_name_problem,
     make_backend,
 )
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
-from harvest_qp.limits.joint_acceleration_limit import JointAccelerationLimit
-from harvest_qp.limits.joint_position_limit import JointPositionLimit
-from harvest_qp.limits.joint_velocity_limit import JointVelocityLimit
-from harvest_qp.limits.limit import Limit
+from harvest_qp.limits.limit import Limit, check_limits
 from harvest_qp.qp_kernels import (
-    IDENTITY_ROWS,
     accumulate_diagonal,
     accumulate_task,
-    assemble_level_1,
-    assemble_level_2,
-    assemble_level_3,
-    assemble_level_4,
-    assemble_load_1,
-    assemble_load_2,
-    assemble_load_3,
-    assemble_load_4,
-    builtin_boxes,
-    check_clip,
-    check_clip_equalities_1,
-    check_clip_equalities_2,
-    check_clip_equalities_3,
-    check_clip_rate,
     clip_inplace,
-    episode_task_rows,
-    handover_1_1,
-    handover_1_2,
-    handover_1_3,
-    handover_1_4,
-    handover_2_1,
-    handover_2_2,
-    handover_2_3,
-    handover_2_4,
-    handover_3_1,
-    handover_3_2,
-    handover_3_3,
-    handover_3_4,
     intersect_boxes,
-    level_equalities_1,
-    level_equalities_2,
-    level_equalities_3,
     max_scaled_violation,
     max_violation,
     orthonormal_rows_qr,
     top_up_diagonal,
-    weighted_identity_rows,
     weighted_rows,
 )
-from harvest_qp.tasks.damping_task import DampingTask
-from harvest_qp.tasks.frame_twist_task import FrameTwistTask
-from harvest_qp.tasks.posture_task import PostureTask
-from harvest_qp.tasks.task import _STRUCTURE as _TASK_STRUCTURE
-from harvest_qp.tasks.task import HARD, Task
+from harvest_qp.tasks.task import HARD, Task, check_tasks
 from harvest_qp.validation import as_positive_scalar, as_vector
 
-_new = object.__new__
-_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
-_frame_jacobian = pin.getFrameJacobian
-_FLOAT64 = np.dtype(np.float64)
-# The fused DAQP level kernels by the level's task count (see Solver._daqp_level).
-_ASSEMBLE_LOAD = {1: assemble_load_1, 2: assemble_load_2, 3: assemble_load_3, 4: assemble_load_4}
-_CHECK_CLIP_EQUALITIES = {1: check_clip_equalities_1, 2: check_clip_equalities_2, 3: check_clip_equalities_3}
-# Two consecutive DAQP levels' hand-over by (upper, lower) task count (see Solver._solve_step).
-_HANDOVER = {
-    (1, 1): handover_1_1, (1, 2): handover_1_2, (1, 3): handover_1_3, (1, 4): handover_1_4,
-    (2, 1): handover_2_1, (2, 2): handover_2_2, (2, 3): handover_2_3, (2, 4): handover_2_4,
-    (3, 1): handover_3_1, (3, 2): handover_3_2, (3, 3): handover_3_3, (3, 4): handover_3_4,
-}
-
-#: Bound magnitude that stands for "no bound" in the QP data.
-INF = 1e30
 #: Box limits from this priority on (acceleration limits) yield to infeasibility.
 RELAXABLE_PRIORITY = 2
 #: Widening [rad/s] added on top of the least relaxation so the re-solved QP is not degenerate.
@@ -146,6 +87,8 @@ DEFAULT_FALLBACK_BACKENDS = ("quadprog", "proxsuite")
 #: Infeasibility reports from this many backends are believed without asking the rest
 #: (the relaxation check that follows still catches a false report; see the module docstring).
 CONFIRMING_REPORTS = 2
+#: Relative rank tolerance of the orthonormal equality rows a level hands on.
+RANK_TOLERANCE = 1e-9
 
 
 @dataclass
@@ -170,7 +113,7 @@ class QPProblem:
         return self.H.shape[0]
 
     def copy(self) -> QPProblem:
-        """A deep copy (the solver reuses some buffers between steps)."""
+        """A deep copy."""
         return QPProblem(**{k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in vars(self).items()})
 
     def violation(self, x: np.ndarray) -> float:
@@ -194,7 +137,7 @@ class BoxConflict:
 
 @dataclass
 class Solution:
-    """Result of :func:`solve_ik`: joint velocities [rad/s] and what the solver saw."""
+    """Result of :meth:`Solver.solve`: joint velocities [rad/s] and what the solver saw."""
 
     qdot: np.ndarray | None
     problems: list[QPProblem] = field(default_factory=list)
@@ -211,64 +154,45 @@ class Solution:
     """Backend failures that a later backend recovered, e.g. ``"daqp: SolverCyclingError"``."""
 
 
-def _priority(item) -> int:
-    return item[0].priority
+# ---------------------------------------------------------------------- the QP's parts
+def combine_boxes(box_limits: Sequence[Limit], lowers: np.ndarray, uppers: np.ndarray, n: int):
+    """Intersect velocity boxes [rad/s] in priority order; later boxes yield where they conflict.
 
-
-def combine_boxes(limits_rows: list[tuple[Limit, np.ndarray, np.ndarray]], n: int):
-    """Intersect velocity boxes in priority order; later boxes yield where they conflict.
-
+    ``box_limits`` in priority order, row ``i`` of ``lowers`` / ``uppers`` the box of ``box_limits[i]``.
     Returns ``(lower, upper, conflicts)``; a conflict names the joint and the limit that yielded.
     """
-    ordered = sorted(limits_rows, key=_priority)
-    if not ordered:
-        return _intersect([], np.zeros((0, n)), np.zeros((0, n)), n)
-    lowers = np.array([lo for _, lo, _ in ordered])
-    uppers = np.array([hi for _, _, hi in ordered])
-    return _intersect([limit for limit, _, _ in ordered], lowers, uppers, n)
-
-
-def _intersect(box_limits: list[Limit], lowers: np.ndarray, uppers: np.ndarray, n: int):
-    """:func:`combine_boxes` on rows already in priority order (row i belongs to ``box_limits[i]``)."""
     if not box_limits:
         return np.full(n, -INF), np.full(n, INF), []
-    lower, upper = np.empty(n), np.empty(n)  # the kernel writes every entry
-    conflicts = []
+    lower, upper = np.empty(n), np.empty(n)
     conflict = np.empty(n, dtype=np.int64)
+    conflicts = []
     if intersect_boxes(lowers, uppers, lower, upper, conflict):
         conflicts = [BoxConflict(int(j), type(box_limits[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)]
     return lower, upper, conflicts
 
 
-def _orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+def orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = RANK_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
     """Equivalent equality rows with orthonormal, independent rows (for consistent ``A x = b``).
 
     A Householder QR of ``A^T`` with column pivoting (:func:`orthonormal_rows_qr`), rank from
-    its pivots ``|R_kk| > tol max(1, |R_00|)``. Deviation from the earlier SVD basis (same
-    span, another orthonormal basis of it): the SVD of the paper episode's 11 x 12 level-1 rows
-    cost ~20 us hot and 35-60 us of the replayed episode step, the compiled QR ~2 us; the
-    episode's log then differs from the SVD run by round-off only (joint positions <= 2e-11 rad
-    over 20 s; with :func:`level_equalities_2` <= 2e-12 rad). The solver's hot path calls it
-    through the ``level_equalities_*`` kernels.
+    its pivots ``|R_kk| > tol max(1, |R_00|)`` (the SVD of the paper's 11 x 12 level-1 rows cost
+    ~20 us, the compiled QR ~2 us; same span, another orthonormal basis of it).
     """
     if A.shape[0] == 0:
         return A, b
     k = min(A.shape)
     rows, rhs = np.empty((k, A.shape[1])), np.empty(k)
-    rank = orthonormal_rows_qr(np.asarray(A, dtype=float), np.asarray(b, dtype=float), tol, rows, rhs)
+    rank = orthonormal_rows_qr(np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(b, dtype=float), tol,
+                               rows, rhs)
     return rows[:rank], rhs[:rank]
 
 
-def _least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+def least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = RANK_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
     """Orthonormal equality rows for hard tasks ``A x = b`` that need not be consistent.
 
     The SVD basis of ``A``'s row space with ``b`` projected on its range: two hard tasks that
-    ask for different things get the least-squares compromise (independent of their order),
-    and a non-finite entry raises (numpy's SVD does not converge), so the step falls back to
-    a safe stop. :func:`_orthonormal_rows`'s pivoted QR is only for the consistent rows a
-    priority level hands on (``rows @ x``): it satisfies the first pivot rows exactly and
-    skips a NaN row. Hard tasks are rare (none in the paper episode), so the SVD costs nothing
-    there.
+    ask for different things get the least-squares compromise (independent of their order).
+    :func:`orthonormal_rows` (pivoted QR) is only for the consistent rows a level hands on.
     """
     if A.shape[0] == 0:
         return A, b
@@ -277,27 +201,57 @@ def _least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> tupl
     return Vt[:rank], (U[:, :rank].T @ b) / s[:rank]
 
 
-_FRAME_TWIST_COMPUTE_ROWS = FrameTwistTask.compute_rows
-_POSTURE_COMPUTE_ROWS = PostureTask.compute_rows
-_DAMPING_COMPUTE_ROWS = DampingTask.compute_rows
+def level_equalities(A: np.ndarray, entries, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal equality rows that hold a level's optimum ``x`` for the levels below it.
+
+    ``A`` (the rows of the levels above) stacked over each task's weighted rows ``sqrt(w_r) J_r``
+    (``w_r > 0``; ``J`` None is the identity), with ``rows @ x`` as right-hand side.
+    """
+    n = x.shape[0]
+    m = A.shape[0] + sum(task.weight.shape[0] for task, _, _ in entries)
+    rows = np.empty((m, n))
+    end = A.shape[0]
+    rows[:end] = A
+    for task, J, _ in entries:
+        end = weighted_rows(_identity(n) if J is None else J, task.weight, rows, end)
+    rows = rows[:end]
+    return orthonormal_rows(rows, rows @ x)
 
 
-def _builtin_compute_rows_intact(tasks) -> bool:
-    """True when the episode plan's five tasks would run the library's own ``compute_rows``:
-    neither their classes' method replaced (e.g. ``mock.patch.object``) nor one set on a task
-    object (``task.compute_rows = f``), so building their rows in one compiled call is exact."""
-    if (FrameTwistTask.compute_rows is not _FRAME_TWIST_COMPUTE_ROWS
-            or PostureTask.compute_rows is not _POSTURE_COMPUTE_ROWS
-            or DampingTask.compute_rows is not _DAMPING_COMPUTE_ROWS):
-        return False
-    for task in tasks:
-        if "compute_rows" in task.__dict__:
-            return False
-    return True
+_IDENTITIES: dict[int, np.ndarray] = {}
+
+
+def _identity(n: int) -> np.ndarray:
+    """A read-only ``I`` (n x n), made once per size."""
+    eye = _IDENTITIES.get(n)
+    if eye is None:
+        eye = _IDENTITIES[n] = np.eye(n)
+        eye.flags.writeable = False
+    return eye
+
+
+def assemble_level(entries, n: int, regularization: float) -> tuple[np.ndarray, np.ndarray]:
+    """``H``, ``f`` of one level: ``sum_tasks J^T W J``, ``-J^T W v``, the diagonal topped up to ``regularization``.
+
+    The top-up only adds where the level's joint-space tasks put less weight on a joint, so a
+    damped problem stays exactly the damped least-squares problem.
+    """
+    H, f, floor = np.zeros((n, n)), np.zeros(n), np.zeros(n)
+    for task, J, v in entries:
+        if J is None:  # joint-space task: J = I
+            accumulate_diagonal(H, f, task.weight, v, floor)
+        else:
+            accumulate_task(H, f, J, task.weight, v)
+    top_up_diagonal(H, floor, regularization if entries else max(regularization, 1e-12))
+    return H, f
+
+
+def _is_separating(limit: Limit) -> bool:
+    return bool(getattr(limit, "separation_rows", False))
 
 
 class Solver:
-    """Reusable QP solver: keeps the backend's workspace between control steps.
+    """Reusable QP solver: keeps each backend's workspace (per level) between control steps.
 
     Args:
         backend: ``"daqp"`` (default, persistent model), ``"proxsuite"`` (dense, with
@@ -308,6 +262,10 @@ class Solver:
             (keeps the Hessian definite without perturbing damped problems).
         fallback_backends: backends tried in order when ``backend`` fails
             (default: quadprog, then proxsuite; those not installed are skipped).
+        backend_factory: ``factory(name, level)`` makes the backend ``name`` for priority ``level``
+            (one workspace per level, kept between steps; ``level`` None: a fresh one for a
+            relaxation QP). Default: :func:`~harvest_qp.backends.make_backend` ``(name)``. A hook to
+            configure or wrap backends (e.g. a stand-in that fails, to test the fallbacks).
     """
 
     def __init__(
@@ -316,6 +274,7 @@ class Solver:
         *,
         regularization: float = 1e-10,
         fallback_backends: Sequence[str] | None = None,
+        backend_factory: Callable[[str, int | None], Backend] | None = None,
     ) -> None:
         problem = backend_name_problem(backend)
         if problem is not None:
@@ -326,22 +285,21 @@ class Solver:
                 # an uninstalled qpsolvers fallback is skipped at run time; a typo is an error
                 raise SolverNotAvailableError(f"fallback_backends: {backend_name_problem(name)}", backend=str(name))
         self.backend_name = backend
-        self._backends: dict[tuple[str, int], Backend] = {}
-        self._box_key: tuple = ()
-        self._box_list: list[Limit] = []
         self.regularization = as_positive_scalar(regularization, "regularization", allow_zero=True)
         names = DEFAULT_FALLBACK_BACKENDS if fallback_backends is None else tuple(fallback_backends)
         self.fallback_backends = tuple(name for name in names if name != backend)
+        self._make = backend_factory if backend_factory is not None else (lambda name, level: make_backend(name))
+        self._backends: dict[tuple[str, int], Backend] = {}
         self._unavailable: set[str] = set()
-        self._rows_buffer = np.empty((0, 0))
-        self._episode = None  # the cached plan of _episode_plan
 
-    def _backend(self, level: int, name: str | None = None) -> Backend:
-        key = (name or self.backend_name, level)
+    def _backend(self, name: str, level: int) -> Backend:
+        """The backend ``name`` for priority ``level`` (one workspace per level, kept between steps)."""
+        key = (name, level)
         if key not in self._backends:
-            self._backends[key] = make_backend(key[0])
+            self._backends[key] = self._make(name, level)
         return self._backends[key]
 
+    # ------------------------------------------------------------------ public
     def solve(
         self,
         configuration: Configuration,
@@ -358,62 +316,31 @@ class Solver:
         says by how much); see the module docstring.
 
         Raises:
-            InvalidInputError: no task.
+            InvalidInputError: no task, a non-Task among the tasks or a non-Limit among the
+                limits (the message names its position and type), a bad ``dt`` or ``previous_qdot``.
             SolverError: every backend failed (the exception carries the QP).
             InfeasibleProblemError: the safety constraints admit no solution even
                 with the acceleration limits relaxed.
         """
-        if not tasks:
-            raise InvalidInputError("tasks must contain at least one Task, got an empty sequence")
+        tasks = check_tasks(tasks)
+        limits = check_limits(limits)
         dt = as_positive_scalar(dt, "dt")
         if previous_qdot is not None:
             previous_qdot = as_vector(previous_qdot, configuration.nv, "previous_qdot")
-        return self._solve(configuration, tasks, limits, dt, previous_qdot)
-
-    def _solve(self, configuration, tasks, limits, dt: float, previous_qdot: np.ndarray | None) -> Solution:
-        """:meth:`solve` with ``dt`` and ``previous_qdot`` already validated (the controller's path)."""
         n = configuration.nv
-        box_limits = self._box_limits(limits, n)
-        boxes = self._builtin_boxes(configuration, dt, previous_qdot) if self._builtin_trio else None
-        if boxes is None:
-            for limit, lower_row, upper_row in self._box_rows:
-                limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
-        G, h, row_limits, by_level = self._rows_and_levels(configuration, tasks, dt, previous_qdot, n)
-        hard = by_level.pop(HARD, None)
-        A, b = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
-        if boxes is None:
-            lower, upper, conflicts = _intersect(box_limits, self._lower_rows, self._upper_rows, n)
-        else:
-            lower, upper, conflicts = boxes
-        retries: list[str] = []
-        try:
-            return self._cascade(n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=CONFIRMING_REPORTS)
-        except SolverNotAvailableError:
-            raise
-        except SolverError as err:
-            return self._relaxed(err, n, by_level, box_limits, lower, upper, conflicts, A, b, G, h, row_limits, retries)
 
-    def _rows_and_levels(self, configuration, tasks, dt, previous_qdot, n):
-        """The row limits' stacked ``G``, ``h`` with ``(limit, its h)`` per limit that gave rows
-        (which rows may be relaxed), and the tasks' ``(task, J, v)`` grouped by level."""
-        G, h, row_limits = self._limit_rows(configuration, dt, previous_qdot, n)
-        by_level: dict[int, list[tuple[Task, np.ndarray | None, np.ndarray]]] = {}
-        for task in tasks:
-            J, v = task.compute_rows(configuration, dt)
-            # (get, then a fresh list only for a new level: setdefault built one per task)
-            level = task.level
-            entries = by_level.get(level)
-            if entries is None:
-                by_level[level] = [(task, J, v)]
-            else:
-                entries.append((task, J, v))
-        return G, h, row_limits, by_level
+        # Boxes, in priority order (velocity, position, acceleration, ...).
+        box_limits = sorted((limit for limit in limits if limit.has_box), key=lambda limit: limit.priority)
+        lowers, uppers = np.empty((len(box_limits), n)), np.empty((len(box_limits), n))
+        for limit, lower_row, upper_row in zip(box_limits, lowers, uppers):
+            limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+        lower, upper, conflicts = combine_boxes(box_limits, lowers, uppers, n)
 
-    def _limit_rows(self, configuration, dt, previous_qdot, n):
-        """The row limits' stacked ``G``, ``h`` and ``(limit, its h)`` per limit that gave rows."""
-        row_limits: list[tuple[Limit, np.ndarray]] = []  # (limit, its h): which rows may be relaxed
-        G_rows, h_rows = [], []
-        for limit in self._row_limits:
+        # Inequality rows G x <= h, and which of them ask for separation (relaxable).
+        G_rows, h_rows, separating = [], [], []
+        for limit in limits:
+            if limit.has_box:
+                continue
             rows = limit.compute(configuration, dt, previous_qdot)
             if rows.lower is not None:
                 raise InvalidInputError(
@@ -423,716 +350,131 @@ class Solver:
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
-                row_limits.append((limit, rows.h))
-        if len(G_rows) == 1:
-            G, h = G_rows[0], h_rows[0]
+                separating.append(np.full(rows.h.shape[0], _is_separating(limit)))
+        if len(G_rows) == 1:  # (the usual case: one collision limit; no copy)
+            G, h, separating = G_rows[0], h_rows[0], separating[0]
         elif G_rows:
-            G, h = np.vstack(G_rows), np.concatenate(h_rows)
+            G, h, separating = np.vstack(G_rows), np.concatenate(h_rows), np.concatenate(separating)
         else:
-            G, h = np.zeros((0, n)), np.zeros(0)
-        return G, h, row_limits
+            G, h, separating = np.zeros((0, n)), np.zeros(0), np.zeros(0, dtype=bool)
 
-    def _episode_plan(self, configuration, tasks):
-        """The cached plan for the paper episode's task set, or None (then each task's own
-        ``compute_rows`` runs). The set: exactly ``[camera, gripper, roll, posture, damping]`` of
-        the built-in classes (not subclasses: an override of ``compute_rows`` must run), the
-        camera and roll tasks :class:`FrameTwistTask` in local axes on one frame, the gripper's in
-        world axes, camera and gripper on one soft level and the other three on one level below
-        it, all bound to ``configuration``'s model. Rebuilt whenever a task's structure changes
-        (``tasks.task._STRUCTURE``: weight array, level, frame, axes or model binding).
-        """
-        plan = self._episode
-        model = configuration.model
-        # An override of compute_rows on the classes (a patch) or on a task object must run, as
-        # in the generic path (an audit patched it and the plan skipped it): checked every tick.
-        if (plan is not None and plan[7] == _TASK_STRUCTURE[0] and plan[6] is model and len(tasks) == 5
-                and tasks[0] is plan[0] and tasks[1] is plan[1] and tasks[2] is plan[2] and tasks[3] is plan[3]
-                and tasks[4] is plan[4] and _builtin_compute_rows_intact(tasks)):
-            return plan
-        self._episode = None
-        if len(tasks) != 5:
-            return None
-        camera, gripper, roll, posture, damping = tasks
-        if not (type(camera) is FrameTwistTask and type(gripper) is FrameTwistTask and type(roll) is FrameTwistTask
-                and type(posture) is PostureTask and type(damping) is DampingTask
-                and _builtin_compute_rows_intact(tasks)):
-            return None
-        if any(task._model is not model for task in tasks):  # not yet bound: compute_rows binds them
-            return None
-        upper, lower = camera._level, roll._level
-        if not (camera._local and not gripper._local and roll._local and camera._frame_id == roll._frame_id
-                and HARD < upper < lower and gripper._level == upper and posture._level == lower
-                and damping._level == lower and configuration.nv == posture.dim == damping.dim):
-            return None
-        self._episode_posture_v = np.empty(configuration.nv)
-        self._episode = plan = (camera, gripper, roll, posture, damping, camera._frame_id, model,
-                                _TASK_STRUCTURE[0], gripper._frame_id, upper, lower)
-        return plan
-
-    def _episode_rows(self, configuration, plan):
-        """The tasks' ``(task, J, v)`` by level for the episode's task set (:meth:`_episode_plan`):
-        what each task's ``compute_rows`` returns, bit for bit (the same pinocchio calls and
-        arithmetic), with the three compiled calls in one (:func:`episode_task_rows`).
-
-        Differences that change no number: the roll task is given the camera task's local rows
-        (``compute_rows`` gives it a copy of them through ``configuration._frame_rows``, which this
-        path does not fill: a later ``compute_rows`` on that frame computes them again), and the
-        posture velocity is written into a buffer of this solver (rewritten at the next step;
-        only this step's cascade reads it).
-        """
-        camera, gripper, roll, posture, damping, frame_id, model, _, gripper_id, upper, lower = plan
-        data = configuration.data
-        R = data.oMf[frame_id].rotation
-        J = _frame_jacobian(model, data, frame_id, _LWA)
-        gain = camera._gain
-        v = camera._reference if gain == 1.0 else gain * camera._reference
-        J_local, v_local = camera._J_local, camera._v_local
-        gain = roll._gain
-        roll_v = roll._reference if gain == 1.0 else gain * roll._reference
-        roll_local = roll._v_local
-        posture_v = self._episode_posture_v
-        episode_task_rows(R, J, v, J_local, v_local, roll_v, roll_local, posture._gain, posture._target,
-                          configuration.q, posture_v)
-        gain = gripper._gain
-        gripper_v = gripper._reference if gain == 1.0 else gain * gripper._reference
-        J_gripper = _frame_jacobian(model, data, gripper_id, _LWA)
-        w_camera, w_gripper, w_roll, w_posture, w_damping = (
-            camera._weight, gripper._weight, roll._weight, posture._weight, damping._weight
-        )
-        zeros = damping._zeros
-        by_level = {
-            upper: [(camera, J_local, v_local), (gripper, J_gripper, gripper_v)],
-            lower: [(roll, J_local, roll_local), (posture, None, posture_v), (damping, None, zeros)],
-        }
-        # The fused cascade's task arguments as _fused_two_levels builds them from by_level, and
-        # the rows the upper level's equalities stack (6 + 6 above no hard rows).
-        flat = (
-            (J_local, w_camera, v_local, J_gripper, w_gripper, gripper_v),
-            (J_local, w_roll, roll_local, IDENTITY_ROWS, w_posture, posture_v, IDENTITY_ROWS, w_damping, zeros),
-        )
-        return by_level, flat
-
-    def _solve_step(self, configuration, tasks, limits, dt: float, previous_qdot: np.ndarray):
-        """:meth:`_solve` for the controller's step, with the step's acceleration: ``(solution,
-        (solution.qdot - previous_qdot) / dt)`` [rad/s, rad/s^2], the acceleration None when it
-        was not computed here (the caller then computes it with numpy).
-
-        The same operations in the same order as :meth:`_solve` (bit for bit; tested against it),
-        in fewer Python frames and compiled calls: with the cached built-in trio of box limits and
-        every level a DAQP model already set up for the problem's size, the cascade runs here,
-        two consecutive levels hand over in one compiled call (``handover_*``: the upper level's
-        check, clip and equalities, then the lower level's assembly and DAQP layout) and the last
-        level's check and clip also compute the acceleration (:func:`check_clip_rate`). With two
-        levels whose models are :class:`~harvest_qp._daqp_native.NativeModel` (DAQP's C API) and
-        inequality rows (the paper episode), the whole cascade is one compiled call
-        (:meth:`_fused_two_levels`); the loop resumes where that call stopped. A rejected answer,
-        a failure or any other case takes :meth:`_solve`'s own code.
-        """
-        n = configuration.nv
-        if (n, *map(id, limits)) != self._box_key or not self._builtin_trio:
-            return self._solve(configuration, tasks, limits, dt, previous_qdot), None
-        box_list = self._box_list
-        velocity, position, acceleration = box_list
-        model = configuration.model
-        if velocity._model is not model or position._model is not model or acceleration._model is not model:
-            return self._solve(configuration, tasks, limits, dt, previous_qdot), None
-        # _builtin_boxes inlined (lower and upper fresh: the solution and its problems keep them)
-        lower, upper = np.empty(n), np.empty(n)
-        conflict = self._conflict
-        count = builtin_boxes(
-            configuration.q, position.lower, position.upper, position.gain, dt, position._braking,
-            velocity.max_velocity, acceleration._zeros if previous_qdot is None else previous_qdot,
-            acceleration.max_acceleration, self._lowers, self._uppers, lower, upper, conflict,
-        )
-        if count < 0:  # the limits' own fill_box (with its checks), in _solve
-            return self._solve(configuration, tasks, limits, dt, previous_qdot), None
-        conflicts = []
-        if count:
-            conflicts = [
-                BoxConflict(int(j), type(box_list[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)
-            ]
-        episode = self._episode_plan(configuration, tasks)
-        if episode is None:
-            G, h, row_limits, by_level = self._rows_and_levels(configuration, tasks, dt, previous_qdot, n)
-            flat = None
-        else:  # the paper episode's task set: its rows in fewer frames and one compiled call
-            G, h, row_limits = self._limit_rows(configuration, dt, previous_qdot, n)
-            by_level, flat = self._episode_rows(configuration, episode)
+        # The tasks' rows, grouped by level.
+        by_level: dict[int, list] = {}
+        for task in tasks:
+            J, v = task.compute_rows(configuration, dt)
+            by_level.setdefault(task.level, []).append((task, J, v))
         hard = by_level.pop(HARD, None)
-        A0, b0 = self._hard_equalities(hard, n) if hard else self._no_equalities  # empty: shared between steps
+        A, b = self._hard_equalities(hard, n) if hard else (np.zeros((0, n)), np.zeros(0))
+        levels = [(level, by_level[level]) for level in sorted(by_level)] or [(1, [])]
+
         retries: list[str] = []
         try:
-            # The levels, each a DAQP model set up for this size (else _cascade's own code).
-            levels = sorted(by_level) or [1]
-            plan = []
-            # (previous_qdot None: the acceleration kernel needs a vector; the controller always has one)
-            if self.backend_name == "daqp" and A0.dtype is _FLOAT64 and previous_qdot is not None:
-                backends = self._backends
-                shape = (n, G.shape[0])
-                last = levels[-1]
-                for level in levels:
-                    entries = by_level.get(level, ())
-                    backend = backends.get(("daqp", level))
-                    if not (type(backend) is DaqpBackend and backend._model is not None and backend._shape == shape
-                            and 0 < len(entries) <= (4 if level == last else 3)):
-                        break
-                    plan.append((level, entries, backend))
-            if len(plan) != len(levels):
-                solution = self._cascade(
-                    n, by_level, lower, upper, conflicts, A0, b0, G, h, retries, confirm=CONFIRMING_REPORTS
-                )
-                return solution, None
-            solution = _new(Solution)
-            solution.__dict__.update(
-                qdot=None, problems=[], lower=lower, upper=upper, conflicts=conflicts, relaxed=[],
-                box_relaxation=None, row_relaxation=None, retries=retries,
-            )
-            problems = solution.problems
-            regularization = self.regularization
-            A, b = A0, b0
-            block = None  # the level's H, f and floor when the level above assembled them
-            n_in = G.shape[0]
-            final = len(plan) - 1
-            # Two native DAQP levels (the episode's cascade): every level's assembly, DAQP update and
-            # solve, check, clip and hand-over in one compiled call (cascade2_*); where it stops early
-            # (a DAQP failure or a rejected answer), the loop below resumes with its results.
-            pre = (None,) * len(plan)
-            if final == 1 and n_in > 0:
-                pre, fused = self._fused_two_levels(plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt, flat)
-                if pre is None:  # both levels accepted: fused is (qdot, acceleration, the two problems)
-                    problems += fused[2]
-                    solution.qdot = fused[0]
-                    return solution, fused[1]
-                block = fused  # the upper level's block when assembled by the fused call, else None
-                n_eq_before = 0  # (rows_changed holds through n_in > 0 here)
-            for i, (level, entries, backend) in enumerate(plan):
-                if block is None:  # as in _daqp_level
-                    block = np.zeros((n + 2, n))  # fresh: the problem keeps H and f
-                    args = [block, regularization]
-                    for task, J, v in entries:
-                        args += (IDENTITY_ROWS if J is None else J, task.weight, v)
-                    n_eq_before = backend._n_eq
-                    backend._n_eq = _ASSEMBLE_LOAD[len(entries)](
-                        *args, *backend._layout, A, b, G, h, lower, upper, n_eq_before, INF
-                    )
-                rows_changed = n_in > 0 or A.shape[0] > 0 or n_eq_before > 0
-                H, f = block[:n], block[n]
-                block = None
-                problem = _new(QPProblem)
-                problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
-                problems.append(problem)
-                try:
-                    model = backend._model
-                    rate = None
-                    done = pre[i]
-                    if done is not None:  # solved by the fused call: (x, flag, rate or hand-over)
-                        x, flag = done[0], done[1]
-                        if i == final:
-                            rate = done[2]
-                    elif rows_changed and type(model) is NativeModel:
-                        # DAQP's update and solve (the same C calls as daqp.Model's) in one compiled
-                        # call, on the last level with its check, clip and acceleration too.
-                        keep = model._keep
-                        keep["H"], keep["f"] = H, f  # DAQP's problem points at them (as daqp.Model's)
-                        layout = backend._layout
-                        if i == final:
-                            x, flag, rate = update_solve_check_clip_rate(
-                                model._work, model._problem, model._result, model._x, model._lam, H, f, *layout,
-                                lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt,
-                            )
-                        else:
-                            x, flag = update_solve(
-                                model._work, model._problem, model._result, model._x, model._lam, H, f, *layout
-                            )
-                        if flag == LAYOUT_REFUSED:  # not the set-up arrays: daqp.Model's own handling
-                            x, flag = model.update_solve(H, f, *layout)
-                            rate = None
-                        else:
-                            model._has_solved = True
-                    else:
-                        if rows_changed:
-                            model.update(H, f, *backend._layout)
-                        else:  # only bounds and cost moved: skip copying the constraint matrix
-                            model.update(H, f, None, backend._upper, backend._lower)
-                        x, _, flag, _ = model.solve()
-                    if flag < 0:
-                        backend._raise_failure(problem, flag)
-                    if i == final:
-                        if rate is None:
-                            rate = check_clip_rate(
-                                x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, previous_qdot, dt
-                            )
-                        if rate.shape[0]:
-                            solution.qdot = x
-                            return solution, rate
-                    elif A.dtype is _FLOAT64:
-                        # This level's check, clip and equalities, then the next level's assembly.
-                        below_entries, below_backend = plan[i + 1][1], plan[i + 1][2]
-                        m = A.shape[0]
-                        eq_tail = []
-                        for task, J, _v in entries:
-                            weight = task.weight
-                            if J is None:
-                                m += weight.shape[0]
-                                J = IDENTITY_ROWS
-                            else:
-                                m += J.shape[0]
-                            eq_tail += (J, weight)
-                        stack = self._rows_buffer
-                        if stack.shape[0] < m or stack.shape[1] != n:
-                            stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
-                        block = np.zeros((n + 2, n))
-                        args = [block, regularization]
-                        for task, J, v in below_entries:
-                            args += (IDENTITY_ROWS if J is None else J, task.weight, v)
-                        n_eq_before = below_backend._n_eq
-                        if done is not None:  # the fused call's hand-over (block: its lower level's)
-                            accepted, rows, rhs, n_eq = done[2]
-                            block = done[3]
-                        else:
-                            accepted, rows, rhs, n_eq = _HANDOVER[len(entries), len(below_entries)](
-                                x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, stack, *eq_tail,
-                                *args, *below_backend._layout, n_eq_before, INF,
-                            )
-                        if accepted:
-                            below_backend._n_eq = n_eq
-                            A, b = rows, rhs
-                            continue
-                        block = None  # rejected: the level below was left untouched
-                    elif check_clip(x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE):
-                        A, b = self._level_equalities(A, entries, n, x)
-                        continue
-                    # Rejected by the check (x as DAQP returned it): raises as DaqpBackend.solve does.
-                    x = _checked(x, problem, backend.name)
-                except SolverNotAvailableError:
-                    raise
-                except SolverError as first:
-                    x = self._recover(level, problem, retries, CONFIRMING_REPORTS, first)
-                x = clip_inplace(x, lower, upper)
-                if i != final:
-                    A, b = self._level_equalities(A, entries, n, x)
-            solution.qdot = x
-            return solution, None
+            solution = self._cascade(levels, lower, upper, A, b, G, h, retries, CONFIRMING_REPORTS)
         except SolverNotAvailableError:
             raise
         except SolverError as err:
-            solution = self._relaxed(
-                err, n, by_level, box_list, lower, upper, conflicts, A0, b0, G, h, row_limits, retries
-            )
-            return solution, None
-
-
-    def _fused_two_levels(self, plan, n, A0, b0, G, h, lower, upper, previous_qdot, dt, flat=None):
-        """The two levels of ``plan`` (each a :class:`NativeModel` set up for the size, rows present)
-        in one compiled call (``cascade2_*``: the same calls in the same order as the loop of
-        :meth:`_solve_step`). Returns ``(None, (qdot, rate, problems))`` when both levels were
-        accepted, else ``(pre, block)`` for the loop to resume from: per level None (the loop does
-        it) or the fused call's results, and the upper level's assembled block (None: not native).
-        ``flat``: the two levels' task arguments as built below from ``plan``, given by
-        :meth:`_episode_rows` (the episode's task set, no hard rows)."""
-        (level1, entries1, backend1), (level2, entries2, backend2) = plan
-        model1, model2 = backend1._model, backend2._model
-        if type(model1) is not NativeModel or type(model2) is not NativeModel:
-            return (None, None), None
-        native1, native2 = model1._call_args, model2._call_args  # (work, problem, result, x, lam)
-        if native1 is None or native2 is None:  # never set up: the loop's own code
-            return (None, None), None
-        block1 = np.zeros((n + 2, n))  # fresh: the problems keep H and f
-        block2 = np.zeros((n + 2, n))
-        # The kernel's arguments in one call expression (no list grown argument by argument):
-        # ~1 us less per tick than building a 50-item list (the same arrays in the same order).
-        if flat is None:
-            rows1 = []
-            m = A0.shape[0]  # rows the upper level's equalities stack
-            for task, J, v in entries1:
-                weight = task.weight
-                if J is None:
-                    m += weight.shape[0]
-                    J = IDENTITY_ROWS
-                else:
-                    m += J.shape[0]
-                rows1 += (J, weight, v)
-            rows2 = []
-            for task, J, v in entries2:
-                rows2 += (IDENTITY_ROWS if J is None else J, task.weight, v)
-        else:
-            rows1, rows2 = flat
-            m = rows1[0].shape[0] + rows1[3].shape[0]  # the camera's and the gripper's rows, no hard rows above
-        stack = self._rows_buffer
-        if stack.shape[0] < m or stack.shape[1] != n:
-            stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
-        stage, n_eq1, x1, flag1, rows, rhs, n_eq2, x2, flag2, rate = CASCADE2[len(entries1), len(entries2)](
-            block1, self.regularization, *rows1, *native1, *backend1._layout, backend1._n_eq, block2, *rows2,
-            *native2, *backend2._layout, backend2._n_eq, A0, b0, G, h, lower, upper, FEASIBILITY_TOLERANCE, 1e-9,
-            stack, previous_qdot, dt, INF,
-        )
-        backend1._n_eq = n_eq1
-        H1, f1 = block1[:n], block1[n]
-        if flag1 == LAYOUT_REFUSED:  # nothing passed to DAQP: the loop solves the assembled level
-            return (None, None), block1
-        keep = model1._keep
-        keep["H"], keep["f"] = H1, f1  # DAQP's problem points at them (as daqp.Model's)
-        model1._has_solved = True
-        if stage == 0:
-            return ((x1, flag1), None), block1
-        if stage == 1:
-            return ((x1, flag1, (False, rows, rhs, -1), None), None), block1
-        H2, f2 = block2[:n], block2[n]
-        upper_done = (x1, flag1, (True, rows, rhs, n_eq2), block2)
-        if flag2 == LAYOUT_REFUSED:
-            return (upper_done, None), block1
-        keep = model2._keep
-        keep["H"], keep["f"] = H2, f2
-        model2._has_solved = True
-        if stage == 2:
-            return (upper_done, (x2, flag2, rate)), block1
-        backend2._n_eq = n_eq2
-        problem1 = _new(QPProblem)
-        problem1.__dict__.update(H=H1, f=f1, lower=lower, upper=upper, A=A0, b=b0, G=G, h=h, level=level1)
-        problem2 = _new(QPProblem)
-        problem2.__dict__.update(H=H2, f=f2, lower=lower, upper=upper, A=rows, b=rhs, G=G, h=h, level=level2)
-        return None, (x2, rate, [problem1, problem2])
-
-    def _hard_equalities(self, hard, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Orthonormal equality rows of the hard tasks' ``(task, J, v)`` (``J`` None: ``I``)."""
-        hard = [(t, np.eye(n) if J is None else J, v) for t, J, v in hard]
-        for t, J, v in hard:
-            # A hard task must be met exactly: a non-finite target is an error, not a
-            # problem daqp refuses and a retry quietly drops (an audit found the latter).
-            if not (np.all(np.isfinite(v)) and np.all(np.isfinite(J))):
-                raise InvalidInputError(
-                    f"hard task {type(t).__name__} (level 0) computed non-finite rows: target {v.tolist()}"
-                )
-        return _least_squares_rows(
-            np.vstack([J[t.weight > 0] for t, J, _ in hard]), np.concatenate([v[t.weight > 0] for t, _, v in hard])
-        )
-
-    def _relaxed(self, err, n, by_level, box_limits, lower, upper, conflicts, A, b, G, h, row_limits, retries):
-        """:meth:`_solve` after the cascade failed with ``err``: the least relaxation, or ``err``."""
-        # Rows that ask for separation (may be lowered to "no further approach"), per limit.
-        sep = (
-            np.concatenate([
-                np.full(len(rows_h), bool(getattr(limit, "separation_rows", False))) for limit, rows_h in row_limits
-            ])
-            if row_limits else np.zeros(0, dtype=bool)
-        )
-        # First ignore a widening below the solvers' noise; if that leaves the QP
-        # infeasible after all, take the widening exactly as computed.
-        for tolerance in (RELAXATION_TOLERANCE, 0.0):
-            relaxed = self._least_relaxation(n, box_limits, lower, upper, A, b, G, h, sep, retries, tolerance)
-            if relaxed is None:
-                continue
-            lower2, upper2, h2, box_slack, row_slack = relaxed
-            try:
-                solution = self._cascade(n, by_level, lower2, upper2, conflicts, A, b, G, h2, retries)
-                break
-            except SolverError:
-                continue
-        else:
-            raise err from None
-        if np.any(box_slack > 0):
-            solution.relaxed = [
-                type(limit).__name__ for limit in box_limits if limit.priority >= RELAXABLE_PRIORITY
-            ]
-        solution.box_relaxation = box_slack
-        solution.row_relaxation = row_slack
+            solution = self._relaxed(err, levels, box_limits, lowers, uppers, lower, upper, A, b, G, h,
+                                     separating, retries)
+        solution.conflicts = conflicts
         return solution
 
-    def _box_limits(self, limits: Sequence[Limit], n: int) -> list[Limit]:
-        """The box limits in priority order, with row buffers for their boxes (cached).
+    # ------------------------------------------------------------------ the cascade
+    def _cascade(self, levels, lower, upper, A, b, G, h, retries, confirm=None) -> Solution:
+        """Solve the levels in order, each within the optimal set of those before."""
+        n = lower.shape[0]
+        problems = []
+        x = None
+        for i, (level, entries) in enumerate(levels):
+            H, f = assemble_level(entries, n, self.regularization)
+            problem = QPProblem(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
+            problems.append(problem)
+            # Backends meet bounds to their tolerance; clip so joint limits hold exactly.
+            x = clip_inplace(self._solve_level(level, problem, retries, confirm), lower, upper)
+            if i + 1 < len(levels) and entries:
+                # The optimal set of this level: its weighted task velocities stay as found.
+                A, b = level_equalities(A, entries, x)
+        return Solution(qdot=x, problems=problems, lower=lower, upper=upper, retries=retries)
 
-        Also caches, for the same ``limits``: ``_box_rows`` (each box limit with its rows of
-        the buffers), ``_lower_rows`` / ``_upper_rows`` (the buffers' rows in use) and
-        ``_row_limits`` (the limits with inequality rows, in the given order).
-        """
-        key = (n, *map(id, limits))
-        if key != self._box_key:
-            self._box_key = key
-            self._box_list = sorted((limit for limit in limits if limit.has_box), key=lambda lim: lim.priority)
-            self._lowers = np.empty((max(len(self._box_list), 1), n))
-            self._uppers = np.empty((max(len(self._box_list), 1), n))
-            k = len(self._box_list)
-            self._box_rows = [(limit, self._lowers[i], self._uppers[i]) for i, limit in enumerate(self._box_list)]
-            self._lower_rows, self._upper_rows = self._lowers[:k], self._uppers[:k]
-            self._row_limits = [limit for limit in limits if not limit.has_box]
-            self._conflict = np.empty(n, dtype=np.int64)
-            self._no_equalities = (np.zeros((0, n)), np.zeros(0))
-            self._builtin_trio = tuple(map(type, self._box_list)) == (
-                JointVelocityLimit, JointPositionLimit, JointAccelerationLimit
-            )
-        return self._box_list
-
-    def _builtin_boxes(self, configuration, dt: float, previous_qdot: np.ndarray | None):
-        """``(lower, upper, conflicts)`` of the built-in velocity, position and acceleration limits
-        in one compiled call (:func:`builtin_boxes`: their own arithmetic), the buffers' rows filled
-        as their ``fill_box`` fills them; None when a limit was not yet checked against this
-        model or a size does not fit (then each limit's ``fill_box`` runs, with its checks).
-        """
-        velocity, position, acceleration = self._box_list
-        model = configuration.model
-        if velocity._model is not model or position._model is not model or acceleration._model is not model:
-            return None
-        n = configuration.nv
-        lower, upper = np.empty(n), np.empty(n)  # fresh: the solution and its problems keep them
-        conflict = self._conflict  # scratch, read only below
-        count = builtin_boxes(
-            configuration.q, position.lower, position.upper, position.gain, dt, position._braking,
-            velocity.max_velocity, acceleration._zeros if previous_qdot is None else previous_qdot,
-            acceleration.max_acceleration, self._lowers, self._uppers, lower, upper, conflict,
-        )
-        if count < 0:
-            return None
-        conflicts = []
-        if count:
-            conflicts = [
-                BoxConflict(int(j), type(self._box_list[conflict[j]]).__name__) for j in np.flatnonzero(conflict >= 0)
-            ]
-        return lower, upper, conflicts
-
-    # ------------------------------------------------------------------ backends
-    def _solve_qp(self, level: int, problem: QPProblem, retries: list[str], confirm: int | None = None) -> np.ndarray:
+    def _solve_level(self, level: int, problem: QPProblem, retries: list[str], confirm: int | None) -> np.ndarray:
         """Solve with the chosen backend, then with each fallback backend, until one succeeds.
 
-        With ``confirm``, stop after that many backends reported infeasibility (believed).
+        With ``confirm``, stop after that many backends reported infeasibility (believed). When
+        every backend only missed the tolerance, the least violating answer within
+        :data:`ACCEPTABLE_VIOLATION` is taken (``retries`` says so); else the first failure is raised.
         """
-        try:
-            return self._backend(level).solve(problem)
-        except SolverNotAvailableError:
-            raise  # a misconfigured backend is reported, not papered over
-        except SolverError as first:
-            return self._recover(level, problem, retries, confirm, first)
-
-    def _recover(self, level: int, problem: QPProblem, retries: list[str], confirm: int | None,
-                 first: SolverError) -> np.ndarray:
-        """:meth:`_solve_qp` after the chosen backend failed with ``first``: the fallback backends."""
-        first.problem = problem.copy()  # a snapshot: G and h are reused buffers
-        failures = [f"{self.backend_name}: {type(first).__name__}"]
-        reports = int(isinstance(first, InfeasibleProblemError))
-        inaccurate = [(first.violation, first.x, self.backend_name)] if hasattr(first, "violation") else []
-        for name in self.fallback_backends:
+        failures, reports, inaccurate, first = [], 0, [], None
+        for name in (self.backend_name, *self.fallback_backends):
             if name in self._unavailable:
                 continue
             if confirm is not None and reports >= confirm:
                 break
             try:
-                x = self._backend(level, name).solve(problem)
+                x = self._backend(name, level).solve(problem)
             except SolverNotAvailableError:
+                if name == self.backend_name:
+                    raise  # a misconfigured backend is reported, not papered over
                 self._unavailable.add(name)
                 continue
             except SolverError as err:
+                if first is None:
+                    first = err
+                    first.problem = problem.copy()
                 failures.append(f"{name}: {type(err).__name__}")
                 reports += isinstance(err, InfeasibleProblemError)
-                if hasattr(err, "violation"):
+                if isinstance(err, SolverAccuracyError):
                     inaccurate.append((err.violation, err.x, name))
                 continue
-            retries.extend(failures)
+            if failures:
+                retries.extend(failures)
             return x
         if inaccurate:
-            # Last resort before the relaxation and the safe stop: every backend returned a
-            # solution just outside the tolerance; the least violating one is good enough.
             violation, x, name = min(inaccurate, key=lambda item: item[0])
             if violation <= ACCEPTABLE_VIOLATION:
                 retries.extend([*failures, f"accepted {name} at {violation:.1e} relative violation"])
                 return x
         raise first
 
-    def _solve_any(self, problem: QPProblem) -> np.ndarray | None:
-        """Auxiliary QP (relaxation) with each backend in turn; None when all report failure.
-
-        Infeasibility reported by :data:`CONFIRMING_REPORTS` backends is believed.
-        """
-        reports = 0
-        for name in (self.backend_name, *self.fallback_backends):
-            if name in self._unavailable:
-                continue
-            if reports >= CONFIRMING_REPORTS:
-                break
-            try:
-                return make_backend(name).solve(problem)
-            except SolverNotAvailableError:
-                self._unavailable.add(name)
-            except InfeasibleProblemError:
-                reports += 1
-            except SolverError:
-                continue
-        return None
-
-    # ------------------------------------------------------------------ cascade
-    def _cascade(self, n, by_level, lower, upper, conflicts, A, b, G, h, retries, confirm=None) -> Solution:
-        """Solve the levels in order, each within the optimal set of those before."""
-        # The dataclasses' constructors without their call overhead (the same instance state).
-        solution = _new(Solution)
-        solution.__dict__.update(
-            qdot=None, problems=[], lower=lower, upper=upper, conflicts=conflicts, relaxed=[],
-            box_relaxation=None, row_relaxation=None, retries=retries,
-        )
-        problems = solution.problems
-        levels = sorted(by_level) or [1]
-        last = levels[-1]
-        regularization = self.regularization
-        # DAQP levels whose model is set up for this size take the fused path (_daqp_level).
-        daqp = self._backends if self.backend_name == "daqp" else None
-        n_in = G.shape[0]
-        shape = (n, n_in)
-        for level in levels:
-            entries = by_level.get(level, ())
-            count = len(entries)
-            if daqp is not None and 0 < count <= 4:
-                backend = daqp.get(("daqp", level))
-                # Only DAQP's own backend (a replaced or subclassed one keeps its own solve).
-                if type(backend) is DaqpBackend and backend._model is not None and backend._shape == shape:
-                    x, A, b = self._daqp_level(
-                        backend, level, level != last, n, entries, lower, upper, A, b, G, h, retries, confirm, problems
-                    )
-                    continue
-            # H, f and the floor (weight joint-space tasks already put on each joint) as rows of
-            # one fresh block: one allocation instead of three (H and f stay contiguous).
-            block = np.zeros((n + 2, n))
-            H, f, floor = block[:n], block[n], block[n + 1]
-            # Top the diagonal up to the regularization only where it is missing, so a
-            # damped problem stays exactly the damped least-squares problem.
-            if 0 < count <= 4:
-                # One compiled call for the level: each task's kernel in order, then the top-up.
-                args = [H, f, floor, regularization]
-                for task, J, v in entries:
-                    args += (IDENTITY_ROWS if J is None else J, task.weight, v)
-                if count == 2:
-                    assemble_level_2(*args)
-                elif count == 3:
-                    assemble_level_3(*args)
-                elif count == 1:
-                    assemble_level_1(*args)
-                else:
-                    assemble_level_4(*args)
-            else:
-                reg = regularization if entries else max(regularization, 1e-12)
-                for task, J, v in entries:
-                    if J is None:  # joint-space task: J = I
-                        accumulate_diagonal(H, f, task.weight, v, floor)
-                    else:
-                        accumulate_task(H, f, J, task.weight, v)
-                top_up_diagonal(H, floor, reg)
-            problem = _new(QPProblem)
-            problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
-            problems.append(problem)
-            x = self._solve_qp(level, problem, retries, confirm)
-            # Backends meet bounds to their tolerance; clip so joint limits hold exactly.
-            x = clip_inplace(x, lower, upper)
-            if level != last and entries:
-                # The optimal set of this level: its weighted task velocities stay as found.
-                A, b = self._level_equalities(A, entries, n, x)
-        solution.qdot = x
-        return solution
-
-    def _daqp_level(self, backend, level, below, n, entries, lower, upper, A, b, G, h, retries, confirm, problems):
-        """One level of :meth:`_cascade` on a DAQP model already set up for its size: the same
-        operations as the general path (assembly, DAQP's layout, update and solve, the
-        feasibility check, the clip, and with ``below`` the level's equalities) in two compiled
-        calls around DAQP's. Returns ``(x, A, b)``: the level's solution and the equalities
-        for the levels below (``A``, ``b`` unchanged when ``below`` is False).
-        """
-        count = len(entries)
-        block = np.zeros((n + 2, n))  # H, f, floor: fresh, the problem keeps H and f
-        H, f = block[:n], block[n]
-        # One pass over the tasks: the assembly's (J, w, v) and the equalities' (J, w) arguments
-        # and the rows the equalities stack (A's and every task's).
-        args = [block, self.regularization]
-        eq_tail = []
-        m = A.shape[0]
-        for task, J, v in entries:
-            weight = task.weight
-            if J is None:
-                m += weight.shape[0]
-                J = IDENTITY_ROWS
-            else:
-                m += J.shape[0]
-            args += (J, weight, v)
-            eq_tail += (J, weight)
-        n_eq_before = backend._n_eq
-        rows_changed = G.shape[0] > 0 or A.shape[0] > 0 or n_eq_before > 0
-        backend._n_eq = _ASSEMBLE_LOAD[count](*args, *backend._layout, A, b, G, h, lower, upper, n_eq_before, INF)
-        problem = _new(QPProblem)
-        problem.__dict__.update(H=H, f=f, lower=lower, upper=upper, A=A, b=b, G=G, h=h, level=level)
-        problems.append(problem)
-        try:
-            # The episode's levels take _solve_step's fused cascade; this general path calls
-            # the backend's own update and solve (raises on DAQP's failure flag).
-            x = backend._update_solve(problem, H, f, rows_changed)
-            if below and count <= 3 and A.dtype is _FLOAT64:
-                stack = self._rows_buffer
-                if stack.shape[0] < m or stack.shape[1] != n:
-                    stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
-                accepted, rows, rhs = _CHECK_CLIP_EQUALITIES[count](
-                    x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE, 1e-9, stack, *eq_tail
+    def _hard_equalities(self, hard, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Orthonormal equality rows of the hard tasks' ``(task, J, v)`` (``J`` None: ``I``)."""
+        for task, J, v in hard:
+            # A hard task must be met exactly: a non-finite target is an error, not a
+            # problem daqp refuses and a retry quietly drops (an audit found the latter).
+            if not (np.all(np.isfinite(v)) and (J is None or np.all(np.isfinite(J)))):
+                raise InvalidInputError(
+                    f"hard task {type(task).__name__} (level 0) computed non-finite rows: target {v.tolist()}"
                 )
-                if accepted:
-                    return x, rows, rhs
-            elif check_clip(x, lower, upper, A, b, G, h, FEASIBILITY_TOLERANCE):
-                if below:
-                    A, b = self._level_equalities(A, entries, n, x)
-                return x, A, b
-            # Rejected by the check (x as DAQP returned it): raises as DaqpBackend.solve does.
-            x = _checked(x, problem, backend.name)
-        except SolverNotAvailableError:
-            raise
-        except SolverError as first:
-            x = self._recover(level, problem, retries, confirm, first)
-        x = clip_inplace(x, lower, upper)
-        if below:
-            A, b = self._level_equalities(A, entries, n, x)
-        return x, A, b
-
-    def _level_rows(self, A: np.ndarray, entries, n: int) -> np.ndarray:
-        """``A`` stacked over each task's rows ``sqrt(w_r) J_r`` with ``w_r > 0`` (``J = I`` for
-        joint-space tasks): the rows that hold a level's optimum for the levels below it.
-
-        Bit for bit ``np.vstack([A, *[(np.sqrt(w)[:, None] * J)[w > 0] ...]])``, written into a
-        buffer kept between steps (the caller only reads it before the next step).
-        """
-        m = A.shape[0] + sum(task.weight.shape[0] if J is None else J.shape[0] for task, J, _ in entries)
-        buffer = self._rows_buffer
-        if buffer.shape[0] < m or buffer.shape[1] != n:
-            buffer = self._rows_buffer = np.empty((max(m, buffer.shape[0]), n))
-        row = A.shape[0]
-        if row:
-            buffer[:row] = A
-        for task, J, _ in entries:
-            if J is None:
-                row = weighted_identity_rows(task.weight, buffer, row)
-            else:
-                row = weighted_rows(J, task.weight, buffer, row)
-        return buffer[:row]
-
-    def _level_equalities(self, A: np.ndarray, entries, n: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Orthonormal equality rows (and right-hand side) that hold this level's optimum ``x``:
-        ``A`` and the level's weighted task rows, as ``_orthonormal_rows(rows, rows @ x)``, in one
-        compiled call for 1-3 tasks (:func:`level_equalities_2` etc.)."""
-        count = len(entries)
-        if count > 3 or A.dtype != np.float64:
-            A_lvl = self._level_rows(A, entries, n)
-            return _orthonormal_rows(A_lvl, A_lvl @ x)
-        m = A.shape[0]
-        args = [A, x, 1e-9, None]
-        for task, J, _ in entries:
-            weight = task.weight
-            if J is None:
-                m += weight.shape[0]
-                args += (IDENTITY_ROWS, weight)
-            else:
-                m += J.shape[0]
-                args += (J, weight)
-        stack = self._rows_buffer
-        if stack.shape[0] < m or stack.shape[1] != n:
-            stack = self._rows_buffer = np.empty((max(m, stack.shape[0]), n))
-        args[3] = stack
-        if count == 2:
-            return level_equalities_2(*args)
-        if count == 1:
-            return level_equalities_1(*args)
-        return level_equalities_3(*args)
+        A = np.vstack([(np.eye(n) if J is None else J)[t.weight > 0] for t, J, _ in hard])
+        b = np.concatenate([v[t.weight > 0] for t, _, v in hard])
+        return least_squares_rows(A, b)
 
     # ------------------------------------------------------------------ relaxation
-    def _least_relaxation(self, n, box_limits, lower, upper, A, b, G, h, separating, retries, tolerance=0.0):
+    def _relaxed(self, err, levels, box_limits, lowers, uppers, lower, upper, A, b, G, h, separating,
+                 retries) -> Solution:
+        """The cascade after it failed with ``err``: under the least relaxation, or ``err`` raised."""
+        # The safety boxes (speed, position) come first in priority order.
+        k = sum(limit.priority < RELAXABLE_PRIORITY for limit in box_limits)
+        safe_lower, safe_upper, _ = combine_boxes(box_limits[:k], lowers[:k], uppers[:k], lower.shape[0])
+        # First ignore a widening below the solvers' noise; if that leaves the QP
+        # infeasible after all, take the widening exactly as computed.
+        for tolerance in (RELAXATION_TOLERANCE, 0.0):
+            relaxed = self._least_relaxation(safe_lower, safe_upper, lower, upper, A, b, G, h, separating, tolerance)
+            if relaxed is None:
+                continue
+            lower2, upper2, h2, box_slack, row_slack = relaxed
+            try:
+                solution = self._cascade(levels, lower2, upper2, A, b, G, h2, retries)
+                break
+            except SolverError:
+                continue
+        else:
+            raise err from None
+        if np.any(box_slack > 0):
+            solution.relaxed = [type(limit).__name__ for limit in box_limits if limit.priority >= RELAXABLE_PRIORITY]
+        solution.box_relaxation = box_slack
+        solution.row_relaxation = row_slack
+        return solution
+
+    def _least_relaxation(self, safe_lower, safe_upper, lower, upper, A, b, G, h, separating, tolerance=0.0):
         """Least widening of the relaxable box, then least separation given up, that make the QP feasible.
 
         Stage 1: ``min ||s||^2`` over ``(x, s)`` with ``x`` in the safety box (speed and
@@ -1147,10 +489,7 @@ class Solver:
 
         Returns ``(lower, upper, h, box_slack, row_slack)`` or None when even this is infeasible.
         """
-        safe = [limit for limit in box_limits if limit.priority < RELAXABLE_PRIORITY]
-        k = len(safe)
-        safe_lower, safe_upper, _ = _intersect(safe, self._lowers[:k], self._uppers[:k], n)
-        m = G.shape[0]
+        n, m = lower.shape[0], G.shape[0]
         h_floor = np.where(separating & (h < 0), 0.0, h)
         eye = np.eye(n)
         # Stage 1 over z = [x, s].
@@ -1161,13 +500,12 @@ class Solver:
             np.hstack([-eye, -eye])[finite_lo],
         ])
         h1 = np.concatenate([h_floor, upper[finite_hi], -lower[finite_lo]])
-        H1 = np.diag(np.concatenate([np.full(n, 1e-9), np.ones(n)]))
         stage1 = QPProblem(
-            H=H1, f=np.zeros(2 * n),
+            H=np.diag(np.concatenate([np.full(n, 1e-9), np.ones(n)])), f=np.zeros(2 * n),
             lower=np.concatenate([safe_lower, np.zeros(n)]), upper=np.concatenate([safe_upper, np.full(n, INF)]),
             A=np.hstack([A, np.zeros((A.shape[0], n))]), b=b, G=G1, h=h1,
         )
-        z = self._solve_any(stage1)
+        z = self._solve_auxiliary(stage1)
         if z is None:
             return None
         box_slack = np.maximum(z[n:], 0.0)
@@ -1185,12 +523,33 @@ class Solver:
                 lower=np.concatenate([lower2, np.zeros(p)]), upper=np.concatenate([upper2, -h[asking]]),
                 A=np.hstack([A, np.zeros((A.shape[0], p))]), b=b, G=np.hstack([G, -E]), h=h.copy(),
             )
-            z2 = self._solve_any(stage2)
+            z2 = self._solve_auxiliary(stage2)
             if z2 is None:
                 return None
             t = np.clip(z2[n:], 0.0, -h[asking])
             row_slack[asking] = np.minimum(t + RELAXATION_MARGIN, -h[asking])
         return lower2, upper2, h + row_slack, box_slack, row_slack
+
+    def _solve_auxiliary(self, problem: QPProblem) -> np.ndarray | None:
+        """A relaxation QP with each backend in turn (fresh workspaces); None when all report failure.
+
+        Infeasibility reported by :data:`CONFIRMING_REPORTS` backends is believed.
+        """
+        reports = 0
+        for name in (self.backend_name, *self.fallback_backends):
+            if name in self._unavailable:
+                continue
+            if reports >= CONFIRMING_REPORTS:
+                break
+            try:
+                return self._make(name, None).solve(problem)
+            except SolverNotAvailableError:
+                self._unavailable.add(name)
+            except InfeasibleProblemError:
+                reports += 1
+            except SolverError:
+                continue
+        return None
 
 
 def solve_ik(
@@ -1206,4 +565,6 @@ def solve_ik(
     return Solver(solver).solve(configuration, tasks, limits, dt, previous_qdot=previous_qdot).qdot
 
 
-__all__ = ["INF", "QPProblem", "Solution", "Solver", "solve_ik", "SolverError", "InfeasibleProblemError"]
+__all__ = [
+    "INF", "BoxConflict", "QPProblem", "Solution", "Solver", "solve_ik", "SolverError", "InfeasibleProblemError",
+]

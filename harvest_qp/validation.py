@@ -11,17 +11,12 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from harvest_qp.exceptions import DimensionError, InvalidInputError
 from harvest_qp.qp_kernels import all_finite
-
-if TYPE_CHECKING:  # imported lazily below: configuration.py and the tasks import this module
-    from harvest_qp.configuration import Configuration
-    from harvest_qp.limits.limit import Limit
-    from harvest_qp.tasks.task import Task
 
 #: Largest deviation of ``R^T R`` from ``I`` (and of ``det R`` from 1) accepted for a rotation.
 ROTATION_TOLERANCE = 1e-6
@@ -230,72 +225,27 @@ def as_bounds(
     return lo, hi
 
 
-def as_configuration(value: Any, name: str = "configuration") -> Configuration:
-    """``value`` if it is a :class:`~harvest_qp.configuration.Configuration`."""
-    from harvest_qp.configuration import Configuration
-
-    if not isinstance(value, Configuration):
-        raise InvalidInputError(
-            f"{name} must be a harvest_qp Configuration, got {type(value).__name__}: {describe(value)}"
-        )
-    return value
-
-
-def check_tasks(
-    tasks: Iterable[Task], configuration: Configuration | None = None, *, name: str = "tasks"
-) -> list[Task]:
-    """The tasks as a list, after checking each is a :class:`~harvest_qp.tasks.Task`.
-
-    The list must not be empty (a QP without a task has no objective). With a
-    ``configuration``, each task's sizes and frames are also checked against its model
-    (:meth:`Task.check_configuration`), so a wrong task fails when the controller is
-    built instead of at its first tick.
+def as_instances(items: Any, kind: type, name: str, *, allow_empty: bool = True) -> list:
+    """``items`` as a list after checking each is a ``kind`` (e.g. the tasks or limits of a QP).
 
     Raises:
-        InvalidInputError: not a sequence of tasks, or empty.
-        DimensionError: a task's size disagrees with the model.
-        UnknownFrameError: a task names a frame the model lacks.
+        InvalidInputError: ``items`` is not a sequence (a single ``kind``, a string), is empty when
+            ``allow_empty`` is False, or holds another type: the message names the position and
+            the type, e.g. ``tasks[1] must be a Task, got str: 'posture'``.
     """
-    from harvest_qp.tasks.task import Task
-
-    if isinstance(tasks, (Task, str, bytes)) or not isinstance(tasks, Iterable):
-        raise InvalidInputError(f"{name} must be a sequence of Task objects, got {describe(tasks)}")
-    items = list(tasks)
-    if not items:
-        raise InvalidInputError(f"{name} must hold at least one Task, got an empty {type(tasks).__name__}")
-    for i, task in enumerate(items):
-        if not isinstance(task, Task):
-            raise InvalidInputError(f"{name}[{i}] must be a Task, got {type(task).__name__}: {describe(task)}")
-    if configuration is not None:
-        as_configuration(configuration)
-        for task in items:
-            task.check_configuration(configuration)
-    return items
+    kind_name = kind.__name__
+    if isinstance(items, (kind, str, bytes)) or not isinstance(items, Iterable):
+        raise InvalidInputError(f"{name} must be a sequence of {kind_name} objects, got {describe(items)}")
+    listed = list(items)
+    if not listed and not allow_empty:
+        raise InvalidInputError(f"{name} must hold at least one {kind_name}, got an empty {type(items).__name__}")
+    for i, item in enumerate(listed):
+        if not isinstance(item, kind):
+            raise InvalidInputError(f"{name}[{i}] must be a {kind_name}, got {type(item).__name__}: {describe(item)}")
+    return listed
 
 
-def check_limits(
-    limits: Iterable[Limit], configuration: Configuration | None = None, *, name: str = "limits"
-) -> list[Limit]:
-    """The limits as a list (may be empty), after checking each is a :class:`~harvest_qp.limits.Limit`.
-
-    With a ``configuration``, each limit's sizes are also checked against its model.
-    """
-    from harvest_qp.limits.limit import Limit
-
-    if isinstance(limits, (Limit, str, bytes)) or not isinstance(limits, Iterable):
-        raise InvalidInputError(f"{name} must be a sequence of Limit objects, got {describe(limits)}")
-    items = list(limits)
-    for i, limit in enumerate(items):
-        if not isinstance(limit, Limit):
-            raise InvalidInputError(f"{name}[{i}] must be a Limit, got {type(limit).__name__}: {describe(limit)}")
-    if configuration is not None:
-        as_configuration(configuration)
-        for limit in items:
-            limit.check_configuration(configuration)
-    return items
-
-
-def check_task_rows(task: Task, J: np.ndarray | None, v: np.ndarray, nv: int) -> None:
+def check_task_rows(task: Any, J: np.ndarray | None, v: np.ndarray, nv: int) -> None:
     """Raise :class:`DimensionError` unless ``J`` (or ``None`` = identity) and ``v`` fit ``task`` and ``nv``.
 
     The solver's compiled kernels index ``H`` (nv x nv) by ``J``'s columns and read
@@ -317,7 +267,7 @@ def check_task_rows(task: Task, J: np.ndarray | None, v: np.ndarray, nv: int) ->
         )
 
 
-def check_limit_rows(limit: Limit, G: np.ndarray | None, h: np.ndarray | None, nv: int) -> None:
+def check_limit_rows(limit: Any, G: np.ndarray | None, h: np.ndarray | None, nv: int) -> None:
     """Raise :class:`DimensionError` unless inequality rows ``G qdot <= h`` of ``limit`` fit ``nv``.
 
     For the solver, on rows from :meth:`Limit.compute` (user code): the feasibility

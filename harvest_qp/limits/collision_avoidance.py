@@ -107,12 +107,6 @@ class KinematicTree:
         self.joint_R = np.zeros((nj, 3, 3))
         self.joint_p = np.zeros((nj, 3))
 
-    def __setattr__(self, name: str, value) -> None:
-        # An array replaced after construction drops the owning limit's cached kernel arguments
-        # (CollisionAvoidance._step_args checks this counter).
-        object.__setattr__(self, name, value)
-        self.__dict__["_version"] = self.__dict__.get("_version", 0) + 1
-
     def update(self, q: np.ndarray) -> None:
         """World placements of all joints at ``q`` [rad]."""
         kernels.forward_kinematics(
@@ -144,17 +138,6 @@ class CollisionAvoidance(Limit):
     priority = 5
     #: Rows with a negative bound ask for separation and may be lowered to "no approach".
     separation_rows = True
-    #: compute's kernel arguments after ``q`` (None: rebuilt at the next compute), and the
-    #: tree's ``_version`` they were built at.
-    _step_args: tuple | None = None
-    _step_tree: tuple | None = None
-
-    def __setattr__(self, name: str, value) -> None:
-        # Any assignment (a distance, the gain, the obstacle spheres' new buffers, the approach
-        # pairs, another tree) drops compute's cached argument tuple; compute itself writes its
-        # two per-tick attributes into __dict__ directly.
-        object.__setattr__(self, name, value)
-        self.__dict__["_step_args"] = None
 
     def __init__(
         self,
@@ -285,6 +268,11 @@ class CollisionAvoidance(Limit):
         """Robot capsules whose obstacle-sphere rows never ask for separation (:meth:`set_approach_only`)."""
         return [n for n, hold in zip(self._robot["names"], self._approach_only) if hold]
 
+    @property
+    def approach_only_pairs(self) -> list[tuple[str, str]]:
+        """Candidate pairs (by capsule name) whose rows never ask for separation (:meth:`set_approach_only`)."""
+        return [self.pair_names()[k] for k in np.flatnonzero(self._approach_pair)]
+
     def _update_approach_pairs(self) -> None:
         """Which candidate pairs are (approach-only capsule, obstacle sphere)."""
         nr = len(self._robot["names"])
@@ -372,14 +360,27 @@ class CollisionAvoidance(Limit):
         """Exact surface distance [m] of every candidate pair (no broadphase), in pair order."""
         return self._distances(configuration, np.inf).copy()
 
+    def capsule_segments(self, configuration: Configuration) -> tuple[np.ndarray, np.ndarray]:
+        """World end points [m] (two arrays, one row per capsule, in ``capsule_names`` order) at
+        the configuration's ``q``."""
+        self._distances(configuration, 0.0)
+        return self._w0.copy(), self._w1.copy()
+
     def pair_names(self) -> list[tuple[str, str]]:
         """Candidate pairs by capsule name, in the order of :meth:`distances`."""
         return [(self.capsule_names[a], self.capsule_names[b]) for a, b in zip(self.pair_a, self.pair_b)]
 
-    def _kernel_args(self) -> tuple:
-        """compute's kernel arguments after ``q``, in the kernel's order (cached: see compute)."""
+    def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
+        """The damper rows ``G qdot <= h`` of the closest pairs at the configuration's ``q``.
+
+        One compiled call: the distances, the rows, then (with approach-only capsules) "no
+        further approach" for those capsules against obstacle spheres (a negative bound inside
+        ``d_s`` would push the capsule away). Rows ``0..len(active_pairs)-1`` belong to
+        :attr:`active_pairs` in order; end-point rows follow.
+        """
         tree = self.tree
-        args = (
+        n_pairs, n_rows = kernels.collision_step_clamped(
+            configuration.q,
             tree.parent, tree.idx_v, tree.joint_type, tree.axis, tree.place_R, tree.place_p,
             tree.joint_R, tree.joint_p, self.cap_joint, self.cap_p0, self.cap_p1, self.cap_radius,
             self._w0, self._w1, self.pair_a, self.pair_b, self._dist, self._s, self._t,
@@ -388,38 +389,15 @@ class CollisionAvoidance(Limit):
             self._G, self._h, self.normals, self._selected, self._row_pair, self._row_s, self._row_t, self._row_d,
             self._approach_pair, self._any_approach_only,
         )
-        state = self.__dict__
-        state["_step_args"] = args
-        state["_step_tree"] = (tree, tree.__dict__.get("_version"))
-        return args
-
-    def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
-        # One compiled call: the rows, then (with approach-only capsules) "no further approach"
-        # for those capsules against obstacle spheres: a negative bound (inside d_s) would push
-        # the capsule away (kernels.clamp_approach_rows). Its 37 arguments after q are this
-        # limit's and its tree's arrays and settings, the same objects every tick (the obstacle
-        # map's feed writes into them): they are read once, and again after any assignment to an
-        # attribute of the limit or the tree (both __setattr__ drop the cached tuple).
-        # A subclass may compute a setting in a property (an audit's gain read from a dict
-        # edited in place): its arguments are read every tick.
-        state = self.__dict__
-        args = state["_step_args"] if "_step_args" in state else None
-        tree = self.tree
-        if (args is None or state["_step_tree"] != (tree, tree.__dict__.get("_version"))
-                or type(self) is not CollisionAvoidance):
-            args = self._kernel_args()
-        n_pairs, n_rows = kernels.collision_step_clamped(configuration.q, *args)
-        # Rows 0..n_pairs-1 belong to active_pairs in order; end-point rows follow (written into
-        # __dict__: an assignment would drop the cached arguments).
-        state["active_pairs"] = self._selected[:n_pairs]
-        state["num_rows"] = n_rows
+        self.active_pairs = self._selected[:n_pairs]
+        self.num_rows = n_rows
         return self._limit_rows
 
     def active_pair_distances(self) -> list[tuple[str, str, float]]:
         """Pairs that were rows of the last :meth:`compute`: both capsule names and distance [m]."""
-        return pairs_from_snapshot(self._active_pair_snapshot())
+        return pairs_from_snapshot(self.active_pair_snapshot())
 
-    def _active_pair_snapshot(self) -> tuple:
+    def active_pair_snapshot(self) -> tuple:
         """What :meth:`active_pair_distances` needs, frozen now (names and distances change next tick)."""
         active = self.active_pairs
         # capsule_names is changed in place by the obstacle map's feed: copy it (a shallow copy);
@@ -433,6 +411,6 @@ class CollisionAvoidance(Limit):
 
 
 def pairs_from_snapshot(snapshot: tuple) -> list[tuple[str, str, float]]:
-    """``(name_a, name_b, distance [m])`` of each pair of a ``CollisionAvoidance._active_pair_snapshot``."""
+    """``(name_a, name_b, distance [m])`` of each pair of a ``CollisionAvoidance.active_pair_snapshot``."""
     names, pair_a, pair_b, active, distances = snapshot
     return [(names[pair_a[k]], names[pair_b[k]], float(d)) for k, d in zip(active.tolist(), distances.tolist())]

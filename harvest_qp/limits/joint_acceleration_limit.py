@@ -5,19 +5,18 @@ from __future__ import annotations
 import numpy as np
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.limits.limit import Limit, LimitRows
+from harvest_qp.limits.limit import BoxLimit
 from harvest_qp.qp_kernels import acceleration_bounds
 from harvest_qp.validation import as_nonnegative_vector
 
 
-class JointAccelerationLimit(Limit):
+class JointAccelerationLimit(BoxLimit):
     """``|qdot - qdot_prev| <= a_max dt`` with ``a_max`` [rad/s^2].
 
     Without a previous command (first step) the previous command is taken as zero.
     """
 
     priority = 2
-    has_box = True
 
     def __init__(self, configuration: Configuration, *, max_acceleration: float | np.ndarray = 10.0):
         self.max_acceleration = as_nonnegative_vector(max_acceleration, configuration.nv, "max_acceleration")
@@ -27,11 +26,6 @@ class JointAccelerationLimit(Limit):
     def check_configuration(self, configuration: Configuration) -> None:
         """Raise :class:`~harvest_qp.exceptions.DimensionError` unless the limit fits ``configuration``'s model."""
         self._check_joint_vectors(configuration, max_acceleration=self.max_acceleration)
-
-    def compute(self, configuration: Configuration, dt: float, previous_qdot=None) -> LimitRows:
-        lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
-        self.fill_box(configuration, dt, previous_qdot, lower, upper)
-        return LimitRows(lower=lower, upper=upper)
 
     def fill_box(self, configuration: Configuration, dt: float, previous_qdot, lower, upper) -> None:
         # The compiled bounds read max_acceleration by joint: a limit built for a smaller

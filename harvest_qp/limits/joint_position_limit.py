@@ -6,13 +6,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from harvest_qp.configuration import Configuration
-from harvest_qp.limits.limit import Limit, LimitRows
+from harvest_qp.configuration import Configuration, as_configuration
+from harvest_qp.limits.limit import BoxLimit
 from harvest_qp.qp_kernels import position_limit_bounds
-from harvest_qp.validation import as_bounds, as_configuration, as_nonnegative_vector, as_positive_scalar, as_scalar
+from harvest_qp.validation import as_bounds, as_nonnegative_vector, as_scalar
 
 
-class JointPositionLimit(Limit):
+class JointPositionLimit(BoxLimit):
     """Keep ``q + qdot dt`` inside ``[q_min, q_max]``.
 
     ``gain * (q_min - q) / dt <= qdot <= gain * (q_max - q) / dt`` with ``gain`` in (0, 1]:
@@ -29,7 +29,6 @@ class JointPositionLimit(Limit):
     """
 
     priority = 1
-    has_box = True
 
     def __init__(
         self,
@@ -62,14 +61,6 @@ class JointPositionLimit(Limit):
         self._check_joint_vectors(configuration, lower=self.lower, upper=self.upper)
         if self.max_acceleration is not None:
             self._check_joint_vectors(configuration, max_acceleration=self.max_acceleration)
-
-    def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
-        """The velocity box [rad/s] for a step of ``dt`` [s] from the configuration's ``q``."""
-        dt = as_positive_scalar(dt, "JointPositionLimit dt")
-        self._ensure_bound(configuration)
-        lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
-        self.fill_box(configuration, dt, previous_qdot, lower, upper)
-        return LimitRows(lower=lower, upper=upper)
 
     def fill_box(
         self,

@@ -6,12 +6,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from harvest_qp.configuration import Configuration
-from harvest_qp.limits.limit import Limit, LimitRows
-from harvest_qp.validation import as_configuration, as_nonnegative_vector
+from harvest_qp.configuration import Configuration, as_configuration
+from harvest_qp.limits.limit import BoxLimit
+from harvest_qp.validation import as_nonnegative_vector
 
 
-class JointVelocityLimit(Limit):
+class JointVelocityLimit(BoxLimit):
     """``|qdot| <= v_max`` [rad/s] (the model's limits, pi rad/s on a UR5e, by default).
 
     Args:
@@ -20,7 +20,6 @@ class JointVelocityLimit(Limit):
     """
 
     priority = 0
-    has_box = True
 
     def __init__(
         self, configuration: Configuration, *, max_velocity: float | np.ndarray | Sequence[float] | None = None
@@ -32,11 +31,6 @@ class JointVelocityLimit(Limit):
 
     def check_configuration(self, configuration: Configuration) -> None:
         self._check_joint_vectors(configuration, max_velocity=self.max_velocity)
-
-    def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
-        """The box ``[-v_max, v_max]`` [rad/s] (independent of ``dt`` [s])."""
-        self._ensure_bound(configuration)
-        return LimitRows(lower=-self.max_velocity, upper=self.max_velocity.copy())
 
     def fill_box(
         self,

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import functools
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
 
-from harvest_qp.configuration import Configuration
+from harvest_qp.configuration import Configuration, as_configuration
 from harvest_qp.exceptions import DimensionError
-from harvest_qp.validation import as_configuration, check_limit_rows
+from harvest_qp.validation import as_instances, as_positive_scalar, check_limit_rows
 
 #: Limits defined in this package: their rows' sizes come from the checked model.
 _BUILT_IN_PREFIX = "harvest_qp.limits."
@@ -135,3 +136,52 @@ class Limit(ABC):
     @abstractmethod
     def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
         """Rows of this limit at the configuration's state, for a step of ``dt`` [s]."""
+
+
+class BoxLimit(Limit):
+    """A limit that is a velocity box ``lower <= qdot <= upper`` [rad/s] and no rows.
+
+    Subclasses write the box in :meth:`fill_box` (the solver calls it every tick with its own
+    buffers); :meth:`compute` returns it in fresh arrays.
+    """
+
+    has_box = True
+
+    def compute(self, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None) -> LimitRows:
+        """The velocity box [rad/s] for a step of ``dt`` [s] at the configuration's state."""
+        dt = as_positive_scalar(dt, f"{type(self).__name__} dt")
+        self._ensure_bound(configuration)
+        lower, upper = np.empty(configuration.nv), np.empty(configuration.nv)
+        self.fill_box(configuration, dt, previous_qdot, lower, upper)
+        return LimitRows(lower=lower, upper=upper)
+
+    @abstractmethod
+    def fill_box(
+        self,
+        configuration: Configuration,
+        dt: float,
+        previous_qdot: np.ndarray | None,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> None:
+        """Write this limit's box [rad/s] into ``lower`` and ``upper`` (one entry per joint)."""
+
+
+def check_limits(
+    limits: Iterable[Limit], configuration: Configuration | None = None, *, name: str = "limits"
+) -> list[Limit]:
+    """The limits as a list (may be empty), after checking each is a :class:`Limit`.
+
+    With a ``configuration``, each limit's sizes are also checked against its model.
+
+    Raises:
+        InvalidInputError: not a sequence of limits, or an item that is not a Limit (the
+            message names its position and type, e.g. ``limits[1] must be a Limit, got int``).
+        DimensionError: a limit's size disagrees with the model.
+    """
+    items = as_instances(limits, Limit, name, allow_empty=True)
+    if configuration is not None:
+        as_configuration(configuration)
+        for limit in items:
+            limit.check_configuration(configuration)
+    return items

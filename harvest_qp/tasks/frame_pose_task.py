@@ -8,12 +8,11 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_name, as_rotation, as_vector
+from harvest_qp.tasks.pose_target import PoseTargetTask
+from harvest_qp.validation import as_name, as_vector
 
 
-class FramePoseTask(Task):
+class FramePoseTask(PoseTargetTask):
     """``J qdot = gain * e + V_ff`` with the pose error ``e = [p* - p; log(R* R^T)]`` (world).
 
     Args:
@@ -25,31 +24,11 @@ class FramePoseTask(Task):
 
     def __init__(self, frame: str, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0) -> None:
         self.frame = as_name(frame, "FramePoseTask frame")
-        super().__init__(6, weight=weight, level=level, gain=gain)
-        self._target_position: np.ndarray | None = None
-        self._target_rotation: np.ndarray | None = None
+        super().__init__(weight=weight, level=level, gain=gain)
         self._feedforward = np.zeros(6)
 
     def _label(self) -> str:
         return f"FramePoseTask({getattr(self, 'frame', '?')!r})"
-
-    @property
-    def target_position(self) -> np.ndarray | None:
-        """Target position [m] (world), None before :meth:`set_target`."""
-        return self._target_position
-
-    @target_position.setter
-    def target_position(self, value: np.ndarray | Sequence[float]) -> None:
-        self._target_position = as_vector(value, 3, f"{self._label()} target position")
-
-    @property
-    def target_rotation(self) -> np.ndarray | None:
-        """Target rotation matrix (world), None before :meth:`set_target`."""
-        return self._target_rotation
-
-    @target_rotation.setter
-    def target_rotation(self, value: np.ndarray | Sequence[Sequence[float]]) -> None:
-        self._target_rotation = as_rotation(value, f"{self._label()} target rotation")
 
     @property
     def feedforward(self) -> np.ndarray:
@@ -68,11 +47,9 @@ class FramePoseTask(Task):
         feedforward: np.ndarray | Sequence[float] | None = None,
     ) -> None:
         """Target position [m] and rotation matrix (world), optional feed-forward twist [m/s, rad/s]."""
-        label = self._label()
         # Check everything before assigning anything: a rejected call leaves the old target.
-        position = as_vector(position, 3, f"{label} target position")
-        rotation = as_rotation(rotation, f"{label} target rotation")
-        feedforward = np.zeros(6) if feedforward is None else as_vector(feedforward, 6, f"{label} feedforward")
+        position, rotation = self._checked_target(position, rotation)
+        feedforward = np.zeros(6) if feedforward is None else as_vector(feedforward, 6, f"{self._label()} feedforward")
         self._target_position, self._target_rotation, self._feedforward = position, rotation, feedforward
 
     def set_target_from_configuration(self, configuration: Configuration) -> None:
@@ -87,8 +64,7 @@ class FramePoseTask(Task):
 
     def error(self, configuration: Configuration) -> np.ndarray:
         """Pose error ``[p* - p; log3(R* R^T)]`` [m, rad] in the world frame."""
-        if self._target_position is None or self._target_rotation is None:
-            raise InvalidInputError(f"{self._label()} has no target: call set_target first")
+        self._require_target()
         self._ensure_bound(configuration)
         pose = configuration.frame_pose(self.frame)
         rot = pin.log3(self.target_rotation @ pose.rotation.T)

@@ -8,8 +8,8 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
-from harvest_qp.qp_kernels import all_finite, rotate_twist, rotate_twist_rows
-from harvest_qp.tasks.task import Task, _structure_changed
+from harvest_qp.qp_kernels import all_finite, rotate_twist_rows
+from harvest_qp.tasks.task import Task
 from harvest_qp.validation import as_choice, as_name, as_vector
 
 WEIGHT_FRAMES = ("world", "local")
@@ -65,7 +65,6 @@ class FrameTwistTask(Task):
     def frame(self, value: str) -> None:
         self._frame = as_name(value, f"{self._label()} frame")
         self._model = None  # the cached frame index belongs to the old name
-        _structure_changed()
 
     @property
     def weight_frame(self) -> str:
@@ -76,7 +75,6 @@ class FrameTwistTask(Task):
     def weight_frame(self, value: str) -> None:
         self._weight_frame = as_choice(value, f"{self._label()} weight_frame", WEIGHT_FRAMES)
         self._local = self._weight_frame == "local"
-        _structure_changed()
 
     @property
     def reference(self) -> np.ndarray:
@@ -115,32 +113,14 @@ class FrameTwistTask(Task):
         return J.copy(), v.copy()
 
     def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Like :meth:`compute`, into buffers reused at the next call (the solver's fast path).
-
-        Local-axes rows of one frame, and the frame's rotation (pinocchio's ``oMf[i].rotation``,
-        ~1 us a read), are taken once per kinematics update and shared by every local task on
-        that frame (the paper episode's camera and roll tasks).
-        """
+        """Like :meth:`compute`, into buffers reused at the next call (the solver's path)."""
         if self._model is None or getattr(configuration, "model", None) is not self._model:
             self._ensure_bound(configuration)
-        frame_id = self._frame_id
         v = self._reference if self._gain == 1.0 else self._gain * self._reference
-        if self._local:
-            # Rotate rows into the frame's axes so that weights act on local axes.
-            rows = getattr(configuration, "_frame_rows", None)
-            shared = None if rows is None else rows.get(frame_id)
-            if shared is not None and shared[0].shape == self._J_local.shape:
-                J_shared, R = shared
-                rotate_twist(R, v, self._v_local)
-                return J_shared, self._v_local
-            R = configuration.data.oMf[frame_id].rotation
-            J = _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA)
-            rotate_twist_rows(R, J, v, self._J_local, self._v_local)
-            # A copy is shared: this task's buffer is rewritten at its next call (which may
-            # be on another configuration of the same model). The dict is replaced at every
-            # kinematics update (Configuration._set_q), so neither entry outlives its kinematics.
-            if rows is not None:
-                rows[frame_id] = (self._J_local.copy(), R)
-            return self._J_local, self._v_local
         # The frame index was checked against this model when the task was bound.
-        return _frame_jacobian(configuration.model, configuration.data, frame_id, _LWA), v
+        J = _frame_jacobian(configuration.model, configuration.data, self._frame_id, _LWA)
+        if not self._local:
+            return J, v
+        # Rotate rows into the frame's axes so that weights act on local axes.
+        rotate_twist_rows(configuration.data.oMf[self._frame_id].rotation, J, v, self._J_local, self._v_local)
+        return self._J_local, self._v_local

@@ -9,8 +9,8 @@ import pinocchio as pin
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.tasks.task import Task
-from harvest_qp.validation import as_name, as_rotation, as_vector
+from harvest_qp.tasks.pose_target import PoseTargetTask
+from harvest_qp.validation import as_name
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -18,7 +18,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-class RelativeFrameTask(Task):
+class RelativeFrameTask(PoseTargetTask):
     """Drive the pose of ``frame`` expressed in ``root`` to a target.
 
     Rows are expressed in the ``root`` frame: linear rows are ``d/dt (R_r^T (p_f - p_r))``
@@ -40,39 +40,16 @@ class RelativeFrameTask(Task):
         if self.frame == self.root:
             # The pose of a frame in itself never changes: the rows would be all zero.
             raise InvalidInputError(f"RelativeFrameTask frame and root must differ, got both {frame!r}")
-        super().__init__(6, weight=weight, level=level, gain=gain)
-        self._target_position: np.ndarray | None = None
-        self._target_rotation: np.ndarray | None = None
+        super().__init__(weight=weight, level=level, gain=gain)
 
     def _label(self) -> str:
         return f"RelativeFrameTask({getattr(self, 'frame', '?')!r}, {getattr(self, 'root', '?')!r})"
-
-    @property
-    def target_position(self) -> np.ndarray | None:
-        """Target position [m] of ``frame`` in ``root``, None before :meth:`set_target`."""
-        return self._target_position
-
-    @target_position.setter
-    def target_position(self, value: np.ndarray | Sequence[float]) -> None:
-        self._target_position = as_vector(value, 3, f"{self._label()} target position")
-
-    @property
-    def target_rotation(self) -> np.ndarray | None:
-        """Target rotation matrix of ``frame`` in ``root``, None before :meth:`set_target`."""
-        return self._target_rotation
-
-    @target_rotation.setter
-    def target_rotation(self, value: np.ndarray | Sequence[Sequence[float]]) -> None:
-        self._target_rotation = as_rotation(value, f"{self._label()} target rotation")
 
     def set_target(
         self, position: np.ndarray | Sequence[float], rotation: np.ndarray | Sequence[Sequence[float]]
     ) -> None:
         """Target position [m] and rotation matrix of ``frame`` in ``root``."""
-        label = self._label()
-        position = as_vector(position, 3, f"{label} target position")
-        rotation = as_rotation(rotation, f"{label} target rotation")
-        self._target_position, self._target_rotation = position, rotation
+        self._target_position, self._target_rotation = self._checked_target(position, rotation)
 
     def check_configuration(self, configuration: Configuration) -> None:
         super().check_configuration(configuration)
@@ -102,8 +79,7 @@ class RelativeFrameTask(Task):
 
     def error(self, configuration: Configuration) -> np.ndarray:
         """Relative pose error [m, rad] in root coordinates."""
-        if self._target_position is None or self._target_rotation is None:
-            raise InvalidInputError(f"{self._label()} has no target: call set_target first")
+        self._require_target()
         p, R = self.relative_pose(configuration)
         return np.concatenate([self.target_position - p, pin.log3(self.target_rotation @ R.T)])
 

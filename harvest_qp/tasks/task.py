@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import functools
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 
 import numpy as np
 import pinocchio as pin
 
-from harvest_qp.configuration import Configuration
+from harvest_qp.configuration import Configuration, as_configuration
 from harvest_qp.validation import (
-    as_configuration,
+    as_instances,
     as_integer,
     as_level,
     as_nonnegative_vector,
@@ -24,16 +25,6 @@ HARD = 0
 
 #: Tasks defined in this package: their ``compute_rows`` sizes come from the checked model.
 _BUILT_IN_PREFIX = "harvest_qp.tasks."
-
-#: Bumped whenever a task's structure changes (weight array, level, frame, weight axes, model
-#: binding): the solver's cached plan for the paper episode's task set (``Solver._episode_plan``)
-#: is valid only while this holds its value, so the hot path checks one integer, not every task.
-_STRUCTURE = [0]
-
-
-def _structure_changed() -> None:
-    _STRUCTURE[0] += 1
-
 
 def _checked_compute_rows(compute_rows):
     """Wrap a user override of ``compute_rows`` so its rows are size-checked before the solver's kernels."""
@@ -102,7 +93,6 @@ class Task(ABC):
     @weight.setter
     def weight(self, value: float | np.ndarray) -> None:
         self._weight = as_nonnegative_vector(value, self._dim, f"{self._label()} weight")
-        _structure_changed()
 
     @property
     def level(self) -> int:
@@ -112,7 +102,6 @@ class Task(ABC):
     @level.setter
     def level(self, value: int) -> None:
         self._level = as_level(value, f"{self._label()} level")
-        _structure_changed()
 
     @property
     def gain(self) -> float:
@@ -145,7 +134,6 @@ class Task(ABC):
             self.check_configuration(configuration)
             self._model = model
             self._bind(configuration)
-            _structure_changed()
 
     def _bind(self, configuration: Configuration) -> None:  # noqa: B027 (an optional hook)
         """Hook: cache what depends on the model (frame indices, buffers); called after the check."""
@@ -176,3 +164,27 @@ class Task(ABC):
 
     def __repr__(self) -> str:
         return f"{self._label()}(level={self.level}, weight={self.weight.tolist()}, gain={self.gain})"
+
+
+def check_tasks(
+    tasks: Iterable[Task], configuration: Configuration | None = None, *, name: str = "tasks"
+) -> list[Task]:
+    """The tasks as a list, after checking each is a :class:`Task`.
+
+    The list must not be empty (a QP without a task has no objective). With a
+    ``configuration``, each task's sizes and frames are also checked against its model
+    (:meth:`Task.check_configuration`), so a wrong task fails when the controller is
+    built instead of at its first tick.
+
+    Raises:
+        InvalidInputError: not a sequence of tasks, or empty, or an item that is not a Task
+            (the message names its position and type, e.g. ``tasks[1] must be a Task, got str``).
+        DimensionError: a task's size disagrees with the model.
+        UnknownFrameError: a task names a frame the model lacks.
+    """
+    items = as_instances(tasks, Task, name, allow_empty=False)
+    if configuration is not None:
+        as_configuration(configuration)
+        for task in items:
+            task.check_configuration(configuration)
+    return items

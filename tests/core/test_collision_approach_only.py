@@ -125,7 +125,7 @@ def test_approach_only_keeps_separation_for_other_pairs(configuration):
         bounds.setdefault(names[k], rows.h[r])
     assert bounds[("grasp_gripper", "obstacle_0")] == 0.0
     assert bounds[("grasp_gripper", "branch")] == pytest.approx((GAP - 0.01) / 0.02, rel=1e-6)
-    flagged = sorted(names[k] for k in np.flatnonzero(limit._approach_pair))
+    flagged = sorted(limit.approach_only_pairs)
     assert flagged == [("cam_cutter", "obstacle_0"), ("grasp_gripper", "obstacle_0")]
     assert limit.approach_only_capsules == ["cam_cutter", "grasp_gripper"]
     limit.set_approach_only(())

@@ -69,13 +69,13 @@ def _parallel_branch(configuration, body="cam_forearm", joint=2, gap=0.03):
     limit = CollisionAvoidance.dual_ur5e(configuration)
     q = configuration.q.copy()
     i = limit.capsule_names.index(body)
-    limit.distances(configuration)
-    w0, w1, r = limit._w0[i].copy(), limit._w1[i].copy(), limit.cap_radius[i]
+    p0, p1 = limit.capsule_segments(configuration)
+    w0, w1, r = p0[i], p1[i], limit.cap_radius[i]
     dq = np.zeros(12)
     dq[joint] = 1e-5
     configuration.update(q + dq)
-    limit.distances(configuration)
-    v0, v1 = limit._w0[i] - w0, limit._w1[i] - w1
+    p0, p1 = limit.capsule_segments(configuration)
+    v0, v1 = p0[i] - w0, p1[i] - w1
     configuration.update(q)
     assert np.linalg.norm(v0) < 0.1 * np.linalg.norm(v1), "p0 must be the end the joint barely moves"
     axis = (w1 - w0) / np.linalg.norm(w1 - w0)
@@ -109,11 +109,9 @@ def test_parallel_links_get_a_row_at_each_end(configuration):
         qdot[j] = 1.0
         G = rows.G[branch_rows]
         configuration.update(q + H * qdot)
-        limit.distances(configuration)
-        ends = np.array([limit._w0[i], limit._w1[i]])
+        ends = np.array([end[i] for end in limit.capsule_segments(configuration)])
         configuration.update(q)
-        limit.distances(configuration)
-        ends0 = np.array([limit._w0[i], limit._w1[i]])
+        ends0 = np.array([end[i] for end in limit.capsule_segments(configuration)])
         rate = -(ends - ends0) @ side / H  # d/dt of each end's distance to the branch
         main_only = G[0] @ qdot  # what the closest-point row alone sees (-d_dot)
         if rate.min() < -0.05 and abs(main_only) < 1e-3:

@@ -205,7 +205,7 @@ def test_collision_distance_matches_brute_force_sampling(configuration, rng):
     limit = CollisionAvoidance.dual_ur5e(configuration)
     configuration.update(_states(rng, 1)[0])
     d = limit.distances(configuration)
-    w0, w1, r = limit._w0, limit._w1, limit.cap_radius
+    (w0, w1), r = limit.capsule_segments(configuration), limit.cap_radius
     s = np.linspace(0, 1, 401)
     for k in rng.choice(len(d), 25, replace=False):
         a, b = limit.pair_a[k], limit.pair_b[k]

@@ -187,14 +187,18 @@ def test_configuration_rejects_nan_q():
 
 
 def test_box_conflicts_keep_the_higher_priority_box(configuration):
-    """Speed limit beats position limit beats acceleration limit, joint by joint."""
+    """Speed limit beats position limit beats acceleration limit, joint by joint (oracle: by hand)."""
     from harvest_qp.solver import combine_boxes
 
     n = 3
     vel = (JointVelocityLimit(configuration), -np.ones(n), np.ones(n))
     pos = (JointPositionLimit(configuration), np.array([-5.0, -0.5, 2.0]), np.array([5.0, 0.5, 3.0]))
     acc = (JointAccelerationLimit(configuration), np.array([0.8, -0.2, -1.0]), np.array([0.9, 0.1, 1.0]))
-    lower, upper, conflicts = combine_boxes([acc, pos, vel], n)
+    ordered = [vel, pos, acc]  # priority order
+    lower, upper, conflicts = combine_boxes(
+        [limit for limit, _, _ in ordered], np.array([lo for _, lo, _ in ordered]),
+        np.array([hi for _, _, hi in ordered]), n,
+    )
     # joint 0: all overlap -> [0.8, 0.9]; joint 1: acc inside pos -> [-0.2, 0.1];
     # joint 2: pos [2, 3] misses vel [-1, 1] -> pos yields onto 1, then acc contains 1.
     np.testing.assert_allclose(lower, [0.8, -0.2, 1.0])

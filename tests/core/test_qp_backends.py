@@ -112,6 +112,16 @@ def test_backends_match_quadprog_called_directly_with_binding_collision_rows(con
     assert proxsuite_failed <= 5
 
 
+def _with(stand_ins: dict) -> Solver:
+    """A daqp solver whose level-1 workspaces named in ``stand_ins`` are the given stand-ins (the
+    relaxation QPs and any other level keep the real backends)."""
+
+    def factory(name, level):
+        return stand_ins[name] if level == 1 and name in stand_ins else make_backend(name)
+
+    return Solver("daqp", backend_factory=factory)
+
+
 class _Flaky:
     """A backend that always fails with the given error (a stand-in for DAQP cycling or lying)."""
 
@@ -129,8 +139,7 @@ def test_a_failed_backend_is_retried_with_the_next_one(configuration, rng, error
     Bug caught: no retry (the controller braked for 535 of 2,000 ticks of a crossing run).
     """
     tasks, limits = _driven_together(configuration, rng)
-    solver = Solver("daqp")
-    solver._backends[("daqp", 1)] = _Flaky(error)
+    solver = _with({"daqp": _Flaky(error)})
     solution = solver.solve(configuration, tasks, limits, 0.002)
     assert solution.retries and solution.retries[0] == f"daqp: {error.__name__}"
     np.testing.assert_allclose(solution.qdot, _quadprog_direct(solution.problems[-1]), atol=1e-6)
@@ -160,9 +169,7 @@ def test_a_false_infeasibility_from_two_backends_is_caught_by_the_relaxation_che
     the relaxation check (the controller would brake for a solvable problem).
     """
     tasks, limits = _driven_together(configuration, rng)
-    solver = Solver("daqp")
-    solver._backends[("daqp", 1)] = _Flaky(InfeasibleProblemError)
-    solver._backends[("quadprog", 1)] = _Flaky(InfeasibleProblemError)
+    solver = _with({"daqp": _Flaky(InfeasibleProblemError), "quadprog": _Flaky(InfeasibleProblemError)})
     solution = solver.solve(configuration, tasks, limits, 0.002)
     assert not solution.relaxed and not np.any(solution.box_relaxation)
     assert solution.retries[-2:] == ["daqp: InfeasibleProblemError", "quadprog: InfeasibleProblemError"]
@@ -192,7 +199,7 @@ def test_agreeing_infeasibility_reports_go_to_the_relaxation_without_proxsuite()
     relaxed = 0
     for _, _, controller, q, _ in fuzz_states(16, seed=5, categories=("combination",)):
         spy = _Counting()
-        controller.solver._backends[("proxsuite", 1)] = spy
+        controller.solver = _with({"proxsuite": spy})
         step = controller.step(q)
         assert step.ok, step.status
         relaxed += "relaxed" in step.status
@@ -221,14 +228,13 @@ def test_solutions_just_outside_the_tolerance_from_every_backend_do_not_brake(co
     reference_solver = Solver("daqp")
     reference = reference_solver.solve(configuration, tasks, limits, 0.002)
     x_ref = _quadprog_direct(reference.problems[-1])
-    solver = Solver("daqp")
-    for name, violation in (("daqp", 6e-7), ("proxsuite", 2e-7), ("quadprog", 4e-7)):
-        solver._backends[(name, 1)] = _Inaccurate(x_ref + (0.0 if name == "proxsuite" else 1.0), violation)
+    solver = _with({
+        name: _Inaccurate(x_ref + (0.0 if name == "proxsuite" else 1.0), violation)
+        for name, violation in (("daqp", 6e-7), ("proxsuite", 2e-7), ("quadprog", 4e-7))
+    })
     solution = solver.solve(configuration, tasks, limits, 0.002)
     np.testing.assert_allclose(solution.qdot, x_ref, atol=1e-6)
     assert solution.retries[-1] == "accepted proxsuite at 2.0e-07 relative violation"
-    far = Solver("daqp")
-    for name in ("daqp", "proxsuite", "quadprog"):
-        far._backends[(name, 1)] = _Inaccurate(x_ref, 1e-3)
+    far = _with({name: _Inaccurate(x_ref, 1e-3) for name in ("daqp", "proxsuite", "quadprog")})
     with pytest.raises(SolverError):
-        far._solve_qp(1, reference.problems[-1], [])
+        far.solve(configuration, tasks, limits, 0.002)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from benchmarks.bench_fuzz import A_MAX, DT, FUZZ_CATEGORIES, CoalGeometry, fuzz_states, run_crossing
+from harvest_qp.limits import CollisionAvoidance
 
 
 def test_no_fallback_and_speed_change_within_the_acceleration_limit_on_fuzz_states():
@@ -29,7 +30,7 @@ def test_no_fallback_and_speed_change_within_the_acceleration_limit_on_fuzz_stat
     geometries = {}
     for cat, configuration, controller, q, _ in fuzz_states(320, seed=7):
         per_category[cat] += 1
-        collision = controller._collisions[0]
+        collision = next(limit for limit in controller.limits if isinstance(limit, CollisionAvoidance))
         prev = controller.previous_qdot.copy()
         step = controller.step(q)
         assert step.ok, f"{cat}: {step.status}"

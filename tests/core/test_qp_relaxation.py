@@ -37,10 +37,10 @@ def _approaching_fast(configuration, rng, collision, *, speed=2.0):
         if collision.distances(configuration).min() > collision.safety_distance + 0.005:
             break
     # Previous command: the direction that closes the closest arm pair fastest (minus its row).
-    collision.compute(configuration, DT)
+    G = collision.compute(configuration, DT).G
     rows = collision.active_pairs
-    closest = rows[np.argmin(collision._dist[rows])]
-    row = collision._G[list(rows).index(closest)]
+    closest = rows[np.argmin(collision.distances(configuration)[rows])]
+    row = G[list(rows).index(closest)]
     prev = row / np.linalg.norm(row) * speed  # G qdot > 0: approach
     return q, np.clip(prev, -np.pi, np.pi)
 

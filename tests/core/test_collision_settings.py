@@ -1,6 +1,6 @@
-"""``CollisionAvoidance.compute`` keeps its kernel's argument tuple between ticks: every assignment to
-the limit or its tree must drop it. Oracle: a fresh limit built with the new settings (or given the
-new arrays before its first compute), computing at the same ``q``."""
+"""``CollisionAvoidance.compute`` follows every change of the limit's settings and arrays made after
+its first compute. Oracle: a fresh limit built with the new settings (or given the new arrays before
+its first compute), computing at the same ``q``."""
 
 import numpy as np
 
@@ -20,7 +20,7 @@ def _same(a, b):
         assert x.shape == y.shape and np.array_equal(x, y)
 
 
-def test_compute_follows_every_assignment_after_its_arguments_were_cached(rng):
+def test_compute_follows_every_assignment_after_a_first_compute(rng):
     """Each change below is made after a compute cached the arguments; the next compute must equal a
     fresh limit's with that change. Bugs caught (planted and seen failing): the limit's __setattr__
     not dropping the cache (a new gain and new obstacle spheres ignored); the tree's version not
