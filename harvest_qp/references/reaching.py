@@ -42,25 +42,20 @@ def minimum_rotation(z_axis: ArrayLike, direction: ArrayLike) -> tuple[float, ND
 
 
 def _minimum_rotation(z: NDArray[np.float64], e: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-    """:func:`minimum_rotation` on float64 ``(3,)`` arrays, without conversion (the control loop).
-
-    The dot products stay numpy's (BLAS ddot: a Python sum of products differs from it in the
-    last bit on ~1/3 of random vectors), so the closed loop's results do not change.
-    """
+    """:func:`minimum_rotation` on float64 ``(3,)`` arrays, without conversion."""
     cross = cross3(z, e)
     sine = math.sqrt(float(cross @ cross))
-    cosine = float(z @ e)
     norm_e = math.sqrt(float(e @ e))
     if norm_e == 0.0:
         return 0.0, np.zeros(3)
-    theta = math.atan2(sine, cosine)
+    cosine = float(z @ e)
     if sine > _PARALLEL_SINE * norm_e:
-        return theta, cross / sine
+        return math.atan2(sine, cosine), cross / sine
     if cosine > 0.0:
         return 0.0, np.zeros(3)
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    axis = np.cross(z, helper)
-    return math.pi, axis / np.linalg.norm(axis)
+    axis = cross3(z, helper)
+    return math.pi, axis / math.sqrt(float(axis @ axis))
 
 
 class ReachingCentering:
@@ -134,50 +129,6 @@ class ReachingCentering:
                 self._roi_target - self.roi_centre
             )
         return self._velocity(pose, self.roi_centre)
-
-    def _update_unchecked(self, pose: NDArray[np.float64], dt: float) -> NDArray[np.float64]:
-        """:meth:`update` without the argument checks, for the library's control loop.
-
-        ``pose``: a float64 ``(4, 4)`` homogeneous pose, ``dt`` > 0 [s]; an ROI centre must be
-        set.  Element-wise arithmetic runs on Python floats (the same IEEE operations in the
-        same order as the numpy expressions of :meth:`update`, so the same bits) and the dot
-        products stay numpy's (a Python sum of products differs from BLAS's ddot in the last
-        bit): the result equals :meth:`update`'s bit for bit
-        (``tests/references/test_unchecked_paths.py``) at about a third of the cost.
-        """
-        return np.array(self._update_floats(pose, dt))
-
-    def _update_floats(self, pose: NDArray[np.float64], dt: float, rows: list | None = None) -> list[float]:
-        """:meth:`_update_unchecked` with V_cr as 6 Python floats (the control loop adds them
-        to its other terms on floats); ``rows``: ``pose[:3].tolist()`` if the caller has it."""
-        if self.roi_time_constant == 0.0:
-            self.roi_centre = self._roi_target.copy()
-            p_r0, p_r1, p_r2 = self.roi_centre.tolist()
-        else:
-            fraction = -math.expm1(-dt / self.roi_time_constant)
-            r0, r1, r2 = self.roi_centre.tolist()
-            g0, g1, g2 = self._roi_target.tolist()
-            p_r0, p_r1, p_r2 = r0 + fraction * (g0 - r0), r1 + fraction * (g1 - r1), r2 + fraction * (g2 - r2)
-            self.roi_centre = np.array((p_r0, p_r1, p_r2))
-        (_, _, z0, c0), (_, _, z1, c1), (_, _, z2, c2) = pose[:3].tolist() if rows is None else rows
-        e0, e1, e2 = p_r0 - c0, p_r1 - c1, p_r2 - c2
-        e_pc = np.array((e0, e1, e2))
-        squared = float(e_pc.dot(e_pc))
-        self.distance = norm_e = math.sqrt(squared)
-        # _minimum_rotation, unrolled (cross3, then the same dot products).
-        x0, x1, x2 = z1 * e2 - z2 * e1, z2 * e0 - z0 * e2, z0 * e1 - z1 * e0
-        cross = np.array((x0, x1, x2))
-        sine = math.sqrt(float(cross.dot(cross)))
-        cosine = float(pose[:3, 2].dot(e_pc))
-        if norm_e == 0.0 or not sine > _PARALLEL_SINE * norm_e:
-            self.theta, axis = _minimum_rotation(pose[:3, 2], e_pc)  # the rare degenerate branches
-            a0, a1, a2 = axis.tolist()
-        else:
-            self.theta = math.atan2(sine, cosine)
-            a0, a1, a2 = x0 / sine, x1 / sine, x2 / sine
-        gain = self.k_cp * max(0.0, squared - self.radius**2)
-        turn = self.k_co * self.theta
-        return [gain * e0, gain * e1, gain * e2, turn * a0, turn * a1, turn * a2]
 
     def velocity(self, camera_pose: ArrayLike, roi_centre: ArrayLike) -> NDArray[np.float64]:
         """V_cr of ``eq:control_signal_rr_world`` for a given p_r [m], without touching the filter."""

@@ -599,18 +599,6 @@ class Unveiling:
             self.value = self.value + (-math.expm1(-dt / self.time_constant)) * (self.raw - self.value)
         return self.value.copy()
 
-    def _update_list(self, dt: float) -> list[float]:
-        """:meth:`update` for the control loop: ``dt`` > 0 [s] unchecked, V_cu as 6 Python
-        floats (:attr:`value` is set as in :meth:`update`, bit for bit: the same IEEE
-        operations in the same order)."""
-        if self.time_constant == 0.0:
-            self.value = self.raw.copy()
-            return self.value.tolist()
-        fraction = -math.expm1(-dt / self.time_constant)
-        value = [v + fraction * (r - v) for v, r in zip(self.value.tolist(), self.raw.tolist())]
-        self.value = np.array(value)
-        return value
-
     @property
     def clear_fraction(self) -> float:
         """Fraction of predicted stem points with a clear line of sight from the camera at the
