@@ -192,7 +192,7 @@ _INT64 = np.dtype(np.int64)
 
 
 #: The values logged every tick (``value/<name>``) after the tick's own ``roll_error`` and
-#: ``map_cells``, in :meth:`HarvestController._log_values`'s order, with their shapes.
+#: ``map_cells``, in :meth:`HarvestController._log_row`'s order, with their shapes.
 _LOGGED_VALUES = (
     ("phase", ()), ("p_r", (3,)), ("p_c", (3,)), ("z_c", (3,)), ("x_c", (3,)), ("p_sb", (3,)), ("p_gd", (3,)),
     ("n_c", (3,)), ("V_c", (6,)), ("V_g", (6,)), ("force_nc", ()), ("theta", ()), ("roi_distance", ()),
