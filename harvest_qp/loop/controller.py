@@ -48,7 +48,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -64,10 +64,10 @@ from harvest_qp.loop.phases import Phase, PhaseMachine, PhaseRules
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
 from harvest_qp.references import (
     GraspFeedForward,
+    HoldPose,
     ReachingCentering,
     StemStretching,
     Unveiling,
-    hold_twist,
     keep_out_velocity,
     predicted_stem_points,
     roll_reference,
@@ -143,7 +143,7 @@ class _State:
     last_stem_time: float = 0.0
     n_stem: int = 0
     frame: _Frame | None = None
-    hold_pose: np.ndarray | None = None  # {G_0}, (4, 4): the grasping arm's pose held in the approach
+    hold: HoldPose | None = None  # the grasping arm's hold of its initial pose in the approach
     previous_qdot: np.ndarray = field(default_factory=lambda: np.zeros(12))
 
 
@@ -570,7 +570,8 @@ class HarvestController:
             self.qp_backup.reset(q0)
         self.posture_task.set_target(q0)
         self.configuration.update(q0)
-        self.state = _State(hold_pose=self.configuration.frame_pose("gripper").homogeneous)
+        gripper = self.configuration.frame_pose("gripper").homogeneous
+        self.state = _State(hold=HoldPose(gripper, k_hold=self.settings["grasping"]["k_hold"]))
         self.phases.reset()
         self.reaching.reset(self.configuration.frame_position("gripper"))
         self.unveiling.reset()
@@ -911,9 +912,8 @@ class HarvestController:
         """The phase machine's tick: the switch test (then p_sb, p_gd at the switch) or the stem watch."""
         phases, st = self.phases, self.state
         if phases.phase == Phase.APPROACH:
-            offset = self.reaching.roi_centre - T_c[:3, 3]
             ready = phases.approach(t, T_c, stem_base_found=st.p_sb is not None,
-                                    roi_distance=math.sqrt(float(offset @ offset)))
+                                    roi_distance=math.dist(self.reaching.roi_centre.tolist(), T_c[:3, 3].tolist()))
             if ready and self._try_switch(t, obs, T_g):
                 phases.switch(t)
         elif phases.bimanual:
@@ -937,7 +937,7 @@ class HarvestController:
             V_c += self.unveiling.update(dt)
         force_nc = math.nan
         if self.phases.phase == Phase.APPROACH:
-            V_g = hold_twist(T_g, st.hold_pose, k_hold=s["grasping"]["k_hold"])
+            V_g = st.hold.update(T_g)
             direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
         else:
             force = obs.force if t > self.phases.t_switch else np.zeros(3)
@@ -1066,8 +1066,7 @@ class HarvestController:
         return self.phases.phase
 
 
-@dataclass(frozen=True)
-class _References:
+class _References(NamedTuple):
     """One tick's task references: V_c, V_g, the roll twist ``(6,)`` [m/s; rad/s] world frame, the
     roll angle [rad] (NaN: no roll), the force along n_c [N] (NaN before the switch) and |p_r - p_c| [m]."""
 

@@ -118,7 +118,7 @@ class PhaseMachine:
         self.backup_solves = 0
         self.force_filtered: float | None = None
         self.precut_since: float | None = None
-        self._camera_window: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+        self._camera_window: deque[tuple[float, tuple, tuple]] = deque()  # (t, p_c, z_c)
 
     @property
     def bimanual(self) -> bool:
@@ -152,7 +152,8 @@ class PhaseMachine:
         """The camera's mean speeds over the window: |p_c(t) - p_c(t0)| / (t - t0) [m/s] and the
         angle z_c turned / (t - t0) [rad/s]; None until the window spans ``switch_window``."""
         window = self._camera_window
-        p_c, z_c = camera_pose[:3, 3].copy(), camera_pose[:3, 2].copy()
+        (_, _, z0, c0), (_, _, z1, c1), (_, _, z2, c2) = camera_pose[:3].tolist()
+        p_c, z_c = (c0, c1, c2), (z0, z1, z2)
         window.append((t, p_c, z_c))
         span = self.rules.switch_window
         while len(window) > 1 and window[1][0] <= t - span + 1e-12:
@@ -160,9 +161,8 @@ class PhaseMachine:
         t0, p0, z0 = window[0]
         if t - t0 < span - 1e-9:
             return None
-        moved = p_c - p0
-        linear = math.sqrt(float(moved @ moved)) / (t - t0)
-        angular = math.acos(min(max(float(z0 @ z_c), -1.0), 1.0)) / (t - t0)
+        linear = math.dist(p_c, p0) / (t - t0)
+        angular = math.acos(min(max(z0[0] * z_c[0] + z0[1] * z_c[1] + z0[2] * z_c[2], -1.0), 1.0)) / (t - t0)
         return linear, angular
 
     def switch(self, t: float) -> None:

@@ -15,7 +15,7 @@ The ray/obstacle geometry (``eq:nearest``) stays in :mod:`harvest_qp.perception.
 
 from harvest_qp.references.coordination import GraspFeedForward, switch_ready
 from harvest_qp.references.grasping import StemStretching
-from harvest_qp.references.hold import hold_twist
+from harvest_qp.references.hold import HoldPose
 from harvest_qp.references.keep_out import keep_out_velocity
 from harvest_qp.references.reaching import ReachingCentering, minimum_rotation
 from harvest_qp.references.roll import roll_reference, wrap_half_turn
@@ -31,12 +31,12 @@ from harvest_qp.references.unveiling import (
 
 __all__ = [
     "GraspFeedForward",
+    "HoldPose",
     "ReachingCentering",
     "StemStretching",
     "Unveiling",
     "barrier_potential",
     "bounded_unveiling_velocity",
-    "hold_twist",
     "keep_out_velocity",
     "minimum_rotation",
     "predicted_stem_points",

@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from harvest_qp.references._checks import as_position, as_positive_scalar, cross3
+from harvest_qp.references._checks import as_position, as_positive_scalar
+from harvest_qp.references._vec3 import cross, dot, scale, sub
 
 __all__ = ["GraspFeedForward", "switch_ready"]
 
@@ -42,13 +43,14 @@ class GraspFeedForward:
 
         With ``normalise`` and p_c = p_sb (no bearing defined) the angular part is zero.
         """
-        v = as_position(v_gt, "v_gt")
-        lever = as_position(camera_position, "camera_position") - as_position(stem_base, "stem_base")
-        angular = cross3(lever, v)  # S(p_c - p_sb) v_gt
+        v = as_position(v_gt, "v_gt").tolist()
+        lever = sub(as_position(camera_position, "camera_position").tolist(),
+                    as_position(stem_base, "stem_base").tolist())
+        angular = cross(lever, v)  # S(p_c - p_sb) v_gt
         if self.normalise:
-            squared = float(lever @ lever)
-            angular = angular / squared if squared > 0.0 else np.zeros(3)
-        return np.concatenate((v, angular))
+            squared = dot(lever, lever)
+            angular = scale(1.0 / squared, angular) if squared > 0.0 else (0.0, 0.0, 0.0)
+        return np.array((*v, *angular))
 
 
 def switch_ready(

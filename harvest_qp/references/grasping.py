@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step, cross3
+from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._vec3 import add, cross, dot, norm, scale, sub
 
 __all__ = ["StemStretching"]
 
@@ -123,23 +124,24 @@ class StemStretching:
         dt = as_time_step(dt)
         if self.target is None:
             raise InvalidInputError("StemStretching.update needs a target: call set_target(p_sb, p_gd) first")
-        n = self.n_c
+        n = self.n_c.tolist()
+        (_, y0, _, p0), (_, y1, _, p1), (_, y2, _, p2) = pose[:3].tolist()
+        y_g = (y0, y1, y2)
         # eq:gr_pos_contr on the space orthogonal to n_c.
-        e_pg = pose[:3, 3] - self.target
-        projected = e_pg - (n @ e_pg) * n
-        v_p = -self.k_pg * projected
+        e_pg = sub((p0, p1, p2), self.target.tolist())
+        projected = sub(e_pg, scale(dot(n, e_pg), n))
+        v_p = scale(-self.k_pg, projected)
         # eq:gr_forc_contr: PI along n_c with conditional integration.
-        force_along = float(n @ f)
-        command = self._force_command(force_along, dt)
-        v_f = -n * command
+        force_along = dot(n, f.tolist())
+        v_f = scale(-self._force_command(force_along, dt), n)
         # eq:rot_contr
-        y_g = pose[:3, 1]
-        v_gw = -self.k_og * cross3(n, y_g)
-        self.position_error = float(np.linalg.norm(projected))
-        self.alignment = math.atan2(math.sqrt(float(v_gw @ v_gw)) / self.k_og, float(y_g @ n))
+        v_gw = scale(-self.k_og, cross(n, y_g))
+        self.position_error = norm(projected)
+        self.alignment = math.atan2(norm(v_gw) / self.k_og, dot(y_g, n))
         self.force_along_nc = force_along
-        self.v_gt = v_p + v_f
-        return np.concatenate((self.v_gt, v_gw))
+        v_gt = add(v_p, v_f)
+        self.v_gt = np.array(v_gt)
+        return np.array((*v_gt, *v_gw))
 
     def _force_command(self, force_along: float, dt: float) -> float:
         """The saturated speed command of ``eq:gr_forc_contr`` along n_c [m/s] for n_c^T f =

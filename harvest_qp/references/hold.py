@@ -16,17 +16,28 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.references._checks import as_pose, as_positive_scalar
+from harvest_qp.references._vec3 import scale, sub
 
-__all__ = ["hold_twist"]
+__all__ = ["HoldPose"]
 
 
-def hold_twist(gripper_pose: ArrayLike, hold_pose: ArrayLike, *, k_hold: float) -> NDArray[np.float64]:
-    """V_h ``(6,)`` [m/s; rad/s], world frame, from the gripper pose {G} and the held pose {G_0}
-    (both ``(4, 4)``), gain ``k_hold`` [1/s]."""
-    pose = as_pose(gripper_pose, "gripper_pose")
-    hold = as_pose(hold_pose, "hold_pose")
-    k_hold = as_positive_scalar(k_hold, "k_hold", allow_zero=True)
-    twist = np.empty(6)
-    twist[:3] = -k_hold * (pose[:3, 3] - hold[:3, 3])
-    twist[3:] = -k_hold * pin.log3(pose[:3, :3] @ hold[:3, :3].T)
-    return twist
+class HoldPose:
+    """V_h of the grasping arm: a pose servo to the held pose {G_0}.
+
+    Args:
+        hold_pose: {G_0}, ``(4, 4)`` homogeneous pose (world).
+        k_hold: gain k_h [1/s].
+    """
+
+    def __init__(self, hold_pose: ArrayLike, *, k_hold: float) -> None:
+        pose = as_pose(hold_pose, "hold_pose")
+        self.k_hold = as_positive_scalar(k_hold, "k_hold", allow_zero=True)
+        self.position = pose[:3, 3].tolist()
+        self.rotation_T = pose[:3, :3].T.copy()  # R_g0^T
+
+    def update(self, gripper_pose: ArrayLike) -> NDArray[np.float64]:
+        """V_h ``(6,)`` [m/s; rad/s], world frame, at the gripper pose {G} ``(4, 4)``."""
+        pose = as_pose(gripper_pose, "gripper_pose")
+        linear = sub(pose[:3, 3].tolist(), self.position)
+        angular = pin.log3(pose[:3, :3] @ self.rotation_T).tolist()
+        return np.array((*scale(-self.k_hold, linear), *scale(-self.k_hold, angular)))

@@ -13,12 +13,11 @@ blind below the camera's 0.1 m minimum depth). The controller adds V_ko to V_cr 
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.references._checks import as_position, as_positive_scalar
+from harvest_qp.references._vec3 import norm, scale, sub
 
 __all__ = ["keep_out_velocity"]
 
@@ -36,11 +35,11 @@ def keep_out_velocity(
 
     Zero when d >= d_min, and at d <= 1e-9 m (no outward direction defined).
     """
-    offset = as_position(camera_position, "camera_position") - as_position(roi_centre, "roi_centre")
+    p_c = as_position(camera_position, "camera_position").tolist()
+    offset = sub(p_c, as_position(roi_centre, "roi_centre").tolist())
     min_distance = as_positive_scalar(min_distance, "min_distance", allow_zero=True)
     gain = as_positive_scalar(gain, "gain", allow_zero=True)
-    distance = math.sqrt(float(offset @ offset))
-    twist = np.zeros(6)
-    if 1e-9 < distance < min_distance:
-        twist[:3] = gain * (min_distance - distance) / distance * offset
-    return twist
+    distance = norm(offset)
+    if not 1e-9 < distance < min_distance:
+        return np.zeros(6)
+    return np.array((*scale(gain * (min_distance - distance) / distance, offset), 0.0, 0.0, 0.0))

@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step, cross3
+from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._vec3 import Vec3, add, cross, dot, norm, scale, sub
 
 __all__ = ["ReachingCentering", "minimum_rotation"]
 
@@ -38,24 +39,26 @@ def minimum_rotation(z_axis: ArrayLike, direction: ArrayLike) -> tuple[float, ND
     any axis normal to z turns it, and the camera's own x-like axis z x (1, 0, 0) (or
     z x (0, 1, 0)) is used.
     """
-    return _minimum_rotation(np.asarray(z_axis, dtype=np.float64), np.asarray(direction, dtype=np.float64))
+    z = as_position(z_axis, "z_axis").tolist()
+    e = as_position(direction, "direction").tolist()
+    theta, axis = _minimum_rotation(z, e)
+    return theta, np.array(axis)
 
 
-def _minimum_rotation(z: NDArray[np.float64], e: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-    """:func:`minimum_rotation` on float64 ``(3,)`` arrays, without conversion."""
-    cross = cross3(z, e)
-    sine = math.sqrt(float(cross @ cross))
-    norm_e = math.sqrt(float(e @ e))
+def _minimum_rotation(z: Vec3, e: Vec3) -> tuple[float, Vec3]:
+    """:func:`minimum_rotation` on Python floats."""
+    normal = cross(z, e)
+    sine = norm(normal)
+    norm_e = norm(e)
     if norm_e == 0.0:
-        return 0.0, np.zeros(3)
-    cosine = float(z @ e)
+        return 0.0, (0.0, 0.0, 0.0)
+    cosine = dot(z, e)
     if sine > _PARALLEL_SINE * norm_e:
-        return math.atan2(sine, cosine), cross / sine
+        return math.atan2(sine, cosine), scale(1.0 / sine, normal)
     if cosine > 0.0:
-        return 0.0, np.zeros(3)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    axis = cross3(z, helper)
-    return math.pi, axis / math.sqrt(float(axis @ axis))
+        return 0.0, (0.0, 0.0, 0.0)
+    axis = cross(z, (1.0, 0.0, 0.0) if abs(z[0]) < 0.9 else (0.0, 1.0, 0.0))
+    return math.pi, scale(1.0 / norm(axis), axis)
 
 
 class ReachingCentering:
@@ -125,9 +128,9 @@ class ReachingCentering:
         if self.roi_time_constant == 0.0:
             self.roi_centre = self._roi_target.copy()
         else:
-            self.roi_centre = self.roi_centre + (-math.expm1(-dt / self.roi_time_constant)) * (
-                self._roi_target - self.roi_centre
-            )
+            fraction = -math.expm1(-dt / self.roi_time_constant)
+            p_r = self.roi_centre.tolist()
+            self.roi_centre = np.array(add(p_r, scale(fraction, sub(self._roi_target.tolist(), p_r))))
         return self._velocity(pose, self.roi_centre)
 
     def velocity(self, camera_pose: ArrayLike, roi_centre: ArrayLike) -> NDArray[np.float64]:
@@ -135,9 +138,10 @@ class ReachingCentering:
         return self._velocity(as_pose(camera_pose, "camera_pose"), as_position(roi_centre, "roi_centre"))
 
     def _velocity(self, pose: NDArray[np.float64], p_r: NDArray[np.float64]) -> NDArray[np.float64]:
-        e_pc = p_r - pose[:3, 3]
-        squared = float(e_pc @ e_pc)
+        (_, _, z0, c0), (_, _, z1, c1), (_, _, z2, c2) = pose[:3].tolist()
+        e_pc = sub(p_r.tolist(), (c0, c1, c2))
+        squared = dot(e_pc, e_pc)
         self.distance = math.sqrt(squared)
-        self.theta, axis = _minimum_rotation(pose[:3, 2], e_pc)
-        linear = self.k_cp * max(0.0, squared - self.radius**2) * e_pc
-        return np.concatenate((linear, self.k_co * self.theta * axis))
+        self.theta, axis = _minimum_rotation((z0, z1, z2), e_pc)
+        linear = scale(self.k_cp * max(0.0, squared - self.radius**2), e_pc)
+        return np.array((*linear, *scale(self.k_co * self.theta, axis)))

@@ -18,7 +18,8 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, cross3
+from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar
+from harvest_qp.references._vec3 import cross, dot, norm, scale, sub
 
 __all__ = ["roll_reference", "wrap_half_turn"]
 
@@ -39,13 +40,12 @@ def roll_reference(
     phi is NaN and V_rol zero where u is along the optical axis (|d| < 1e-6).
     """
     pose = as_pose(camera_pose, "camera_pose")
-    u = as_position(direction, "direction")
+    u = as_position(direction, "direction").tolist()
     k_roll = as_positive_scalar(k_roll, "k_roll", allow_zero=True)
-    y, z = pose[:3, 1], pose[:3, 2]
-    d = u - float(u @ z) * z
-    if math.sqrt(float(d @ d)) < _MIN_PROJECTION:
+    (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = pose[:3].tolist()
+    y, z = (y0, y1, y2), (z0, z1, z2)
+    d = sub(u, scale(dot(u, z), z))
+    if norm(d) < _MIN_PROJECTION:
         return np.zeros(6), math.nan
-    angle = wrap_half_turn(math.atan2(float(cross3(y, d) @ z), float(y @ d)))
-    twist = np.zeros(6)
-    twist[3:] = k_roll * angle * z
-    return twist, angle
+    angle = wrap_half_turn(math.atan2(dot(cross(y, d), z), dot(y, d)))
+    return np.array((0.0, 0.0, 0.0, *scale(k_roll * angle, z))), angle

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from harvest_qp.references import hold_twist
+from harvest_qp.references import HoldPose
 
 
 def _rot_z(angle: float) -> np.ndarray:
@@ -27,5 +27,5 @@ def test_hold_twist_servoes_back_to_the_held_pose(angle):
     pose = held.copy()
     pose[:3, :3] = _rot_z(angle) @ held[:3, :3]
     pose[:3, 3] += (0.01, -0.02, 0.03)
-    np.testing.assert_allclose(hold_twist(pose, held, k_hold=k),
+    np.testing.assert_allclose(HoldPose(held, k_hold=k).update(pose),
                                [-k * 0.01, k * 0.02, -k * 0.03, 0.0, 0.0, -k * angle], atol=1e-12)
