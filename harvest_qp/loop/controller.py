@@ -188,7 +188,6 @@ _NAN3.setflags(write=False)
 _ZEROS6 = np.zeros(6)
 _ZEROS6.setflags(write=False)
 _FLOAT64 = np.dtype(np.float64)
-_INT64 = np.dtype(np.int64)
 
 
 #: The values logged every tick (``value/<name>``) after the tick's own ``roll_error`` and
