@@ -9,7 +9,9 @@ detached from the arm and flown kinematically under V_cr + V_cu from the camera'
 * ``Unveiling.observe`` in the "predicted" mode (one full next-best-view step, while the stem
   is hidden; with the default ``nbv_period`` only every third 30 Hz frame runs one)
   and in the "paper" mode (ray/obstacle pairs + bounded V_cu, once the stem is seen);
-* ``ReachingCentering.update``, ``Unveiling.update``, ``StemStretching.update`` per control tick.
+* per control tick: ``ReachingCentering.update`` (V_cr), ``Unveiling.update`` (V_cu's filter),
+  ``StemStretching.update`` (V_g), ``GraspFeedForward`` (``eq:final_vc``), ``keep_out_velocity``,
+  ``roll_reference`` and ``HoldPose.update``.
 
 BLAS is limited to one thread as in the other benchmarks (2-core machine shared with other
 jobs: medians, and they are noisy).
@@ -39,10 +41,14 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from harvest_qp.references import (  # noqa: E402
+    GraspFeedForward,
+    HoldPose,
     ReachingCentering,
     StemStretching,
     Unveiling,
+    keep_out_velocity,
     predicted_stem_points,
+    roll_reference,
 )
 from harvest_qp.sim.scene import VineSceneParams  # noqa: E402
 from tests.references.flying_camera import LabCamera, fly_lab  # noqa: E402
@@ -114,16 +120,22 @@ def main() -> None:
     stretching = StemStretching()
     stretching.set_target([0.0, 0.0, 1.0], [0.0, 0.05, 0.9])
     force = np.array([0.1, 0.2, -2.0])
+    feed_forward = GraspFeedForward()
+    hold = HoldPose(np.eye(4), k_hold=1.0)
+    p_c, p_r, v_gt, direction = np.zeros(3), np.array([0.1, 0.0, 0.2]), np.array([0.0, 0.01, 0.0]), np.eye(3)[1]
     n = 2000
-    result["tick_reaching_us"] = 1e3 * median_ms(lambda: [reaching.update(pose, 0.002) for _ in range(n)], 3) / n
-    result["tick_unveiling_us"] = 1e3 * median_ms(lambda: [unveiling.update(0.002) for _ in range(n)], 3) / n
-    result["tick_stretching_us"] = (
-        1e3 * median_ms(lambda: [stretching.update(pose, force, 0.002) for _ in range(n)], 3) / n
-    )
-    print(
-        f"per tick: V_cr {result['tick_reaching_us']:.1f} us, V_cu filter {result['tick_unveiling_us']:.1f} us, "
-        f"V_g {result['tick_stretching_us']:.1f} us"
-    )
+    per_tick = {
+        "reaching": lambda: reaching.update(pose, 0.002),
+        "unveiling": lambda: unveiling.update(0.002),
+        "stretching": lambda: stretching.update(pose, force, 0.002),
+        "feed_forward": lambda: feed_forward(v_gt, p_c, p_r),
+        "keep_out": lambda: keep_out_velocity(p_c, p_r, min_distance=0.3, gain=2.0),
+        "roll": lambda: roll_reference(pose, direction, k_roll=1.0),
+        "hold": lambda: hold.update(pose),
+    }
+    for name, call in per_tick.items():
+        result[f"tick_{name}_us"] = 1e3 * median_ms(lambda call=call: [call() for _ in range(n)], 3) / n
+    print("per tick: " + ", ".join(f"{name} {result[f'tick_{name}_us']:.1f} us" for name in per_tick))
     print(json.dumps(result))
 
 

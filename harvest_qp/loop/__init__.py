@@ -1,10 +1,13 @@
-"""The paper's closed loop: :class:`HarvestController`, the paper episode, its metrics and figures.
+"""The paper's harvest application: :class:`HarvestController`, its phase machine, the paper episode,
+its metrics and figures.
 
 perception (point cloud -> S, O, p_sb, p_gd) -> :mod:`harvest_qp.references` (V_cr, V_cu,
-V_g, feed-forward) -> QP tasks -> :class:`~harvest_qp.TaskController` -> joint velocities.
+V_g, feed-forward) -> QP tasks -> :class:`~harvest_qp.TaskController` -> joint velocities;
+:mod:`.phases` decides approach -> bimanual -> pre-cut / abort.
 """
 
-from harvest_qp.loop.controller import HarvestController, Phase
+from harvest_qp.loop.controller import HarvestController
+from harvest_qp.loop.phases import Phase, PhaseMachine, PhaseRules
 from harvest_qp.loop.settings import DEFAULTS, load_settings
 
-__all__ = ["HarvestController", "Phase", "DEFAULTS", "load_settings"]
+__all__ = ["HarvestController", "Phase", "PhaseMachine", "PhaseRules", "DEFAULTS", "load_settings"]

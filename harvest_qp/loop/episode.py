@@ -17,10 +17,13 @@ from typing import Any
 
 from harvest_qp.exceptions import ConfigError, InvalidInputError
 from harvest_qp.interface import ROBOT
-from harvest_qp.loop.controller import HarvestController, Phase
+from harvest_qp.loop.controller import HarvestController
+from harvest_qp.loop.environment import environment_capsules_for
+from harvest_qp.loop.metrics import compute_metrics
+from harvest_qp.loop.phases import Phase
 from harvest_qp.runner import EpisodeResult, run_episode
 
-__all__ = ["build_robot", "run_paper_episode", "EpisodeReport", "episode_ground_truth"]
+__all__ = ["build_robot", "run_paper_episode", "EpisodeReport", "episode_ground_truth", "environment_capsules_for"]
 
 
 @dataclasses.dataclass
@@ -99,15 +102,6 @@ def episode_ground_truth(robot) -> callable:
     return truth
 
 
-def environment_capsules_for(robot, names) -> list:
-    from harvest_qp.episodes import environment_capsules
-
-    try:
-        return environment_capsules(robot.model, robot.data, names)
-    except (InvalidInputError, KeyError) as err:
-        raise ConfigError(f"qp.environment: {err}") from None
-
-
 def run_paper_episode(
     settings: dict,
     *,
@@ -133,8 +127,6 @@ def run_paper_episode(
             runs, e.g. a live viewer that observes each tick (``harvest_qp.viewer``); the
             wrapped object must keep the runner's reset/step protocol.
     """
-    from harvest_qp.loop.metrics import compute_metrics
-
     mapper = mapper or settings["mapper"]["kind"]
     duration = float(duration if duration is not None else settings["episode"]["duration"])
     if out_dir is None:

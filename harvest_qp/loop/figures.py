@@ -71,7 +71,7 @@ def write_figures(log: dict, controller, settings: dict, out_dir: Path, metrics:
     """Write the figures listed in the module docstring; return their paths."""
     out_dir = Path(out_dir)
     t = log["t"]
-    ts = controller.state.t_switch
+    ts = controller.phases.t_switch
     f_d = settings["grasping"]["f_d"]
     r = settings["reaching"]["radius"]
     paths = []

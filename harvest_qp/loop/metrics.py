@@ -26,7 +26,8 @@ import numpy as np
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import EpisodeError
 from harvest_qp.limits import CollisionAvoidance
-from harvest_qp.loop.controller import Phase
+from harvest_qp.loop.environment import environment_capsules_for
+from harvest_qp.loop.phases import Phase
 
 __all__ = ["compute_metrics", "SUCCESS_KEYS"]
 
@@ -64,8 +65,6 @@ def min_capsule_distance(q_log: np.ndarray, environment, every: int = 10) -> flo
 def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str, seed: int,
                     realtime_factor: float) -> dict[str, Any]:
     """The metrics of one episode (see the module docstring)."""
-    from harvest_qp.loop.episode import environment_capsules_for
-
     g = settings["grasping"]
     f_d, radius = float(g["f_d"]), float(settings["reaching"]["radius"])
     t = log["t"]
@@ -83,7 +82,7 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
             "HarvestController's per-tick values; a wrapper must pass the controller's Command values through"
         )
     phase = log["value/phase"]
-    st = controller.state
+    st, phases = controller.state, controller.phases
     # --- camera, from the true stem base
     p_sb_true = np.asarray(robot.scene.stem_base, float)
     p_c, z_c, x_c = log["value/p_c"][-1], log["value/z_c"][-1], log["value/x_c"][-1]
@@ -95,7 +94,7 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
     start = int(frame_stem[0]) if len(frame_stem) else 0
     end_frames = frame_stem[frame_time >= frame_time[-1] - 0.5] if len(frame_stem) else np.zeros(1)
     end = int(np.median(end_frames))
-    t_switch = st.t_switch
+    t_switch = phases.t_switch
     at_switch = None
     if t_switch is not None and len(frame_time):
         before = np.flatnonzero(frame_time <= t_switch + 1e-9)
@@ -147,7 +146,7 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
         "duration": float(n * float(log["control_period"])),
         "phase_reached": reached_name,
         "t_bimanual_start": _finite(t_switch) if t_switch is not None else None,
-        "t_precut": _finite(st.t_precut) if st.t_precut is not None else None,
+        "t_precut": _finite(phases.t_precut) if phases.t_precut is not None else None,
         "final_distance_to_roi_center": distance_true,
         "final_distance_to_estimated_roi_center": float(log["value/roi_distance"][-1]),
         "roi_radius": radius,
@@ -173,9 +172,9 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
         "stem_torn": torn,
         "max_joint_limit_violation": violation,
         "peak_joint_speed": peak_speed,
-        "qp_failures": int(st.qp_failures),
-        "qp_backup_solves": int(st.backup_solves),
-        "abort_reason": st.abort_reason,
+        "qp_failures": int(phases.qp_failures),
+        "qp_backup_solves": int(phases.backup_solves),
+        "abort_reason": phases.abort_reason,
         "p_gd_choice": getattr(controller, "target_choice", None),
         "stem_base_error_at_switch": (
             float(np.linalg.norm(st.p_sb - p_sb_true)) if st.p_sb is not None else None
@@ -193,7 +192,7 @@ def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str
         "position_error_small": math.isfinite(position_error) and position_error < 0.005,
         "no_contact": contacts == 0,
         "no_tear": not torn,
-        "no_abort": st.abort_reason is None,
+        "no_abort": phases.abort_reason is None,
     }
     metrics["criteria"] = {k: bool(v) for k, v in checks.items()}
     metrics["success"] = bool(all(checks.values()))

@@ -5,6 +5,9 @@
   extended to a stem that is not seen at all (predicted stem points).
 * :mod:`.grasping` -- V_g, stem stretching (``eq:gr_pos_contr`` .. ``eq:superimp_g``).
 * :mod:`.coordination` -- the feed-forward of ``eq:final_vc`` and the switch thresholds.
+* :mod:`.keep_out` -- an outward speed near the ROI centre (beyond the paper).
+* :mod:`.roll` -- the camera's roll that turns the cutter across the stem (beyond the paper).
+* :mod:`.hold` -- the grasping arm's hold of the crop during the approach (beyond the paper).
 
 All vectors are world-frame float64; twists are [v (m/s); w (rad/s)]; poses (4, 4).
 The ray/obstacle geometry (``eq:nearest``) stays in :mod:`harvest_qp.perception.unveiling`.
@@ -12,7 +15,10 @@ The ray/obstacle geometry (``eq:nearest``) stays in :mod:`harvest_qp.perception.
 
 from harvest_qp.references.coordination import GraspFeedForward, switch_ready
 from harvest_qp.references.grasping import StemStretching
+from harvest_qp.references.hold import HoldPose
+from harvest_qp.references.keep_out import keep_out_velocity
 from harvest_qp.references.reaching import ReachingCentering, minimum_rotation
+from harvest_qp.references.roll import roll_reference, wrap_half_turn
 from harvest_qp.references.unveiling import (
     Unveiling,
     barrier_potential,
@@ -25,15 +31,19 @@ from harvest_qp.references.unveiling import (
 
 __all__ = [
     "GraspFeedForward",
+    "HoldPose",
     "ReachingCentering",
     "StemStretching",
     "Unveiling",
     "barrier_potential",
     "bounded_unveiling_velocity",
+    "keep_out_velocity",
     "minimum_rotation",
     "predicted_stem_points",
     "repulsive_velocity",
+    "roll_reference",
     "stem_angular_velocities",
     "switch_ready",
     "unveiling_velocity",
+    "wrap_half_turn",
 ]

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.references._checks import as_position, as_positive_scalar
-from harvest_qp.references._kernels import dot3
+from harvest_qp.references._vec3 import cross, dot, scale, sub
 
 __all__ = ["GraspFeedForward", "switch_ready"]
 
@@ -43,33 +43,14 @@ class GraspFeedForward:
 
         With ``normalise`` and p_c = p_sb (no bearing defined) the angular part is zero.
         """
-        v = as_position(v_gt, "v_gt")
-        lever = as_position(camera_position, "camera_position") - as_position(stem_base, "stem_base")
-        angular = np.cross(lever, v)  # S(p_c - p_sb) v_gt
+        v = as_position(v_gt, "v_gt").tolist()
+        lever = sub(as_position(camera_position, "camera_position").tolist(),
+                    as_position(stem_base, "stem_base").tolist())
+        angular = cross(lever, v)  # S(p_c - p_sb) v_gt
         if self.normalise:
-            squared = float(lever @ lever)
-            angular = angular / squared if squared > 0.0 else np.zeros(3)
-        return np.concatenate((v, angular))
-
-    def _terms(self, v: list[float], lever: list[float]) -> list[float]:
-        """:meth:`__call__` on Python floats for the control loop: v_gt [m/s] and
-        p_c - p_sb [m] as 3 floats each, the 6 terms returned as a list.
-
-        The same IEEE operations in the same order as :meth:`__call__` (the cross product's
-        two products and one difference per entry, the division) and numpy's dot product for
-        |p_c - p_sb|^2 (reproduced by ``_kernels.dot3``): bit-identical
-        (tests/references/test_unchecked_paths.py).
-        """
-        v0, v1, v2 = v
-        l0, l1, l2 = lever
-        a0, a1, a2 = l1 * v2 - l2 * v1, l2 * v0 - l0 * v2, l0 * v1 - l1 * v0  # S(p_c - p_sb) v_gt
-        if self.normalise:
-            squared = dot3(l0, l1, l2, l0, l1, l2)  # numpy's lever @ lever, bit for bit, without an array
-            if squared > 0.0:
-                a0, a1, a2 = a0 / squared, a1 / squared, a2 / squared
-            else:
-                a0 = a1 = a2 = 0.0
-        return [v0, v1, v2, a0, a1, a2]
+            squared = dot(lever, lever)
+            angular = scale(1.0 / squared, angular) if squared > 0.0 else (0.0, 0.0, 0.0)
+        return np.array((*v, *angular))
 
 
 def switch_ready(

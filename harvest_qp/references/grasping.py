@@ -25,8 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step, cross3
-from harvest_qp.references._kernels import STRETCH_SIZE, stretching_terms
+from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._vec3 import add, cross, dot, norm, scale, sub
 
 __all__ = ["StemStretching"]
 
@@ -90,7 +90,6 @@ class StemStretching:
         self.stem_base: NDArray[np.float64] | None = None
         self.target: NDArray[np.float64] | None = None
         self.n_c = np.full(3, np.nan)
-        self._kernel_out = np.empty(STRETCH_SIZE)  # _update_floats' compiled output
         self.reset()
 
     def reset(self) -> None:
@@ -125,23 +124,24 @@ class StemStretching:
         dt = as_time_step(dt)
         if self.target is None:
             raise InvalidInputError("StemStretching.update needs a target: call set_target(p_sb, p_gd) first")
-        n = self.n_c
+        n = self.n_c.tolist()
+        (_, y0, _, p0), (_, y1, _, p1), (_, y2, _, p2) = pose[:3].tolist()
+        y_g = (y0, y1, y2)
         # eq:gr_pos_contr on the space orthogonal to n_c.
-        e_pg = pose[:3, 3] - self.target
-        projected = e_pg - (n @ e_pg) * n
-        v_p = -self.k_pg * projected
+        e_pg = sub((p0, p1, p2), self.target.tolist())
+        projected = sub(e_pg, scale(dot(n, e_pg), n))
+        v_p = scale(-self.k_pg, projected)
         # eq:gr_forc_contr: PI along n_c with conditional integration.
-        force_along = float(n @ f)
-        command = self._force_command(force_along, dt)
-        v_f = -n * command
+        force_along = dot(n, f.tolist())
+        v_f = scale(-self._force_command(force_along, dt), n)
         # eq:rot_contr
-        y_g = pose[:3, 1]
-        v_gw = -self.k_og * cross3(n, y_g)
-        self.position_error = float(np.linalg.norm(projected))
-        self.alignment = math.atan2(math.sqrt(float(v_gw @ v_gw)) / self.k_og, float(y_g @ n))
+        v_gw = scale(-self.k_og, cross(n, y_g))
+        self.position_error = norm(projected)
+        self.alignment = math.atan2(norm(v_gw) / self.k_og, dot(y_g, n))
         self.force_along_nc = force_along
-        self.v_gt = v_p + v_f
-        return np.concatenate((self.v_gt, v_gw))
+        v_gt = add(v_p, v_f)
+        self.v_gt = np.array(v_gt)
+        return np.array((*v_gt, *v_gw))
 
     def _force_command(self, force_along: float, dt: float) -> float:
         """The saturated speed command of ``eq:gr_forc_contr`` along n_c [m/s] for n_c^T f =
@@ -164,42 +164,3 @@ class StemStretching:
         command = self.k_fp * e_fg + self.k_fi * integral
         self.saturated = abs(command) > self.max_speed
         return min(max(command, -self.max_speed), self.max_speed)
-
-    def _update_unchecked(
-        self, pose: NDArray[np.float64], f: NDArray[np.float64], dt: float
-    ) -> NDArray[np.float64]:
-        """:meth:`update` without the argument checks, for the library's control loop.
-
-        ``pose``: float64 ``(4, 4)`` homogeneous pose; ``f``: float64 ``(3,)`` [N]; ``dt`` > 0
-        [s]; a target set.  Bit-identical to :meth:`update` (tests/references/test_unchecked_paths.py):
-        see :meth:`_update_floats`.
-        """
-        return np.array(self._update_floats(pose, f, dt))
-
-    def _update_floats(self, pose: NDArray[np.float64], f: NDArray[np.float64], dt: float, *,
-                       check_force: str | None = None) -> list[float]:
-        """:meth:`_update_unchecked` with V_g as 6 Python floats (the control loop reads them).
-
-        ``check_force``: a name; a non-finite ``f`` then raises ``as_position(f, name)``'s
-        :class:`InvalidInputError` before any state changes (the loop hands the robot's float64
-        ``(3,)`` reading unchecked: its finiteness is tested by the compiled call).
-
-        Speed (every bimanual tick): the projections, v_gw and the diagnostics in one compiled
-        call (``_kernels.stretching_terms``: :meth:`update`'s IEEE operations in the same order,
-        numpy's dot products reproduced bit for bit) instead of ~10 small numpy calls; the force
-        command (stateful) and v_gt on Python floats, as :meth:`update` orders them.
-        """
-        out = self._kernel_out
-        if not stretching_terms(pose, self.n_c, self.target, f, self.k_og, out) and check_force is not None:
-            as_position(f, check_force)  # raises, naming the argument
-        force_along, q0, q1, q2, w0, w1, w2, position_error, alignment = out.tolist()
-        command = self._force_command(force_along, dt)
-        n0, n1, n2 = self.n_c.tolist()
-        k = -self.k_pg
-        self.position_error = position_error
-        self.alignment = alignment
-        self.force_along_nc = force_along
-        # v_p + v_f = -k_pg projected + (-n command), element by element.
-        g0, g1, g2 = k * q0 + -n0 * command, k * q1 + -n1 * command, k * q2 + -n2 * command
-        self.v_gt = np.array((g0, g1, g2))
-        return [g0, g1, g2, w0, w1, w2]

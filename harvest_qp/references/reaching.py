@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step, cross3
+from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step
+from harvest_qp.references._vec3 import Vec3, add, cross, dot, norm, scale, sub
 
 __all__ = ["ReachingCentering", "minimum_rotation"]
 
@@ -38,29 +39,26 @@ def minimum_rotation(z_axis: ArrayLike, direction: ArrayLike) -> tuple[float, ND
     any axis normal to z turns it, and the camera's own x-like axis z x (1, 0, 0) (or
     z x (0, 1, 0)) is used.
     """
-    return _minimum_rotation(np.asarray(z_axis, dtype=np.float64), np.asarray(direction, dtype=np.float64))
+    z = as_position(z_axis, "z_axis").tolist()
+    e = as_position(direction, "direction").tolist()
+    theta, axis = _minimum_rotation(z, e)
+    return theta, np.array(axis)
 
 
-def _minimum_rotation(z: NDArray[np.float64], e: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-    """:func:`minimum_rotation` on float64 ``(3,)`` arrays, without conversion (the control loop).
-
-    The dot products stay numpy's (BLAS ddot: a Python sum of products differs from it in the
-    last bit on ~1/3 of random vectors), so the closed loop's results do not change.
-    """
-    cross = cross3(z, e)
-    sine = math.sqrt(float(cross @ cross))
-    cosine = float(z @ e)
-    norm_e = math.sqrt(float(e @ e))
+def _minimum_rotation(z: Vec3, e: Vec3) -> tuple[float, Vec3]:
+    """:func:`minimum_rotation` on Python floats."""
+    normal = cross(z, e)
+    sine = norm(normal)
+    norm_e = norm(e)
     if norm_e == 0.0:
-        return 0.0, np.zeros(3)
-    theta = math.atan2(sine, cosine)
+        return 0.0, (0.0, 0.0, 0.0)
+    cosine = dot(z, e)
     if sine > _PARALLEL_SINE * norm_e:
-        return theta, cross / sine
+        return math.atan2(sine, cosine), scale(1.0 / sine, normal)
     if cosine > 0.0:
-        return 0.0, np.zeros(3)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    axis = np.cross(z, helper)
-    return math.pi, axis / np.linalg.norm(axis)
+        return 0.0, (0.0, 0.0, 0.0)
+    axis = cross(z, (1.0, 0.0, 0.0) if abs(z[0]) < 0.9 else (0.0, 1.0, 0.0))
+    return math.pi, scale(1.0 / norm(axis), axis)
 
 
 class ReachingCentering:
@@ -130,63 +128,20 @@ class ReachingCentering:
         if self.roi_time_constant == 0.0:
             self.roi_centre = self._roi_target.copy()
         else:
-            self.roi_centre = self.roi_centre + (-math.expm1(-dt / self.roi_time_constant)) * (
-                self._roi_target - self.roi_centre
-            )
-        return self._velocity(pose, self.roi_centre)
-
-    def _update_unchecked(self, pose: NDArray[np.float64], dt: float) -> NDArray[np.float64]:
-        """:meth:`update` without the argument checks, for the library's control loop.
-
-        ``pose``: a float64 ``(4, 4)`` homogeneous pose, ``dt`` > 0 [s]; an ROI centre must be
-        set.  Element-wise arithmetic runs on Python floats (the same IEEE operations in the
-        same order as the numpy expressions of :meth:`update`, so the same bits) and the dot
-        products stay numpy's (a Python sum of products differs from BLAS's ddot in the last
-        bit): the result equals :meth:`update`'s bit for bit
-        (``tests/references/test_unchecked_paths.py``) at about a third of the cost.
-        """
-        return np.array(self._update_floats(pose, dt))
-
-    def _update_floats(self, pose: NDArray[np.float64], dt: float, rows: list | None = None) -> list[float]:
-        """:meth:`_update_unchecked` with V_cr as 6 Python floats (the control loop adds them
-        to its other terms on floats); ``rows``: ``pose[:3].tolist()`` if the caller has it."""
-        if self.roi_time_constant == 0.0:
-            self.roi_centre = self._roi_target.copy()
-            p_r0, p_r1, p_r2 = self.roi_centre.tolist()
-        else:
             fraction = -math.expm1(-dt / self.roi_time_constant)
-            r0, r1, r2 = self.roi_centre.tolist()
-            g0, g1, g2 = self._roi_target.tolist()
-            p_r0, p_r1, p_r2 = r0 + fraction * (g0 - r0), r1 + fraction * (g1 - r1), r2 + fraction * (g2 - r2)
-            self.roi_centre = np.array((p_r0, p_r1, p_r2))
-        (_, _, z0, c0), (_, _, z1, c1), (_, _, z2, c2) = pose[:3].tolist() if rows is None else rows
-        e0, e1, e2 = p_r0 - c0, p_r1 - c1, p_r2 - c2
-        e_pc = np.array((e0, e1, e2))
-        squared = float(e_pc.dot(e_pc))
-        self.distance = norm_e = math.sqrt(squared)
-        # _minimum_rotation, unrolled (cross3, then the same dot products).
-        x0, x1, x2 = z1 * e2 - z2 * e1, z2 * e0 - z0 * e2, z0 * e1 - z1 * e0
-        cross = np.array((x0, x1, x2))
-        sine = math.sqrt(float(cross.dot(cross)))
-        cosine = float(pose[:3, 2].dot(e_pc))
-        if norm_e == 0.0 or not sine > _PARALLEL_SINE * norm_e:
-            self.theta, axis = _minimum_rotation(pose[:3, 2], e_pc)  # the rare degenerate branches
-            a0, a1, a2 = axis.tolist()
-        else:
-            self.theta = math.atan2(sine, cosine)
-            a0, a1, a2 = x0 / sine, x1 / sine, x2 / sine
-        gain = self.k_cp * max(0.0, squared - self.radius**2)
-        turn = self.k_co * self.theta
-        return [gain * e0, gain * e1, gain * e2, turn * a0, turn * a1, turn * a2]
+            p_r = self.roi_centre.tolist()
+            self.roi_centre = np.array(add(p_r, scale(fraction, sub(self._roi_target.tolist(), p_r))))
+        return self._velocity(pose, self.roi_centre)
 
     def velocity(self, camera_pose: ArrayLike, roi_centre: ArrayLike) -> NDArray[np.float64]:
         """V_cr of ``eq:control_signal_rr_world`` for a given p_r [m], without touching the filter."""
         return self._velocity(as_pose(camera_pose, "camera_pose"), as_position(roi_centre, "roi_centre"))
 
     def _velocity(self, pose: NDArray[np.float64], p_r: NDArray[np.float64]) -> NDArray[np.float64]:
-        e_pc = p_r - pose[:3, 3]
-        squared = float(e_pc @ e_pc)
+        (_, _, z0, c0), (_, _, z1, c1), (_, _, z2, c2) = pose[:3].tolist()
+        e_pc = sub(p_r.tolist(), (c0, c1, c2))
+        squared = dot(e_pc, e_pc)
         self.distance = math.sqrt(squared)
-        self.theta, axis = _minimum_rotation(pose[:3, 2], e_pc)
-        linear = self.k_cp * max(0.0, squared - self.radius**2) * e_pc
-        return np.concatenate((linear, self.k_co * self.theta * axis))
+        self.theta, axis = _minimum_rotation((z0, z1, z2), e_pc)
+        linear = scale(self.k_cp * max(0.0, squared - self.radius**2), e_pc)
+        return np.array((*linear, *scale(self.k_co * self.theta, axis)))

@@ -237,36 +237,6 @@ def _unveiling_velocity_from_weights(
     return k_c * np.concatenate((linear, omega.sum(axis=0)))
 
 
-def _counted_unveiling_velocity(
-    pairs: RayObstaclePairs, floor: float, min_pivot: float, k_c: float
-) -> tuple[int, NDArray[np.float64]]:
-    """How many pairs have a nonzero :func:`_pair_weights` weight, and
-    :func:`_unveiling_velocity_from_weights` of those weights, bit for bit, compiled.
-
-    The numpy path (:func:`_pair_weights`, :func:`_stem_angular_velocities_from_weights`,
-    :func:`_unveiling_velocity_from_weights`) stays for the public functions and as the test
-    oracle; it took ~20 small numpy calls per camera frame. The gain (numpy's ``log``, whose
-    SIMD form may differ from libm's) and the two per-ray norms (numpy's own summation orders)
-    stay numpy; :func:`harvest_qp.perception._unveiling_kernels.unveiling_twist` does the rest
-    in numpy's order.
-    """
-    from harvest_qp.perception import _unveiling_kernels  # noqa: PLC0415 (circular at module level)
-
-    gain = _repulsive_gain(pairs.surface_distance, pairs.influence_distance, floor)
-    rays = pairs.stem_points - pairs.camera_position
-    ray_length = np.linalg.norm(rays, axis=1) if min_pivot > 0.0 else gain  # unread when min_pivot == 0
-    ray_squared = np.einsum("ij,ij->i", rays, rays)
-    twist = np.empty(6)
-    n_nonzero = _unveiling_kernels.unveiling_twist(
-        gain, pairs.case, pairs.segment_parameter, pairs.stem_index, pairs.away_directions.T, rays, ray_squared,
-        ray_length, float(min_pivot), float(k_c), _TINY, twist,
-    )  # fmt: skip
-    return int(n_nonzero), twist
-
-
-_TINY = float(np.finfo(np.float64).tiny)  # the floor on 1 - s of _pair_weights
-
-
 def saturate_twist(twist: NDArray[np.float64], max_linear: float, max_angular: float) -> NDArray[np.float64]:
     """``twist`` scaled by one factor in (0, 1] so that |v| <= max_linear and |w| <= max_angular.
 
@@ -578,7 +548,9 @@ class Unveiling:
         self.mode = "paper"
         # The pair weights once, for the count and the law (bounded_unveiling_velocity with its
         # default 1e-6 floor would compute the same weights a second time).
-        self.n_pairs, twist = _counted_unveiling_velocity(pairs, 1e-6, self.min_pivot, self.k_c)
+        weight = _pair_weights(pairs, 1e-6, self.min_pivot)
+        self.n_pairs = int(np.count_nonzero(weight))
+        twist = _unveiling_velocity_from_weights(pairs, weight, self.k_c)
         self.raw = saturate_twist(twist, self.max_linear, self.max_angular)
 
     def obstacle_stride(self, n_obstacles: int) -> int:
@@ -598,18 +570,6 @@ class Unveiling:
         else:
             self.value = self.value + (-math.expm1(-dt / self.time_constant)) * (self.raw - self.value)
         return self.value.copy()
-
-    def _update_list(self, dt: float) -> list[float]:
-        """:meth:`update` for the control loop: ``dt`` > 0 [s] unchecked, V_cu as 6 Python
-        floats (:attr:`value` is set as in :meth:`update`, bit for bit: the same IEEE
-        operations in the same order)."""
-        if self.time_constant == 0.0:
-            self.value = self.raw.copy()
-            return self.value.tolist()
-        fraction = -math.expm1(-dt / self.time_constant)
-        value = [v + fraction * (r - v) for v, r in zip(self.value.tolist(), self.raw.tolist())]
-        self.value = np.array(value)
-        return value
 
     @property
     def clear_fraction(self) -> float:

@@ -2,23 +2,26 @@
 
 The controller hands the runner its ~18 logged values as one float64 row
 (``runner._ValueRow``) and its active collision pairs as three columns
-(``runner._PairColumns``) instead of a dict of arrays and a list of tuples. Oracles: the
-controller's own dict and tuple listing (``_log_values``, ``_active_pairs``, themselves
-tested against item-by-item values and the limit's ``active_pair_distances``), and whole
-episodes run with the generic protocol (``_row_log = False``): the logs must be equal bit
-for bit, with the same keys in the same order.
+(``runner._PairColumns``). Oracles: the collision limit's own ``active_pair_distances``,
+pinocchio's frame placements, and the same episode handed to the runner through its generic
+protocol (a wrapper that passes every value as a plain array in a dict and the pairs as a list
+of tuples): the logs must be equal, with the same keys in the same order.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from harvest_qp.loop.controller import HarvestController, Phase
+from harvest_qp.configuration import Configuration
+from harvest_qp.loop.controller import HarvestController
 from harvest_qp.loop.episode import build_robot, environment_capsules_for, episode_ground_truth
+from harvest_qp.loop.phases import Phase
 from harvest_qp.loop.settings import check_settings, load_settings
 from harvest_qp.robot.paths import tasks_dir
-from harvest_qp.runner import _PairColumns, _ValueRow, run_episode
+from harvest_qp.runner import _PairColumns, run_episode
 
 
 def _same(a, b) -> bool:
@@ -32,75 +35,20 @@ def controller():
     return HarvestController(check_settings({}))
 
 
-def _states(c: HarvestController, rng):
-    """Approach (no p_sb, then a p_sb), bimanual (stretching after the switch), abort."""
-    c.reaching.reset(rng.normal(size=3))
-    st = c.state
-    yield
-    st.p_sb = rng.normal(size=3)
-    yield
-    st.p_gd = st.p_sb + rng.normal(size=3)
-    c.stretching.set_target(st.p_sb, st.p_gd)
-    T_g = np.eye(4)
-    T_g[:3, 3] = rng.normal(size=3)
-    c.stretching.update(T_g, rng.normal(size=3), 0.002)
-    st.phase, st.t_switch = Phase.BIMANUAL, 1.0
-    yield
-    st.phase = Phase.ABORT
-    yield
-
-
-@pytest.mark.parametrize("roll_error", [None, 0.25, -0.0])
-@pytest.mark.parametrize("map_cells", [None, 7.0])
-def test_log_row_reads_as_the_log_values_dict(controller, roll_error, map_cells):
-    """The row, read as a mapping, is ``_log_values``'s dict after the tick's ``roll_error`` and
-    ``map_cells`` (each when given): same keys in the same order, floats for scalars, the same
-    bits for every value. Catches: an entry's slot shifted (p_c and z_c swapped, x_c read from
-    the wrong column), a missing entry still listed, -0.0 or a NaN payload changed."""
-    c = controller
-    rng = np.random.default_rng(5)
-    saved = c.map_feed
-    c.map_feed = object() if map_cells is not None else saved  # the layout with map_cells
-    try:
-        for _ in _states(c, rng):
-            T_c = np.eye(4)
-            T_c[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-            T_c[:3, 3] = rng.normal(size=3)
-            V_c, V_g = rng.normal(size=6), rng.normal(size=6)
-            force = float(rng.normal())
-            for distance in (None, 0.7):
-                expected = {}
-                if roll_error is not None:
-                    expected["roll_error"] = roll_error
-                if map_cells is not None:
-                    expected["map_cells"] = map_cells
-                c._log_values(T_c, V_c, V_g, force, into=expected, roi_distance=distance)
-                row = c._log_row(T_c, V_c, V_g, force, distance, roll_error, map_cells)
-                assert type(row) is _ValueRow
-                assert list(row) == list(expected) and len(row) == len(expected)
-                for name, value in expected.items():
-                    assert type(row[name]) is type(value) or (type(value) is float and type(row[name]) is float)
-                    assert _same(np.float64(row[name]) if np.ndim(value) == 0 else row[name],
-                                 np.float64(value) if np.ndim(value) == 0 else value), name
-                assert dict(row).keys() == expected.keys()
-    finally:
-        c.map_feed = saved
-        c.state = type(c.state)()
-
-
 def test_pair_columns_read_as_the_pair_tuples(controller):
-    """``_active_pair_columns`` lists the tuples of ``_active_pairs`` (itself the limit's own
-    listing), also when a capsule name changes in place between two calls with the same
-    pairs (the map's feed renames its obstacle slots). Catches: the reused name lists kept
-    after a rename (a stale cell name in the log)."""
+    """``_active_pair_columns`` lists the limit's own ``active_pair_distances``, also when a
+    capsule name changes in place between two calls with the same pairs (the map's feed renames
+    its obstacle slots) and when the pair table is replaced (same active indices, other pairs).
+    Catches: the reused name lists kept after a rename (a stale cell name in the log) or on
+    equal active indices alone."""
     c = controller
     q = c.configuration.q.copy()
     c.qp.reset(q)
     c.qp.step(q)
     pairs = c._active_pair_columns()
     assert type(pairs) is _PairColumns and len(pairs) > 0
-    assert pairs == c._active_pairs() == c.collision.active_pair_distances()
-    assert list(pairs) == c._active_pairs() and pairs[0] == c._active_pairs()[0]
+    listing = c.collision.active_pair_distances()
+    assert pairs == listing and list(pairs) == listing and pairs[0] == listing[0]
     assert all(type(d) is float for _, _, d in pairs)
     names = c.collision.capsule_names
     index = int(c.collision.pair_a[c.collision.active_pairs[0]])
@@ -108,18 +56,44 @@ def test_pair_columns_read_as_the_pair_tuples(controller):
     names[index] = "renamed"
     try:
         again = c._active_pair_columns()
-        assert list(again) == c._active_pairs() and again[0][0] == "renamed"
+        assert list(again) == c.collision.active_pair_distances() and again[0][0] == "renamed"
     finally:
         names[index] = old
-    assert list(c._active_pair_columns()) == c._active_pairs()
+    assert list(c._active_pair_columns()) == c.collision.active_pair_distances()
+    lim = c.collision
+    saved = lim.pair_a, lim.pair_b
+    try:
+        lim.pair_a, lim.pair_b = saved[1].copy(), saved[0].copy()  # every pair's names swapped
+        swapped = c._active_pair_columns()
+        assert list(swapped) == lim.active_pair_distances()
+        assert [(a, b) for a, b, _ in swapped] == [(b, a) for a, b, _ in pairs]
+    finally:
+        lim.pair_a, lim.pair_b = saved
 
 
-def _episode(row_log: bool, overrides: list[str], duration: float):
+class _Generic:
+    """The controller behind the runner's generic protocol: values as a dict of new arrays,
+    pairs as a list of tuples."""
+
+    def __init__(self, inner: HarvestController) -> None:
+        self.inner = inner
+
+    def reset(self, robot) -> None:
+        self.inner.reset(robot)
+
+    def step(self, obs):
+        command = self.inner.step(obs)
+        values = {name: np.array(value) for name, value in command.values.items()}
+        pairs = [tuple(pair) for pair in command.collision_pairs]
+        return dataclasses.replace(command, values=values, collision_pairs=pairs)
+
+
+def _episode(generic: bool, overrides: list[str], duration: float):
     settings = load_settings(tasks_dir() / "paper.yaml", ["camera.downsample=6", *overrides])
     robot = build_robot(settings, 0)
     controller = HarvestController(settings, environment=environment_capsules_for(robot, settings["qp"]["environment"]))
-    controller._row_log = row_log
-    return run_episode(robot, controller, duration=duration, ground_truth=episode_ground_truth(robot)), controller
+    driven = _Generic(controller) if generic else controller
+    return run_episode(robot, driven, duration=duration, ground_truth=episode_ground_truth(robot)), controller
 
 
 @pytest.mark.parametrize(
@@ -129,12 +103,12 @@ def _episode(row_log: bool, overrides: list[str], duration: float):
 )
 def test_episode_log_equals_the_generic_protocols(overrides, duration):
     """A paper episode logged through the row and the pair columns equals the same episode
-    through the generic dict and tuples, key by key (same order), bit for bit; in the abort
-    case roll_error and map_cells are missing on the ticks after the abort (NaN in the log).
-    Catches: a column created in the wrong order, a missing value logged as a number, the
-    pair indices reused for different pairs."""
-    fast, controller = _episode(True, overrides, duration)
-    generic, _ = _episode(False, overrides, duration)
+    through the generic dict and tuples, key by key (same order); in the abort case roll_error
+    and map_cells are missing on the ticks after the abort (NaN in the log); the logged camera
+    pose is pinocchio's placement at the logged q. Catches: a column created in the wrong
+    order, a missing value logged as a number, the pair indices reused for different pairs."""
+    fast, controller = _episode(False, overrides, duration)
+    generic, _ = _episode(True, overrides, duration)
     assert fast.status == generic.status
     assert list(fast.log) == list(generic.log)
     for key in generic.log:
@@ -146,3 +120,8 @@ def test_episode_log_equals_the_generic_protocols(overrides, duration):
         aborted = fast.log["value/phase"] == float(Phase.ABORT)
         assert aborted.any() and np.isnan(fast.log["value/roll_error"][aborted]).all()
         assert np.isnan(fast.log["value/map_cells"][aborted]).all() and not np.isnan(fast.log["value/map_cells"][0])
+    oracle = Configuration.dual_ur5e(fast.log["q"][-1])
+    pose = oracle.frame_pose("camera").homogeneous
+    np.testing.assert_allclose(fast.log["value/p_c"][-1], pose[:3, 3], atol=1e-12)
+    np.testing.assert_allclose(fast.log["value/z_c"][-1], pose[:3, 2], atol=1e-12)
+    np.testing.assert_allclose(fast.log["value/x_c"][-1], pose[:3, 0], atol=1e-12)

@@ -166,34 +166,6 @@ def _law_scene(seed: int, n_stem: int = 60, n_obstacles: int = 4000):
     return stem, obstacles, camera
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("min_pivot", [0.0, 0.03, 0.5])
-def test_compiled_law_is_the_numpy_weights_and_velocity_bit_for_bit(seed, min_pivot):
-    """The compiled per-frame law (_counted_unveiling_velocity, used by Unveiling._observe_points)
-    against the numpy path it replaces (_pair_weights, count_nonzero,
-    _unveiling_velocity_from_weights): same count, same twist bits (signs of zeros included).
-    min_pivot 0.5 m (longer than every ray) drops every pair (all weights zero: the sums of -0.0 rows must come out +0.0
-    as numpy's sum(axis=0) gives them).  Catches (planted and checked): the sums started from
-    the first stem point's terms instead of +0.0 (the all-dropped case gives -0.0), the
-    min_pivot test left out (counts and twists differ at 0.03)."""
-    from harvest_qp.references.unveiling import (
-        _counted_unveiling_velocity,
-        _pair_weights,
-        _unveiling_velocity_from_weights,
-    )
-    from tests.helpers import assert_as_numpy
-
-    stem, obstacles, camera = _law_scene(seed)
-    pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=D_A, d_o=D_O)
-    assert len(pairs) > 100
-    weight = _pair_weights(pairs, 1e-6, min_pivot)
-    expected = _unveiling_velocity_from_weights(pairs, weight, 0.00025)
-    count, twist = _counted_unveiling_velocity(pairs, 1e-6, min_pivot, 0.00025)
-    assert count == np.count_nonzero(weight)
-    assert (count == 0) == (min_pivot == 0.5)
-    assert_as_numpy(twist, expected, exact_zeros=True)
-
-
 def test_unchecked_pairs_are_the_checked_pairs_and_observe_still_checks():
     """_ray_obstacle_pairs_unchecked (the law's per-frame path) returns the public function's
     arrays bit for bit (a strided stem view included, as the law thins its stem), and the
@@ -219,9 +191,9 @@ def test_unchecked_pairs_are_the_checked_pairs_and_observe_still_checks():
 
 
 def test_observe_gives_the_numpy_laws_twist():
-    """Unveiling.observe (the compiled law inside) against the literal numpy composition
-    ray_obstacle_pairs -> bounded_unveiling_velocity, and its pair count.  Catches: the
-    compiled path fed the wrong d_a / k_c / min_pivot."""
+    """Unveiling.observe against the literal composition ray_obstacle_pairs ->
+    bounded_unveiling_velocity, and its pair count.  Catches: the law fed the wrong
+    d_a / k_c / min_pivot."""
     stem, obstacles, camera = _law_scene(5)
     law = Unveiling()
     law.observe(camera, stem, obstacles)

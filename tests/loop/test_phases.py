@@ -1,0 +1,194 @@
+"""The phase machine (harvest_qp/loop/phases.py) on hand-made sequences, without a robot.
+
+Oracles: the thresholds of ``subsec:biman_coord`` / ``sec:exper`` applied by hand to the inputs
+(times, camera poses, forces) each test builds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from harvest_qp.loop.phases import Phase, PhaseMachine, PhaseRules
+from harvest_qp.loop.settings import check_settings
+
+DT = 0.002
+
+
+@pytest.fixture
+def rules() -> PhaseRules:
+    """The paper's defaults with round numbers where the tests need them."""
+    return dataclasses.replace(
+        PhaseRules.from_settings(check_settings({})), radius=0.35, f_d=3.0, switch_window=0.5,
+        switch_distance_factor=1.05, switch_max_linear=0.01, switch_max_angular=0.025, no_stem_timeout=20.0,
+        stem_lost_timeout=2.0, force_limit=6.0, max_qp_failures=3, force_tolerance=0.1, position_tolerance=0.01,
+        alignment_tolerance_deg=10.0, hold_time=0.5, force_time_constant=0.0, end_after_precut=1.0,
+        stop_after_abort=0.5,
+    )
+
+
+def _pose(position=(0.0, 0.0, 0.0), yaw: float = 0.0, tilt: float = 0.0) -> np.ndarray:
+    """A camera pose at ``position`` whose optical axis z_c is turned by ``tilt`` about x and
+    which is rolled by ``yaw`` about z_c."""
+    cz, sz, cx, sx = math.cos(yaw), math.sin(yaw), math.cos(tilt), math.sin(tilt)
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]]) @ np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    pose[:3, 3] = position
+    return pose
+
+
+def _approach(machine: PhaseMachine, ticks: int, pose_at, *, stem: bool = True, distance: float = 0.3,
+              start: float = 0.0) -> list[bool]:
+    return [machine.approach(start + DT * (k + 1), pose_at(k), stem_base_found=stem, roi_distance=distance)
+            for k in range(ticks)]
+
+
+def test_switch_waits_for_a_full_window_then_tests_distance_and_mean_speeds(rules):
+    """A still camera within 1.05 r: not ready until the window spans 0.5 s (tick 251), ready after.
+    Catches: a switch on the first ticks (no window yet), the window never filling."""
+    machine = PhaseMachine(rules)
+    ready = _approach(machine, 300, lambda k: _pose())
+    assert not any(ready[:250]) and all(ready[250:])  # t - t0 = 0.502 - 0.002 on the 251st tick
+    assert machine.phase == Phase.APPROACH  # the test alone never switches
+    machine.switch(0.6)
+    assert machine.phase == Phase.BIMANUAL and machine.t_switch == 0.6 and machine.bimanual
+
+
+def test_switch_refused_outside_the_roi_or_without_a_stem_base(rules):
+    machine = PhaseMachine(rules)
+    assert not any(_approach(machine, 300, lambda k: _pose(), distance=1.06 * 0.35))
+    assert any(_approach(PhaseMachine(rules), 300, lambda k: _pose(), distance=1.04 * 0.35))
+    assert not any(_approach(PhaseMachine(rules), 300, lambda k: _pose(), stem=False))
+
+
+def test_switch_uses_the_mean_linear_speed_over_the_window(rules):
+    """Moving at 0.012 m/s along x (above 0.01): never ready; at 0.008 m/s: ready once the window
+    is full. A camera dithering +-1 mm every tick (instantaneous 0.5 m/s, mean ~0) is ready.
+    Catches: the instantaneous speed (never ready while dithering), the distance not divided by the window."""
+    assert not any(_approach(PhaseMachine(rules), 400, lambda k: _pose((0.012 * DT * k, 0, 0))))
+    assert any(_approach(PhaseMachine(rules), 400, lambda k: _pose((0.008 * DT * k, 0, 0))))
+    assert any(_approach(PhaseMachine(rules), 400, lambda k: _pose((1e-3 * (-1) ** k, 0, 0))))
+
+
+def test_switch_uses_the_turn_of_the_optical_axis_not_the_roll(rules):
+    """Rolling about z_c at 0.1 rad/s leaves z_c fixed: ready. Tilting z_c at 0.03 rad/s (above
+    0.025): never; at 0.02 rad/s: ready. Catches: the roll counted (the camera's free roll alone
+    moves at ~0.045 rad/s), the angle not divided by the window's span."""
+    assert any(_approach(PhaseMachine(rules), 400, lambda k: _pose(yaw=0.1 * DT * k)))
+    assert not any(_approach(PhaseMachine(rules), 400, lambda k: _pose(tilt=0.03 * DT * k)))
+    assert any(_approach(PhaseMachine(rules), 400, lambda k: _pose(tilt=0.02 * DT * k)))
+
+
+def test_no_stem_base_within_the_timeout_aborts(rules):
+    machine = PhaseMachine(rules)
+    assert not machine.approach(20.0, _pose(), stem_base_found=False, roi_distance=0.3)
+    assert machine.phase == Phase.APPROACH
+    machine.approach(20.002, _pose(), stem_base_found=False, roi_distance=0.3)
+    assert machine.phase == Phase.ABORT and machine.t_abort == 20.002
+    assert machine.abort_reason == "no stem base found within 20.0 s"
+    machine.approach(20.004, _pose(), stem_base_found=True, roi_distance=0.3)
+    assert machine.phase == Phase.ABORT and machine.t_abort == 20.002  # the first reason stays
+
+
+def test_a_stem_lost_for_the_timeout_aborts_only_after_the_switch(rules):
+    machine = PhaseMachine(rules)
+    machine.watch_stem(5.0, last_stem_time=1.0)
+    assert machine.phase == Phase.APPROACH
+    machine.switch(3.0)
+    machine.watch_stem(5.0, last_stem_time=3.0)
+    assert machine.phase == Phase.BIMANUAL  # 2.0 s is not more than the timeout
+    machine.watch_stem(5.002, last_stem_time=3.0)
+    assert machine.phase == Phase.ABORT and "stem not seen for 2.0 s" in machine.abort_reason
+
+
+def test_force_above_the_limit_aborts(rules):
+    machine = PhaseMachine(rules)
+    machine.switch(0.0)
+    machine.stretch(0.1, DT, 6.0, 0.0, 0.0)
+    assert machine.phase == Phase.BIMANUAL
+    machine.stretch(0.102, DT, 6.01, 0.0, 0.0)
+    assert machine.phase == Phase.ABORT and machine.abort_reason == "stem force 6.01 N above the limit 6.00 N"
+
+
+def test_precut_after_the_tests_hold_for_the_hold_time(rules):
+    """Force 3.2 N (within 10 % of 3 N), 5 mm, 5 deg from t = 1.0: pre-cut at t = 1.5, not before;
+    a tick out of tolerance restarts the hold. Catches: the hold not restarted, radians compared
+    with the degree tolerance, an absolute force tolerance."""
+    machine = PhaseMachine(rules)
+    machine.switch(0.5)
+    t = 1.0
+    while t < 1.3:
+        machine.stretch(t, DT, 3.2, 0.005, math.radians(5))
+        t += DT
+    machine.stretch(t, DT, 3.31, 0.005, math.radians(5))  # 10.3 % off: out
+    assert machine.precut_since is None
+    start = t + DT
+    for k in range(1000):
+        t = start + DT * k
+        machine.stretch(t, DT, 2.75, 0.009, math.radians(9.9))
+        if machine.phase == Phase.PRECUT:
+            break
+    assert machine.t_precut == pytest.approx(start + 0.5, abs=1.5 * DT)
+    assert not machine.done(machine.t_precut + 0.99) and machine.done(machine.t_precut + 1.0)
+    for error, alignment in ((0.011, 0.0), (0.0, math.radians(10.1))):
+        other = PhaseMachine(rules)
+        other.switch(0.0)
+        for k in range(400):
+            other.stretch(DT * k, DT, 3.0, error, alignment)
+        assert other.phase == Phase.BIMANUAL
+
+
+def test_the_precut_force_is_low_passed(rules):
+    """With a 0.1 s time constant, a force that alternates 2.4 / 3.6 N (each outside +-10 %) filters
+    to within the band and reaches pre-cut; without the filter it never does."""
+    filtered = PhaseMachine(dataclasses.replace(rules, force_time_constant=0.1))
+    raw = PhaseMachine(rules)
+    for machine in (filtered, raw):
+        machine.switch(0.0)
+        for k in range(1000):
+            machine.stretch(DT * (k + 1), DT, 3.0 + 0.6 * (-1) ** k, 0.0, 0.0)
+    assert filtered.phase == Phase.PRECUT and raw.phase == Phase.BIMANUAL
+    assert abs(filtered.force_filtered - 3.0) < 0.1
+
+
+def test_qp_failures_in_a_row_abort(rules):
+    machine = PhaseMachine(rules)
+    machine.solved(0.1, False, "infeasible")
+    machine.solved(0.2, False, "infeasible")
+    machine.solved(0.3, True, "ok")
+    machine.solved(0.4, False, "infeasible")
+    machine.solved(0.5, False, "infeasible")
+    assert machine.phase == Phase.APPROACH and machine.qp_failures == 4
+    machine.solved(0.6, False, "max iterations")
+    assert machine.phase == Phase.ABORT and machine.abort_reason == "3 QP failures in a row (max iterations)"
+
+
+def test_after_an_abort_the_episode_ends_once_at_rest_for_the_stop_time(rules):
+    machine = PhaseMachine(rules)
+    machine.abort(1.0, "test")
+    machine.braking(1.1, at_rest=False)
+    assert not machine.done(1.1)
+    machine.braking(1.2, at_rest=True)
+    machine.braking(1.3, at_rest=True)
+    assert machine.t_at_rest == 1.2
+    assert not machine.done(1.69) and machine.done(1.7)
+
+
+def test_reset_starts_a_new_episode(rules):
+    machine = PhaseMachine(rules)
+    _approach(machine, 300, lambda k: _pose())
+    machine.switch(0.6)
+    machine.abort(0.7, "test")
+    machine.reset()
+    assert machine.phase == Phase.APPROACH and machine.t_switch is None and machine.abort_reason is None
+    assert not any(_approach(machine, 250, lambda k: _pose()))  # the window starts empty again
+
+
+def test_rules_from_the_settings():
+    """The force limit defaults to 2 f_d; an explicit one is kept."""
+    rules = PhaseRules.from_settings(check_settings({"grasping": {"f_d": 2.5}}))
+    assert rules.force_limit == 5.0 and rules.f_d == 2.5
+    assert PhaseRules.from_settings(check_settings({"safety": {"force_limit": 4.0}})).force_limit == 4.0
