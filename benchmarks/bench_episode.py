@@ -17,7 +17,7 @@ run only; the library code is unchanged):
 * ``references``: the reference laws per tick (V_cr, V_cu filter, V_g, feed-forward,
   switch and safety logic);
 * ``map_feed``: the obstacle map's cells fed to the collision limit, per tick;
-* ``qp``: the QP step (``TaskController._step`` as the loop calls it: tasks, limits, daqp; the
+* ``qp``: the QP step (``TaskController.step`` as the loop calls it: tasks, limits, daqp; the
   kinematics are the loop's own update, in ``runner``), per tick;
 * ``ground_truth``: the lab's ground truth logged per tick (stem tension, contacts, true
   robot-vine distance);
@@ -45,8 +45,8 @@ Usage::
 The headline real-time factor comes from a separate run without any timer: the episode exactly
 as ``harvest-qp run`` runs it (:func:`harvest_qp.loop.episode.run_paper_episode`, figures off),
 whose ``realtime_factor`` it reports: the median of ``--repeats`` such runs (default 3; the
-machine's speed can swing within minutes, so one run says little); the timed run that gives the breakdown is slower by its
-own timers (a wrapper and two clock reads around each timed call) and reports its own factor.
+machine's speed can swing within minutes, so one run says little); the timed run that gives the
+breakdown is slower by its own timers (a wrapper and two clock reads around each timed call) and reports its own factor.
 
 The last line printed is one JSON object with ``episode_rtf_283x160``, ``episode_rtf_848x480``
 (wall clock, uninstrumented, median of the repeats; ``episode_rtf_min_*`` / ``episode_rtf_max_*``
@@ -163,10 +163,10 @@ def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> 
         timers.wrap(controller.obstacle_map, "update", "map_update")
     if controller.map_feed is not None:
         timers.wrap(controller.map_feed, "update", "map_feed")
-    # The loop calls TaskController._step(q, reuse_kinematics=True) (its own kinematics
+    # The loop calls TaskController.step(q, kinematics_updated=True) (its own kinematics
     # update for the reference laws comes first and is counted in "runner").
-    controller.qp._step_unwrapped = controller.qp._step
-    timers.wrap(controller.qp, "_step", "qp")
+    controller.qp.step_unwrapped = controller.qp.step
+    timers.wrap(controller.qp, "step", "qp")
     for name in ("_log_values", "_active_pairs", "_log_row", "_active_pair_columns"):
         if hasattr(controller, name):
             timers.wrap(controller, name, "logged_values")
@@ -283,7 +283,7 @@ def _qp_isolated(controller, log: dict, clock, n: int = 1000) -> float:
     qp = getattr(controller, "qp", None)
     if qp is None or getattr(qp, "_step_unwrapped", None) is None:  # the pinv mapper
         return float("nan")
-    step = qp._step_unwrapped
+    step = qp.step_unwrapped
     q, qdot = log["q"], log["qdot_cmd"]
     ticks = np.unique(np.linspace(1, len(q) - 1, min(n, len(q) - 1)).astype(int))
     # As in the episode: the kinematics are updated first (untimed, as the loop's own
@@ -291,13 +291,13 @@ def _qp_isolated(controller, log: dict, clock, n: int = 1000) -> float:
     for k in ticks[:20]:  # warm-up
         qp.previous_qdot = qdot[k - 1].copy()
         qp.configuration.update(q[k])
-        step(q[k], reuse_kinematics=True)
+        step(q[k], kinematics_updated=True)
     times = np.empty(ticks.size)
     for j, k in enumerate(ticks):
         qp.previous_qdot = qdot[k - 1].copy()
         qp.configuration.update(q[k])
         t0 = clock()
-        step(q[k], reuse_kinematics=True)
+        step(q[k], kinematics_updated=True)
         times[j] = clock() - t0
     return 1e6 * float(np.median(times))
 

@@ -163,10 +163,10 @@ class EpisodeProblems:
         slots = controller.map_feed.slots if controller.map_feed is not None else 0
         self.first = self.collision.cap_p0.shape[0] - slots
         self.ticks: list[EpisodeTick] = []
-        step = qp._step  # the loop's own call (HarvestController: ``qp._step(q, reuse_kinematics=True)``)
+        step = qp.step  # the loop's own call (HarvestController: ``qp.step(q, kinematics_updated=True)``)
         count = [0]
 
-        def recording_step(q, *, reuse_kinematics):
+        def recording_step(q, *, kinematics_updated=False):
             record = count[0] % every == 0
             count[0] += 1
             if record:
@@ -177,19 +177,19 @@ class EpisodeProblems:
                     obstacle_p0=lim.cap_p0[first:].copy(), obstacle_p1=lim.cap_p1[first:].copy(),
                     obstacle_radius=lim.cap_radius[first:].copy(),
                 )
-            result = step(q, reuse_kinematics=reuse_kinematics)
+            result = step(q, kinematics_updated=kinematics_updated)
             if record:
                 tick.qdot = result.qdot.copy()
                 self.ticks.append(tick)
             return result
 
-        qp._step = recording_step
+        qp.step = recording_step
         try:
             run_episode(robot, controller, duration=duration)
         finally:
-            del qp._step  # the instance attribute: back to the class's method
+            del qp.step  # the instance attribute: back to the class's method
         if not self.ticks:
-            raise RuntimeError("no QP step was recorded: the loop no longer calls TaskController._step")
+            raise RuntimeError("no QP step was recorded: the loop no longer calls TaskController.step")
         self.qp = qp
         self.levels = sorted({task.level for task in qp.tasks})
 

@@ -203,10 +203,6 @@ class TaskController:
         self.previous_qdot = result.qdot
         return result
 
-    def _step(self, q: np.ndarray, *, reuse_kinematics: bool) -> ControlStep:
-        """Deprecated alias of :meth:`step` (``reuse_kinematics`` is ``kinematics_updated``)."""
-        return self.step(q, kinematics_updated=reuse_kinematics)
-
     def _safe_stop_command(self, measured: bool) -> tuple[np.ndarray, str]:
         """The stop QP when the state is known, else the joint-wise brake; and a note for the status."""
         if measured and np.all(np.isfinite(self.previous_qdot)):

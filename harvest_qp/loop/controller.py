@@ -978,11 +978,11 @@ class HarvestController:
         itself, issue 10: daqp answers slightly outside the constraints, 2e-7..1e-6, and the core brakes)."""
         backup_solver = self.qp_backup
         previous = self.qp.previous_qdot.copy() if backup_solver is not None else None
-        result = self.qp._step(q, reuse_kinematics=True)
+        result = self.qp.step(q, kinematics_updated=True)
         if result.ok or backup_solver is None:
             return result.qdot, result.status, result.ok
         backup_solver.previous_qdot = previous
-        backup = backup_solver._step(q, reuse_kinematics=True)
+        backup = backup_solver.step(q, kinematics_updated=True)
         if not backup.ok:
             return result.qdot, result.status, False
         self.phases.backup_solves += 1

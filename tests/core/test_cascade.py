@@ -183,10 +183,9 @@ def test_a_non_limit_among_the_limits_is_named_by_position_and_type():
 
 def test_controller_step_with_updated_kinematics_equals_the_plain_step(rng):
     """Oracle: the public step that recomputes the kinematics. ``step(q, kinematics_updated=True)`` after
-    the loop's own ``configuration.update(q)`` and the deprecated ``_step(q, reuse_kinematics=True)``
-    give the same command."""
+    the loop's own ``configuration.update(q)`` gives the same command."""
     results = []
-    for mode in ("plain", "updated", "alias"):
+    for mode in ("plain", "updated"):
         local = np.random.default_rng(3)
         configuration = Configuration.dual_ur5e(HOME_Q)
         tasks = _episode_like_tasks(local, configuration)
@@ -198,10 +197,8 @@ def test_controller_step_with_updated_kinematics_equals_the_plain_step(rng):
                 step = controller.step(q)
             else:
                 configuration.update(q)
-                step = (controller.step(q, kinematics_updated=True) if mode == "updated"
-                        else controller._step(q, reuse_kinematics=True))
+                step = controller.step(q, kinematics_updated=True)
             assert step.ok, step.status
             out.append(step.qdot)
         results.append(np.array(out))
     np.testing.assert_array_equal(results[0], results[1])
-    np.testing.assert_array_equal(results[0], results[2])
