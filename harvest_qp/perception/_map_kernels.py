@@ -234,44 +234,34 @@ def _trace_ray(
                 if old > 0.0 and new <= 0.0:
                     _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
             count += 1
-        if tmx < tmy:
-            if tmx < tmz:
-                if sx > 0:
-                    idx += cross_x if (ix & _MASK) == _MASK else 64
-                else:
-                    idx -= cross_x if (ix & _MASK) == 0 else 64
-                ix += sx
-                tmx += tdx
-                if ix < 0 or ix >= nx:
-                    return count
+        # Step into the next cell along the axis whose boundary is nearest (ties: z, then y).
+        if tmx < tmy and tmx < tmz:
+            if sx > 0:
+                idx += cross_x if (ix & _MASK) == _MASK else 64
             else:
-                if sz > 0:
-                    idx += cross_z if (iz & _MASK) == _MASK else 1
-                else:
-                    idx -= cross_z if (iz & _MASK) == 0 else 1
-                iz += sz
-                tmz += tdz
-                if iz < 0 or iz >= nz:
-                    return count
+                idx -= cross_x if (ix & _MASK) == 0 else 64
+            ix += sx
+            tmx += tdx
+            if ix < 0 or ix >= nx:
+                return count
+        elif tmx >= tmy and tmy < tmz:
+            if sy > 0:
+                idx += cross_y if (iy & _MASK) == _MASK else 8
+            else:
+                idx -= cross_y if (iy & _MASK) == 0 else 8
+            iy += sy
+            tmy += tdy
+            if iy < 0 or iy >= ny:
+                return count
         else:
-            if tmy < tmz:
-                if sy > 0:
-                    idx += cross_y if (iy & _MASK) == _MASK else 8
-                else:
-                    idx -= cross_y if (iy & _MASK) == 0 else 8
-                iy += sy
-                tmy += tdy
-                if iy < 0 or iy >= ny:
-                    return count
+            if sz > 0:
+                idx += cross_z if (iz & _MASK) == _MASK else 1
             else:
-                if sz > 0:
-                    idx += cross_z if (iz & _MASK) == _MASK else 1
-                else:
-                    idx -= cross_z if (iz & _MASK) == 0 else 1
-                iz += sz
-                tmz += tdz
-                if iz < 0 or iz >= nz:
-                    return count
+                idx -= cross_z if (iz & _MASK) == 0 else 1
+            iz += sz
+            tmz += tdz
+            if iz < 0 or iz >= nz:
+                return count
         if ix == jx and iy == jy and iz == jz:
             return count
         if min(tmx, min(tmy, tmz)) > length:

@@ -169,6 +169,22 @@ class MapCollisionFeed:
         #: e.g. an arm that holds still and must not be pushed by its rows).
         self.active = np.ones(n, dtype=bool)
 
+    @property
+    def rebuilds(self) -> int:
+        """How many times the candidate cells were gathered again (diagnostics: map changes near a
+        capsule, a capsule moved farther than :attr:`slack`, new radii or a new map)."""
+        return int(self._state[FK.FEED_REBUILDS])
+
+    @property
+    def limit_slots(self) -> slice:
+        """Where the fed cells lie in the limit's capsule arrays (``limit.cap_p0[feed.limit_slots]``)."""
+        return slice(self._first, self._first + self.slots)
+
+    def capsule_cells(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+        """Each capsule's cells at the last :meth:`update`: ``(counts (n,), indices (n, k), distances (n, k) [m])``,
+        as :meth:`ObstacleMap.closest_cells` gives them (copies)."""
+        return self._count.copy(), self._index.copy(), self._dist.copy()
+
     def _layout_ok(self) -> bool:
         """Whether the limit keeps its obstacle spheres at the end of cap_p0 / cap_p1 / cap_radius."""
         lim, first, n = self.limit, self._first, self.slots

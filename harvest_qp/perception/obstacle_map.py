@@ -31,20 +31,11 @@ once every ``clear_stride**2`` frames, and near the camera, where rays crowd, on
 of the twice coarser grid (see :class:`ObstacleMap`). Measured speeds and the choice of the defaults:
 ``benchmarks/bench_map.py`` and the module constants below.
 
-:class:`~harvest_qp.perception.map_feed.MapCollisionFeed` turns the map into :class:`~harvest_qp.limits.CollisionAvoidance`
-obstacle spheres before each QP step: for each arm capsule, its closest occupied cells
-within the influence distance, each a sphere covering its cell (radius sqrt(3)/2 times
-the resolution), so each becomes a velocity-damper row with the limit's own d_s / d_i /
-gain, and its pair name tells the cell (``cell[kx,ky,kz]``, the cell's integer key).
-
-Typical use in a control loop::
-
-    obstacle_map = ObstacleMap()
-    feed = MapCollisionFeed(collision_limit, obstacle_map, controller.configuration)
-    # every tick, before controller.step(q):
-    if new_cloud is not None:
-        obstacle_map.update(new_cloud, exclude=[held_cluster_region])
-    feed.update(q)
+:class:`~harvest_qp.perception.map_feed.MapCollisionFeed` (its own module) turns the map into
+:class:`~harvest_qp.limits.CollisionAvoidance` obstacle spheres before each QP step: for each
+arm capsule, its closest occupied cells within the influence distance, each a sphere covering
+its cell (radius sqrt(3)/2 times the resolution), so each becomes a velocity-damper row with
+the limit's own d_s / d_i / gain, and its pair name tells the cell (``cell[kx,ky,kz]``).
 """
 
 from __future__ import annotations
