@@ -19,7 +19,7 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
-from harvest_qp.loop.controller import HarvestController, _first_in_each_voxel, _rows, _wrap_half_turn
+from harvest_qp.loop.controller import HarvestController, _wrap_half_turn
 from harvest_qp.loop.settings import check_settings
 from tests.helpers import assert_as_numpy, random_pose
 
@@ -170,20 +170,6 @@ def test_camera_speeds_equal_the_numpy_formula(controller):
         assert _bits(angular) == _bits(float(np.arccos(np.clip(z0 @ pose[:3, 2], -1.0, 1.0))) / span)
 
 
-def test_rows_equal_boolean_indexing():
-    """Catches: a record view of the wrong width (rows mixed up) or a non-contiguous input
-    read through the view."""
-    rng = np.random.default_rng(15)
-    points = rng.normal(size=(1001, 3))
-    mask = rng.random(1001) < 0.3
-    for p in (points, np.asfortranarray(points), points[::2], points.astype(np.float32)):
-        m = mask[: len(p)]
-        got = _rows(p, m)
-        assert got.dtype == p.dtype and got.shape == (int(m.sum()), 3)
-        np.testing.assert_array_equal(got, p[m])
-    assert _rows(points, np.zeros(1001, bool)).shape == (0, 3)
-
-
 def test_active_pairs_equal_the_limits_own_listing(controller):
     """Catches: distances or names taken from the wrong index column."""
     c = controller
@@ -210,21 +196,6 @@ def test_a_non_finite_cloud_point_still_raises(controller):
                        timestamp=0.1, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(8, 8))
     with pytest.raises(InvalidInputError, match="obstacle_points"):
         c._perceive(cloud, np.eye(4))
-
-
-@pytest.mark.parametrize("spread", [0.25, 1e5])
-def test_first_in_each_voxel_equals_the_row_unique(spread):
-    """The packed 1-D unique gives the same first points per voxel, in the same order, as
-    ``np.unique(axis=0)`` (the previous code), also for negative coordinates and (with
-    ``spread`` 1e5 m, 1e7 voxels) through the fallback. Catches: a packing that lets two
-    voxels collide (too few bits, no offset for negative keys), last instead of first
-    occurrences."""
-    rng = np.random.default_rng(17)
-    points = spread * (rng.random((5000, 3)) - 0.5)
-    points = np.vstack((points, points[::7] + 1e-4))  # repeats in the same voxels
-    keys = np.floor(points / 0.01).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    np.testing.assert_array_equal(_first_in_each_voxel(points, 0.01), np.sort(first))
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
