@@ -3,8 +3,8 @@
 
 classification -> stem model, p_sb and its quality -> free space and p_gd (grasping arm) ->
 unveiling pairs (camera arm; V_cu from them is the reference law
-:func:`harvest_qp.references.unveiling.unveiling_velocity`).  ``result.stem.trusted()`` and ``result.stem.quality``
-say whether p_sb can be used (see :class:`~harvest_qp.perception.stem.StemQuality`).
+:func:`harvest_qp.references.unveiling.unveiling_velocity`). ``result.stem.trusted()`` and
+``result.stem.quality`` say whether p_sb can be used (see :class:`~harvest_qp.perception.stem.StemQuality`).
 """
 
 from __future__ import annotations
