@@ -12,12 +12,12 @@ from numba import njit
 
 from harvest_qp.collision import kernels as _collision
 from harvest_qp.perception._map_kernels import (
-    _MASK,
     BLOCK,
-    BLOCK_SHIFT,
-    _block_range,
     _insert_sorted,
     _point_segment_distance,
+    blocks_in_reach,
+    capsule_segment,
+    cell_centre,
     gather_cells,
     keep_separated,
 )
@@ -57,60 +57,43 @@ def _feed_candidates(
     blocks of each capsule's box are listed as dependent without their distance test (half the
     time of a rebuild, measured on the episode's maps); a longer list can only make the lists
     be rebuilt sooner, never kept when a block within reach changed."""
-    nbx = dims[0] >> BLOCK_SHIFT
     block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
     half = 0.5 * BLOCK * res
-    nb = (nbx, nby, nbz)
-    blo = np.empty(3, np.int64)
-    bhi = np.empty(3, np.int64)
+    blocks = np.empty(block_count.shape[0], np.int64)
+    corners = np.empty((block_count.shape[0], 3))
     cap_c = cand_index.shape[0]
     cap_b = rel_blocks.shape[0]
     n_cand = 0
     n_rel = 0
     for c in range(w0.shape[0]):
         cand_start[c] = n_cand
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
+        ax, ay, az, dx, dy, dz, dd = capsule_segment(w0, w1, c)
         reach = radii[c] + max_distance + cell_radius + slack
-        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
-        for bx in range(blo[0], bhi[0] + 1):
-            cx0 = (lo_key[0] + bx * BLOCK) * res
-            for by in range(blo[1], bhi[1] + 1):
-                cy0 = (lo_key[1] + by * BLOCK) * res
-                for bz in range(blo[2], bhi[2] + 1):
-                    b = (bx * nby + by) * nbz + bz
-                    nc = block_count[b]
-                    if nc == 0:
-                        if n_rel == cap_b:
-                            return -1
-                        rel_blocks[n_rel] = b
-                        n_rel += 1
-                        continue
-                    cz0 = (lo_key[2] + bz * BLOCK) * res
-                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
-                    if db - block_half_diag > reach:
-                        continue
-                    if n_rel == cap_b:
-                        return -1
-                    rel_blocks[n_rel] = b
-                    n_rel += 1
-                    for j in range(nc):
-                        local = block_cells[b, j]
-                        # The same expressions as closest_cells: the same cell centres.
-                        px = cx0 + ((local >> 6) + 0.5) * res
-                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
-                        pz = cz0 + ((local & _MASK) + 0.5) * res
-                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
-                        if d > reach:
-                            continue
-                        if n_cand == cap_c:
-                            return -1
-                        cand_index[n_cand] = (b << 9) | local
-                        cand_xyz[n_cand, 0] = px
-                        cand_xyz[n_cand, 1] = py
-                        cand_xyz[n_cand, 2] = pz
-                        n_cand += 1
+        for i in range(blocks_in_reach(w0, w1, c, reach, res, lo_key, dims, nby, nbz, blocks, corners)):
+            b = blocks[i]
+            nc = block_count[b]
+            cx0, cy0, cz0 = corners[i, 0], corners[i, 1], corners[i, 2]
+            if nc > 0:
+                db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
+                if db - block_half_diag > reach:
+                    continue
+            if n_rel == cap_b:
+                return -1
+            rel_blocks[n_rel] = b
+            n_rel += 1
+            for j in range(nc):
+                local = block_cells[b, j]
+                px, py, pz = cell_centre(cx0, cy0, cz0, local, res)
+                d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
+                if d > reach:
+                    continue
+                if n_cand == cap_c:
+                    return -1
+                cand_index[n_cand] = (b << 9) | local
+                cand_xyz[n_cand, 0] = px
+                cand_xyz[n_cand, 1] = py
+                cand_xyz[n_cand, 2] = pz
+                n_cand += 1
     cand_start[w0.shape[0]] = n_cand
     return n_rel
 
@@ -135,9 +118,7 @@ def _candidate_bounds(w0, w1, n, m_max, cand_start, cand_xyz, cand_bound, scratc
     """Each candidate's distance to its capsule as the lists are built (into ``cand_xyz[:, 3]``) and
     each capsule's M-th smallest of them (``cand_bound``; inf with fewer than ``m_max`` candidates)."""
     for c in range(n):
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
+        ax, ay, az, dx, dy, dz, dd = capsule_segment(w0, w1, c)
         count = 0
         for i in range(cand_start[c], cand_start[c + 1]):
             d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
@@ -222,9 +203,7 @@ def feed_update(
     k_max = out_index.shape[1]
     sep2 = min_separation * min_separation
     for c in range(n):
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
+        ax, ay, az, dx, dy, dz, dd = capsule_segment(w0, w1, c)
         worst = radii[c] + max_distance + cell_radius
         far = cand_bound[c] + 2.0 * displacement[c] + 3.0 * _BOUND_MARGIN  # see above
         count = 0

@@ -557,15 +557,45 @@ def _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd):
     return np.sqrt(ex * ex + ey * ey + ez * ez)
 
 
+@njit(cache=True, inline="always")
+def capsule_segment(w0, w1, c):
+    """Capsule ``c``'s axis: its start (ax, ay, az), its vector (dx, dy, dz) and squared length dd."""
+    ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+    dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+    return ax, ay, az, dx, dy, dz, dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, inline="always")
+def cell_centre(cx0, cy0, cz0, local, res):
+    """World centre [m] of cell ``local`` of the block whose lower corner is (cx0, cy0, cz0)."""
+    x = cx0 + ((local >> 6) + 0.5) * res
+    y = cy0 + (((local >> 3) & _MASK) + 0.5) * res
+    return x, y, cz0 + ((local & _MASK) + 0.5) * res
+
+
 @njit(cache=True)
-def _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi):
-    """The map blocks ``blo..bhi`` (inclusive, per axis) that capsule ``c``'s segment box,
-    grown by ``reach`` [m], overlaps."""
+def blocks_in_reach(w0, w1, c, reach, res, lo_key, dims, nby, nbz, blocks, corners):
+    """The map blocks that capsule ``c``'s segment box, grown by ``reach`` [m], overlaps, in
+    (x, y, z) order: their ids into ``blocks``, their lower corners [m] into ``corners``
+    (both sized for every block of the map); returns how many."""
+    nb = (dims[0] >> BLOCK_SHIFT, nby, nbz)
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
     for a in range(3):
         lo_c = min(w0[c, a], w1[c, a]) - reach
         hi_c = max(w0[c, a], w1[c, a]) + reach
-        blo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
-        bhi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+        lo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
+        hi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+    n = 0
+    for bx in range(lo[0], hi[0] + 1):
+        for by in range(lo[1], hi[1] + 1):
+            for bz in range(lo[2], hi[2] + 1):
+                blocks[n] = (bx * nby + by) * nbz + bz
+                corners[n, 0] = (lo_key[0] + bx * BLOCK) * res
+                corners[n, 1] = (lo_key[1] + by * BLOCK) * res
+                corners[n, 2] = (lo_key[2] + bz * BLOCK) * res
+                n += 1
+    return n
 
 
 @njit(cache=True)
@@ -628,46 +658,35 @@ def closest_cells(
     """
     m_max = scratch_index.shape[0]
     k_max = out_index.shape[1]
-    nbx = dims[0] >> BLOCK_SHIFT
     block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
     half = 0.5 * BLOCK * res
     sep2 = min_separation * min_separation
-    nb = (nbx, nby, nbz)
-    blo = np.empty(3, np.int64)
-    bhi = np.empty(3, np.int64)
+    blocks = np.empty(block_count.shape[0], np.int64)
+    corners = np.empty((block_count.shape[0], 3))
     kept_cells = np.empty((k_max, 3), np.int64)
     for c in range(w0.shape[0]):
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
+        ax, ay, az, dx, dy, dz, dd = capsule_segment(w0, w1, c)
         reach = radii[c] + max_distance + cell_radius  # centre distance that still counts
         count = 0
         worst = reach  # current admission bound on the centre distance
-        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
-        for bx in range(blo[0], bhi[0] + 1):
-            cx0 = (lo_key[0] + bx * BLOCK) * res
-            for by in range(blo[1], bhi[1] + 1):
-                cy0 = (lo_key[1] + by * BLOCK) * res
-                for bz in range(blo[2], bhi[2] + 1):
-                    b = (bx * nby + by) * nbz + bz
-                    nc = block_count[b]
-                    if nc == 0:
-                        continue
-                    cz0 = (lo_key[2] + bz * BLOCK) * res
-                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
-                    if db - block_half_diag > worst:
-                        continue
-                    for j in range(nc):
-                        local = block_cells[b, j]
-                        px = cx0 + ((local >> 6) + 0.5) * res
-                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
-                        pz = cz0 + ((local & _MASK) + 0.5) * res
-                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
-                        if d > worst:
-                            continue
-                        count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, (b << 9) | local)
-                        if count == m_max:
-                            worst = scratch_distance[m_max - 1]
+        for i in range(blocks_in_reach(w0, w1, c, reach, res, lo_key, dims, nby, nbz, blocks, corners)):
+            b = blocks[i]
+            nc = block_count[b]
+            if nc == 0:
+                continue
+            cx0, cy0, cz0 = corners[i, 0], corners[i, 1], corners[i, 2]
+            db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
+            if db - block_half_diag > worst:
+                continue
+            for j in range(nc):
+                local = block_cells[b, j]
+                px, py, pz = cell_centre(cx0, cy0, cz0, local, res)
+                d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
+                if d > worst:
+                    continue
+                count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, (b << 9) | local)
+                if count == m_max:
+                    worst = scratch_distance[m_max - 1]
         out_count[c] = keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
                                       scratch_distance, out_index, out_distance, kept_cells)
 
