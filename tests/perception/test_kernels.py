@@ -400,3 +400,111 @@ def test_every_non_finite_coordinate_makes_a_point_invalid():
     )  # fmt: skip
     stats = ObstacleMap(bounds=((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4)), min_range=0.0).update(cloud)
     assert stats.invalid == int(bad.sum())
+
+
+# --------------------------------------------------------------------------- per-tick map feed
+
+
+def _occupy(m: ObstacleMap, keys) -> None:
+    """Make the cells with integer ``keys`` occupied: one frame of obstacle points at their centres."""
+    centres = (np.asarray(keys, float).reshape(-1, 3) + 0.5) * m.resolution
+    n = centres.shape[0]
+    pose = np.eye(4)
+    pose[:3, 3] = (0.0, 0.0, 1.0)
+    m.update(PointCloud(
+        points=centres, labels=np.full(n, OBSTACLE, np.int8), colors=np.zeros((n, 3), np.uint8), camera_pose=pose,
+        timestamp=0.0, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(1, 1),
+    ))  # fmt: skip
+
+
+def _feed_and_full_query(m: ObstacleMap, n: int):
+    """One tick of the compiled feed (its lists kept between ticks) and the oracle: the full block search
+    ``ObstacleMap.closest_cells`` then the union of the capsules' cells. The kernel reads the map's block
+    lists, which only the map's own code may reach: this test is the kernel's."""
+    from harvest_qp.perception import _feed_kernels as FK
+
+    k, m_max, max_distance, separation = 4, 32, 0.11, 0.03
+    s = dict(
+        state=np.zeros(FK.FEED_STATE, np.int64), cache_w0=np.zeros((n, 3)), cache_w1=np.zeros((n, 3)),
+        cache_distance=np.full(1, np.nan), cand_start=np.zeros(n + 1, np.int64), cand_index=np.zeros(4096, np.int64),
+        cand_xyz=np.zeros((4096, 4)), rel_blocks=np.zeros(4096, np.int64), scratch_index=np.zeros(m_max, np.int64),
+        scratch_distance=np.zeros(m_max), out_index=np.full((n, k), -1, np.int64), out_distance=np.full((n, k), np.inf),
+        out_count=np.zeros(n, np.int64), out_cells=np.zeros(24, np.int64), out_centres=np.zeros((24, 3)),
+        cand_bound=np.full(n, np.inf), displacement=np.zeros(n), kept_cells=np.zeros((k, 3), np.int64),
+    )  # fmt: skip
+
+    def tick(w0, w1, radii):
+        fed = FK.feed_update(
+            w0.copy(), w1.copy(), np.ones(n, bool), np.array([0.0, 0.0, -1e3]), radii, max_distance, m.cell_radius,
+            separation, 0.02, m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells, m._block_count,
+            m._block_stamp, m._version, s["state"], s["cache_w0"], s["cache_w1"], s["cache_distance"],
+            s["cand_start"], s["cand_index"], s["cand_xyz"], s["rel_blocks"], s["scratch_index"],
+            s["scratch_distance"], s["out_index"], s["out_distance"], s["out_count"], s["out_cells"],
+            s["out_centres"], s["cand_bound"], s["displacement"], s["kept_cells"],
+        )  # fmt: skip
+        query = m.closest_cells(w0, w1, radii, max_distance=max_distance, per_capsule=k, min_separation=separation,
+                                candidates=m_max)
+        assert np.array_equal(s["out_count"], query.counts)
+        valid = query.indices >= 0
+        assert np.array_equal(s["out_index"][valid], query.indices[valid])
+        np.testing.assert_allclose(s["out_distance"][valid], query.distances[valid], rtol=0, atol=1e-12)
+        best: dict[int, float] = {}
+        for i, d in zip(query.indices[valid], query.distances[valid]):
+            best[int(i)] = min(best.get(int(i), np.inf), float(d))
+        expected = sorted(sorted(best, key=best.get)[:24])
+        assert fed == len(expected) and s["out_cells"][:fed].tolist() == expected
+        return fed, s
+
+    return tick
+
+
+def test_feed_skips_only_kept_candidates_that_cannot_change_the_closest_cells():
+    """The per-tick feed keeps each capsule's candidate cells between map changes and skips a kept
+    candidate without its distance when, at the lists' capsule pose, it was farther than the M-th
+    closest candidate by more than twice the capsule's displacement since. Oracle: the full block
+    search (``ObstacleMap.closest_cells``, checked against brute force in test_obstacle_map.py)
+    every tick. Scene 1 (hand-built): 40 cells on one side of a capsule, 8 cells 3 cm farther on
+    the other, the capsule then moves 1.6 cm towards them (inside the 2 cm slack, no rebuild): the
+    far cells become the closest; then a cell appears in a block that was empty. Catches (planted
+    and checked) a bound without the displacement (the far cells are skipped), and empty blocks not
+    listed as dependent (the new cell is never fed). Scene 2: random cells and capsules wandering in
+    steps up to 6 mm (rebuilds when past the slack or when cells are added or erased)."""
+    from harvest_qp.perception import _feed_kernels as FK
+
+    m = ObstacleMap(bounds=((-0.4, -0.4, 0.6), (0.4, 0.4, 1.4)))
+    near = [(kx, ky, kz) for kx in (-13, -14) for ky in (-1, 0) for kz in range(100, 110)]
+    far = [(15, ky, kz) for ky in (-1, 0) for kz in range(100, 104)]
+    _occupy(m, near + far)
+    tick = _feed_and_full_query(m, 1)
+    radii = np.array([0.05])
+    fed_far = False
+    for shift in (0.0, 0.008, 0.016):
+        w0, w1 = np.array([[shift, 0.0, 1.0]]), np.array([[shift, 0.0, 1.1]])
+        count, s = tick(w0, w1, radii)
+        assert s["state"][FK.FEED_REBUILDS] == 1  # lists kept from the first tick
+        fed_far = fed_far or bool((m.keys(s["out_centres"][:count])[:, 0] == 15).any())
+    assert fed_far  # the far cells were reached through the kept lists
+    # A cell appears in a block that was empty, next to the capsule, which holds still.
+    _occupy(m, [(6, 0, 105)])
+    count, s = tick(w0, w1, radii)
+    assert s["state"][FK.FEED_REBUILDS] == 2
+    assert (m.keys(s["out_centres"][:count]) == (6, 0, 105)).all(axis=1).any()
+    # Scene 2.
+    rng = np.random.default_rng(3)
+    m = ObstacleMap(bounds=((-0.4, -0.4, 0.6), (0.4, 0.4, 1.4)))
+    cells = rng.integers((-12, -12, 88), (12, 12, 112), size=(700, 3))
+    _occupy(m, cells)
+    n = 3
+    tick = _feed_and_full_query(m, n)
+    radii = np.array([0.04, 0.05, 0.03])
+    centre = np.zeros((n, 3)) + [0.0, 0.0, 1.0]
+    axis = rng.normal(size=(n, 3)) * 0.05
+    for step in range(200):
+        centre += rng.normal(size=(n, 3)) * (0.002 if step % 40 else 0.03)
+        centre = np.clip(centre, [-0.1, -0.1, 0.9], [0.1, 0.1, 1.1])
+        axis += rng.normal(size=(n, 3)) * 0.001
+        if step % 25 == 12:
+            gone = (cells[rng.integers(0, len(cells), 20)] + 0.5) * m.resolution
+            m.erase([ExclusionRegion.sphere(p, 0.004) for p in gone])  # some cells forgotten
+            _occupy(m, rng.integers((-12, -12, 88), (12, 12, 112), size=(15, 3)))  # some new ones
+        tick(centre - axis, centre + axis, radii)
