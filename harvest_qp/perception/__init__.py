@@ -18,8 +18,10 @@ from the cloud to the laws. The unveiling velocity V_cu of the pairs is
 """
 
 from harvest_qp.perception.classify import SceneSplit, obstacles_near_stem_base, red_stem_mask, split_scene
+from harvest_qp.perception.cloud_split import LabelledFrame, obstacle_sphere_centres, outside_held_cluster
 from harvest_qp.perception.fibonacci import fibonacci_sphere, nearest_fibonacci_index
 from harvest_qp.perception.free_space import FreeSpace, ObstaclePlane, compute_free_space, fit_obstacle_plane
+from harvest_qp.perception.grasp_target import GraspTarget, SwingCheck, choose_grasp_target
 from harvest_qp.perception.pipeline import PerceptionResult, process_cloud
 from harvest_qp.perception.stem import LineSegment, StemModel, StemQuality, fit_stem
 from harvest_qp.perception.unveiling import (
@@ -35,6 +37,8 @@ __all__ = [
     "NEAREST_AT_STEM_POINT",
     "NEAREST_INTERIOR",
     "FreeSpace",
+    "GraspTarget",
+    "LabelledFrame",
     "LineSegment",
     "ObstaclePlane",
     "PerceptionResult",
@@ -42,12 +46,16 @@ __all__ = [
     "SceneSplit",
     "StemModel",
     "StemQuality",
+    "SwingCheck",
+    "choose_grasp_target",
     "compute_free_space",
     "fibonacci_sphere",
     "fit_obstacle_plane",
     "fit_stem",
     "nearest_fibonacci_index",
+    "obstacle_sphere_centres",
     "obstacles_near_stem_base",
+    "outside_held_cluster",
     "process_cloud",
     "ray_obstacle_pairs",
     "red_stem_mask",
