@@ -1,8 +1,8 @@
 """The grasp target p_gd of ``eq:attr_point`` within the swing bound, map-aware (beyond the paper).
 
-The paper takes p_gd over the whole free-space hemisphere F (:func:`~harvest_qp.perception.
-free_space.compute_free_space`). Here, measured on the default scene and seeds 1 and 5 of
-the MuJoCo lab (``/work/shared/FINDINGS.md``):
+The paper takes p_gd over the whole free-space hemisphere F
+(:func:`~harvest_qp.perception.free_space.compute_free_space`). Here, measured on the default
+scene and seeds 1 and 5 of the MuJoCo lab:
 
 * p_gd is taken among the free samples within ``max_swing_deg`` of the hanging stem (a p_gd
   48-53 deg off it swung the crop up beside the branch: arm-vine contacts, 6 N at the wrist);
