@@ -50,12 +50,10 @@ class MapCollisionFeed:
     ``limit.pair_names()`` and the logged active pairs) are ``cell[kx,ky,kz]``, the cell's
     integer key ``floor(x / resolution)``; unused slots are ``free_slot``.
 
-    The limit gets a fixed number of obstacle slots (``max_cells``) once, and
-    each update writes the cells into them in place, because
-    ``CollisionAvoidance.set_obstacle_spheres`` rebuilds the pair arrays (~55 us a call,
-    measured); unused slots are parked far below the world with radius 0, so the limit's
-    broadphase drops them. If the limit's arrays are not laid out as expected, each update
-    falls back to ``set_obstacle_spheres``.
+    The limit gets a fixed number of obstacle slots (``max_cells``), given again through
+    ``CollisionAvoidance.set_obstacle_spheres`` only when the fed cells change (22 times in the
+    25,000 ticks of the paper episode, measured); unused slots are parked far below the world
+    with radius 0, so the limit's broadphase drops them.
 
     Args:
         limit: the collision limit to feed (its obstacle spheres are replaced).
@@ -160,7 +158,6 @@ class MapCollisionFeed:
         self._park = self._PARK.copy()
         limit.set_obstacle_spheres(self._centres, 0.0)
         self._first = len(limit.capsule_names) - self.slots
-        self._in_place = self._layout_ok()
         self._slot_names = ["free_slot"] * self.slots
         self._last = np.zeros(0, dtype=np.int64)
         #: Linear indices of the cells fed at the last update.
@@ -184,20 +181,6 @@ class MapCollisionFeed:
         """Each capsule's cells at the last :meth:`update`: ``(counts (n,), indices (n, k), distances (n, k) [m])``,
         as :meth:`ObstacleMap.closest_cells` gives them (copies)."""
         return self._count.copy(), self._index.copy(), self._dist.copy()
-
-    def _layout_ok(self) -> bool:
-        """Whether the limit keeps its obstacle spheres at the end of cap_p0 / cap_p1 / cap_radius."""
-        lim, first, n = self.limit, self._first, self.slots
-        try:
-            return (
-                len(lim.capsule_names) == first + n
-                and lim.cap_p0.shape == (first + n, 3) and lim.cap_p1.shape == (first + n, 3)
-                and lim.cap_radius.shape == (first + n,)
-                and np.array_equal(lim.cap_p0[first:], self._centres)
-                and np.array_equal(lim.cap_p1[first:], self._centres)
-            )  # fmt: skip
-        except (AttributeError, TypeError):
-            return False
 
     def _checked_q(self, q: ArrayLike | None) -> NDArray[np.float64]:
         """``q`` [rad] as the compiled kinematics need it (default: the configuration's)."""
@@ -319,12 +302,7 @@ class MapCollisionFeed:
         for j in range(n, min(self._last.shape[0], self.slots)):
             self._slot_names[j] = "free_slot"
         lim, first = self.limit, self._first
-        if self._in_place:
-            lim.cap_p0[first:] = self._centres
-            lim.cap_p1[first:] = self._centres
-            lim.cap_radius[first:] = radii
-        else:
-            lim.set_obstacle_spheres(self._centres, radii)
+        lim.set_obstacle_spheres(self._centres, radii)
         lim.capsule_names[first:] = self._slot_names
         self._last = cells
         self.cells = cells
