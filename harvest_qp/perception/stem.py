@@ -472,7 +472,11 @@ def fit_stem(
         along = (cluster - mean) @ direction
         # Duplicated points are not a denser sampling: the quantiles are taken over distinct ones.
         distinct_along = (_distinct_rows(cluster) - mean) @ direction
-        q_low, q_high = np.quantile(distinct_along, (end_quantile, 1.0 - end_quantile))
+        # The linear quantiles (numpy's default method) by one interpolation on the sorted values:
+        # np.quantile's call overhead was ~30 % of fit_stem on a 283x160 frame's ~45 points.
+        last = distinct_along.shape[0] - 1
+        q_low, q_high = np.interp((end_quantile * last, (1.0 - end_quantile) * last), np.arange(last + 1.0),
+                                  np.sort(distinct_along))
         stretch = end_quantile / (1.0 - 2.0 * end_quantile) * (q_high - q_low)
         low, high = float(q_low - stretch) - 0.5 * pitch, float(q_high + stretch) + 0.5 * pitch
         if name == "top":
