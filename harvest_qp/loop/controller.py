@@ -436,10 +436,15 @@ class HarvestController:
         if s["unveiling"]["enabled"]:
             # Only the predicted mode reads the predicted stem (the law ignores it once
             # min_stem_points stem points are seen): not computed on the other frames.
-            predicted_mode = s["unveiling"]["predicted_stem"] and frame.n_stem < self.unveiling.min_stem_points
-            self.unveiling.observe(frame.camera_position, frame.stem, frame.non_stem,
-                                   predicted_stem_points=self._predicted_stem(T_g) if predicted_mode else None,
-                                   roi_centre=self.reaching.roi_centre, timestamp=frame.time)
+            law = self.unveiling
+            predicted_mode = s["unveiling"]["predicted_stem"] and frame.n_stem < law.min_stem_points
+            # The paper mode reads only every k-th non-stem row (law.obstacle_stride): gathered alone,
+            # unless a non-finite point must reach the law's check (it names the bad points).
+            thin = frame.n_stem > 0 and not predicted_mode and frame.finite
+            obstacles = frame.non_stem_every(law.obstacle_stride(frame.n_non_stem)) if thin else frame.non_stem
+            law.observe(frame.camera_position, frame.stem, obstacles,
+                        predicted_stem_points=self._predicted_stem(T_g) if predicted_mode else None,
+                        roi_centre=self.reaching.roi_centre, timestamp=frame.time)
         if self.collision is not None and s["obstacles"]["enabled"]:
             self._update_obstacle_spheres(frame.obstacles, T_g)
         if st.phase != Phase.APPROACH:

@@ -61,6 +61,23 @@ class LabelledFrame:
         """Number of stem points n_S."""
         return int(self.stem.shape[0])
 
+    @property
+    def n_non_stem(self) -> int:
+        """Number of non-stem points (W - S)."""
+        return int(self._points.shape[0]) - self.n_stem
+
+    @functools.cached_property
+    def finite(self) -> bool:
+        """Whether every coordinate of the cloud is finite."""
+        return bool(np.isfinite(self._points).all())
+
+    def non_stem_every(self, stride: int) -> NDArray[np.float64]:
+        """``non_stem[::stride]``, gathered without the rows in between (a law that thins W - S
+        reads a tenth of an 848x480 frame's 400,000 rows: ~1 ms less per frame, measured)."""
+        if stride == 1 or "non_stem" in self.__dict__:
+            return self.non_stem[::stride]
+        return self._points.take(np.flatnonzero(~self._stem_mask)[::stride], axis=0)
+
     @functools.cached_property
     def non_stem(self) -> NDArray[np.float64]:
         """``(n, 3)`` W - S [m]: every non-stem point (leaves, branch, berries, the robot)."""

@@ -42,6 +42,29 @@ def test_frame_splits_the_cloud_by_label_in_order(n):
         assert got.shape == (len(expected), 3)
         np.testing.assert_array_equal(got, np.reshape(expected, (-1, 3)))
     assert frame.non_stem is frame.non_stem  # gathered once
+    assert frame.n_non_stem == len(non_stem) and frame.finite
+
+
+@pytest.mark.parametrize("stride", [1, 2, 5, 1000])
+def test_every_kth_non_stem_row_is_the_thinned_split(stride):
+    """``non_stem_every(k)`` (what the unveiling law's paper mode reads) is ``W - S`` thinned by k:
+    the first matching row, then every k-th, before and after W - S itself was gathered.
+    Catches: a stride over all rows instead of the non-stem ones, the first row skipped."""
+    rng = np.random.default_rng(stride)
+    points = rng.normal(size=(2003, 3))
+    labels = rng.choice([STEM, OBSTACLE, ROBOT], size=2003)
+    expected = np.reshape([p for p, label in zip(points, labels) if label != STEM], (-1, 3))[::stride]
+    frame = LabelledFrame(_cloud(points, labels))
+    np.testing.assert_array_equal(frame.non_stem_every(stride), expected)
+    frame.non_stem  # noqa: B018 (gathered: the thinned rows are taken from it)
+    np.testing.assert_array_equal(frame.non_stem_every(stride), expected)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_frame_tells_a_non_finite_cloud(bad):
+    points = np.zeros((5, 3))
+    points[3, 1] = bad
+    assert not LabelledFrame(_cloud(points, [STEM, OBSTACLE, OBSTACLE, ROBOT, OBSTACLE])).finite
 
 
 def test_frame_keeps_its_own_camera_pose():
