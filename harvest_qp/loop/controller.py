@@ -438,9 +438,9 @@ class HarvestController:
             # min_stem_points stem points are seen): not computed on the other frames.
             law = self.unveiling
             predicted_mode = s["unveiling"]["predicted_stem"] and frame.n_stem < law.min_stem_points
-            # The paper mode reads only every k-th non-stem row (law.obstacle_stride): gathered alone,
-            # unless a non-finite point must reach the law's check (it names the bad points).
-            thin = frame.n_stem > 0 and not predicted_mode and frame.finite
+            # The paper mode reads only every k-th non-stem row (law.obstacle_stride): only those are
+            # gathered (and checked by the law: a non-finite point it reads raises, naming them).
+            thin = frame.n_stem > 0 and not predicted_mode
             obstacles = frame.non_stem_every(law.obstacle_stride(frame.n_non_stem)) if thin else frame.non_stem
             law.observe(frame.camera_position, frame.stem, obstacles,
                         predicted_stem_points=self._predicted_stem(T_g) if predicted_mode else None,

@@ -66,11 +66,6 @@ class LabelledFrame:
         """Number of non-stem points (W - S)."""
         return int(self._points.shape[0]) - self.n_stem
 
-    @functools.cached_property
-    def finite(self) -> bool:
-        """Whether every coordinate of the cloud is finite."""
-        return bool(np.isfinite(self._points).all())
-
     def non_stem_every(self, stride: int) -> NDArray[np.float64]:
         """``non_stem[::stride]``, gathered without the rows in between (a law that thins W - S
         reads a tenth of an 848x480 frame's 400,000 rows: ~1 ms less per frame, measured)."""
