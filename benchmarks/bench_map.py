@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from harvest_qp import Configuration, TaskController  # noqa: E402
 from harvest_qp.limits import CollisionAvoidance  # noqa: E402
-from harvest_qp.perception.obstacle_map import ExclusionRegion, MapCollisionFeed, ObstacleMap  # noqa: E402
+from harvest_qp.perception.map_feed import MapCollisionFeed  # noqa: E402
+from harvest_qp.perception.obstacle_map import ExclusionRegion, ObstacleMap  # noqa: E402
 from harvest_qp.robot import description as desc  # noqa: E402
 from harvest_qp.sim import CameraConfig, SimRobot, make_camera  # noqa: E402
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask  # noqa: E402
@@ -88,7 +89,8 @@ def time_updates(frames: list, exclude, repeats: int, clear_rays: int | None = N
             cpu.append(time.process_time() - c0)
             rays.append(stats.rays)
     # Median over the frames (the last frame's count alone can be 0: a view with no point in the grid).
-    info = {"points": int(np.median([len(f) for f in frames])), "rays": int(np.median(rays)), "occupied": m.num_occupied}
+    info = {"points": int(np.median([len(f) for f in frames])), "rays": int(np.median(rays)),
+            "occupied": m.num_occupied}
     return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu)), info
 
 

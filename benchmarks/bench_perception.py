@@ -62,10 +62,10 @@ from harvest_qp.perception import (  # noqa: E402
     fit_stem,
     process_cloud,
     ray_obstacle_pairs,
-    unveiling_velocity,
 )
 from harvest_qp.perception.free_space import compute_free_space  # noqa: E402
 from harvest_qp.perception.synthetic import VineScene, render_scene  # noqa: E402
+from harvest_qp.references.unveiling import unveiling_velocity  # noqa: E402
 
 D_A, D_O, K_C, N_SAMPLES = 0.01, 0.001, 0.00025, 500
 TARGET_MS = {"283x160": 10.0, "848x480": 33.0}
@@ -329,7 +329,7 @@ def check_agreement(fast, slow: BruteForceResult) -> None:
     np.testing.assert_allclose(fast.stem_base, slow.stem_base, atol=1e-12)
     np.testing.assert_allclose(fast.target, slow.target, atol=1e-12)
     assert len(fast.unveiling) == slow.n_pairs, (len(fast.unveiling), slow.n_pairs)
-    np.testing.assert_allclose(fast.unveiling_velocity, slow.velocity, rtol=1e-8)
+    np.testing.assert_allclose(unveiling_velocity(fast.unveiling, k_c=K_C), slow.velocity, rtol=1e-8)
 
 
 # ------------------------------------------------------------------ optional scikit-learn

@@ -51,17 +51,19 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit
 
 from harvest_qp.baseline import PseudoInverseMapper
 from harvest_qp.config import _build_limit
 from harvest_qp.configuration import Configuration
 from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import ConfigError, HarvestQPError, InvalidInputError
-from harvest_qp.interface import OBSTACLE, STEM, PointCloud, RobotInterface
+from harvest_qp.interface import PointCloud, RobotInterface
 from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit
 from harvest_qp.loop.phases import Phase, PhaseMachine, PhaseRules
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
+from harvest_qp.perception.cloud_split import LabelledFrame as _Frame  # _State.frame
+from harvest_qp.perception.cloud_split import obstacle_sphere_centres, outside_held_cluster
+from harvest_qp.perception.grasp_target import SWING_CAPSULES, SwingCheck, choose_grasp_target
 from harvest_qp.references import (
     GraspFeedForward,
     HoldPose,
@@ -104,32 +106,6 @@ class SwitchSnapshot:
     target: np.ndarray
 
 
-class _Frame:
-    """Perception of one frame during the approach.
-
-    ``obstacles`` and ``non_stem`` (``(n, 3)`` [m]) are gathered from the cloud on first use:
-    only the frame at the switch needs them (~0.3 ms per 848x480 frame otherwise).
-    """
-
-    def __init__(self, time: float, camera_position: np.ndarray, camera_pose: np.ndarray, stem: np.ndarray,
-                 non_stem: _LabelRows, obstacles: _LabelRows, fit: Any = None) -> None:
-        self.time = time
-        self.camera_position = camera_position
-        self.camera_pose = camera_pose
-        self.stem = stem
-        self._non_stem = non_stem
-        self._obstacles = obstacles
-        self.fit = fit
-
-    @property
-    def non_stem(self) -> np.ndarray:
-        return self._non_stem[::1]
-
-    @property
-    def obstacles(self) -> np.ndarray:
-        return self._obstacles[::1]
-
-
 @dataclass
 class _State:
     """What the controller knows of the scene and its own last command (the phase and its
@@ -145,41 +121,6 @@ class _State:
     frame: _Frame | None = None
     hold: HoldPose | None = None  # the grasping arm's hold of its initial pose in the approach
     previous_qdot: np.ndarray = field(default_factory=lambda: np.zeros(12))
-
-
-@dataclass(frozen=True)
-class _MapCapsule:
-    """An arm capsule queried against the obstacle map (MapCollisionFeed's ``capsules``)."""
-
-    name: str
-    frame: str
-    p0: Any
-    p1: Any
-    radius: float
-
-
-#: Capsules of the grasping arm checked along the swing to p_gd: the gripper and the two wrist
-#: links next to it, which move (nearly) rigidly with the gripper while it swings the crop.
-_SWING_CAPSULES = ("grasp_gripper", "grasp_wrist_3", "grasp_wrist_2")
-
-#: Fractions of the swing (hanging stem -> p_gd) at which the gripper is checked against the map.
-_SWING_FRACTIONS = (0.25, 0.5, 0.75, 1.0)
-
-
-def _rotations_between(a: np.ndarray, b: np.ndarray, fractions) -> np.ndarray:
-    """Rotations by ``fractions`` of the shortest turn from unit ``a`` to each unit ``b[i]``: ``(n, f, 3, 3)``."""
-    axis = np.cross(a, b)
-    sin = np.linalg.norm(axis, axis=1)
-    cos = np.clip(b @ a, -1.0, 1.0)
-    angle = np.arctan2(sin, cos)
-    unit = np.where(sin[:, None] > 1e-12, axis / np.maximum(sin, 1e-12)[:, None], 0.0)
-    K = np.zeros((len(b), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -unit[:, 2], unit[:, 1], -unit[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = unit[:, 2], -unit[:, 1], unit[:, 0]
-    K2 = K @ K
-    f = np.asarray(fractions, float)
-    th = angle[:, None] * f[None, :]
-    return (np.eye(3) + np.sin(th)[..., None, None] * K[:, None] + (1 - np.cos(th))[..., None, None] * K2[:, None])
 
 
 #: Shared read-only values of the per-tick log and references (the runner copies what it logs).
@@ -202,180 +143,6 @@ _LAYOUT_WITH_MAP = _ValueLayout((("roll_error", ()), ("map_cells", ()), *_LOGGED
 _LAYOUT_WITHOUT_MAP = _ValueLayout((("roll_error", ()), *_LOGGED_VALUES))
 
 
-_ROW = np.dtype((np.void, 24))
-
-
-def _rows(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """``points[mask]`` for ``(n, 3)`` points and a boolean ``(n,)`` mask, as a new array.
-
-    numpy's boolean indexing of a 2-D array copies element by element (measured 3.0 ms for
-    190k of 193k rows at 848x480); on a view with one 24-byte record per row it copies whole
-    rows (0.5 ms). The bytes, hence the values, are the same.
-    """
-    if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 and points.flags.c_contiguous:
-        return points.view(_ROW).reshape(-1)[mask].view(np.float64).reshape(-1, 3)
-    return points[mask]
-
-
-@njit(cache=True)
-def _scan_cloud(points, labels, stem_label):  # pragma: no cover (compiled)
-    """(number of rows labelled ``stem_label``, whether every coordinate is finite).
-
-    Two branch-free loops that LLVM vectorises: the label count, and ``x - x != 0`` (true
-    for NaN and +-inf only) OR-ed over the flat coordinates."""
-    n_stem = 0
-    for i in range(labels.shape[0]):
-        n_stem += labels[i] == stem_label
-    flat = points.reshape(-1)
-    bad = False
-    for i in range(flat.shape[0]):
-        x = flat[i]
-        bad |= (x - x) != 0.0
-    return n_stem, not bad
-
-
-@njit(cache=True)
-def _gather_labelled(points, labels, label, equal, stride, count):  # pragma: no cover (compiled)
-    """Every ``stride``-th row of ``points`` whose label is (``equal``) / is not (not ``equal``)
-    ``label``, in order: ``points[labels == label][::stride]``; ``count`` is that number of rows."""
-    out = np.empty((count, 3))
-    skip = 0  # matching rows left to pass over before the next one taken
-    k = 0
-    for i in range(labels.shape[0]):
-        if (labels[i] == label) == equal:
-            if skip == 0:
-                if k < count:  # never past the end, whatever the caller's count
-                    out[k, 0] = points[i, 0]
-                    out[k, 1] = points[i, 1]
-                    out[k, 2] = points[i, 2]
-                k += 1
-                skip = stride - 1
-            else:
-                skip -= 1
-    if k != count:
-        raise ValueError("_gather_labelled: the row count does not match the labels")
-    return out
-
-
-@njit(cache=True)
-def _count_label(labels, label):  # pragma: no cover (compiled)
-    """Number of ``labels`` equal to ``label`` (a branch-free loop LLVM vectorises)."""
-    n = 0
-    for i in range(labels.shape[0]):
-        n += labels[i] == label
-    return n
-
-
-@njit(cache=True)
-def _split_labelled(points, labels, label, n_label, stride, n_other):  # pragma: no cover (compiled)
-    """``(points[labels == label], points[labels != label][::stride], every coordinate finite)``
-    in one pass over the cloud; ``n_label``, ``n_other``: the two row counts (``n_other``
-    after the stride)."""
-    first = np.empty((n_label, 3))
-    other = np.empty((n_other, 3))
-    skip = 0
-    j = 0
-    k = 0
-    bad = False
-    for i in range(labels.shape[0]):
-        x0 = points[i, 0]
-        x1 = points[i, 1]
-        x2 = points[i, 2]
-        bad |= ((x0 - x0) + (x1 - x1) + (x2 - x2)) != 0.0  # NaN only from a NaN or an inf
-        if labels[i] == label:
-            if j < n_label:
-                first[j, 0] = x0
-                first[j, 1] = x1
-                first[j, 2] = x2
-            j += 1
-        elif skip == 0:
-            if k < n_other:
-                other[k, 0] = x0
-                other[k, 1] = x1
-                other[k, 2] = x2
-            k += 1
-            skip = stride - 1
-        else:
-            skip -= 1
-    if j != n_label or k != n_other:
-        raise ValueError("_split_labelled: the row counts do not match the labels")
-    return first, other, not bad
-
-
-def _compiled_cloud(points: np.ndarray, labels: np.ndarray) -> bool:
-    """Whether the compiled split (:func:`_scan_cloud`, :func:`_gather_labelled`) takes this cloud."""
-    return (points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 and points.flags.c_contiguous
-            and labels.dtype == np.int8
-            and labels.ndim == 1 and labels.shape[0] == points.shape[0])
-
-
-def _labelled_rows(points: np.ndarray, labels: np.ndarray, label: int, *, equal: bool = True, stride: int = 1,
-                   n_match: int | None = None) -> np.ndarray:
-    """``points[(labels == label) if equal else (labels != label)][::stride]`` as a new ``(m, 3)`` array.
-
-    One compiled pass for a float64 cloud with int8 labels (numpy needs the mask, its
-    negation and a row gather: ~0.5 ms for the ~190k non-stem rows of an 848x480 frame, and
-    a thinned law then still gathered all of them); the same bytes as numpy's
-    (tests/loop/test_fast_paths.py). ``n_match``: the number of matching rows if known."""
-    if not _compiled_cloud(points, labels):
-        mask = labels == label if equal else labels != label
-        return _rows(points, mask)[::stride]
-    if n_match is None:
-        n_match = int(np.count_nonzero(labels == label))
-        if not equal:
-            n_match = points.shape[0] - n_match
-    count = len(range(0, n_match, stride))
-    return _gather_labelled(points, labels, label, equal, stride, count)
-
-
-class _LabelRows:
-    """The rows of ``points`` [m] labelled (``equal``) / not labelled ``label``, gathered on first use.
-
-    Supports ``.shape`` and slicing (``rows[::1]``: all of them). No mask is computed per
-    frame: the frame's obstacle rows (and, when the unveiling law thins them, its full
-    non-stem rows) are only needed at the switch (~0.3 ms each per 848x480 frame otherwise).
-    """
-
-    __slots__ = ("_points", "_labels", "_label", "_equal", "_n_match", "_all")
-
-    def __init__(self, points: np.ndarray, labels: np.ndarray, label: int, *, equal: bool = True,
-                 n_match: int | None = None, rows: np.ndarray | None = None) -> None:
-        self._points = points
-        self._labels = labels
-        self._label = label
-        self._equal = equal
-        self._n_match = n_match
-        self._all = rows
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self[::1].shape
-
-    def __len__(self) -> int:
-        return len(self[::1])
-
-    def __getitem__(self, key) -> np.ndarray:
-        if self._all is None:
-            self._all = _labelled_rows(self._points, self._labels, self._label, equal=self._equal,
-                                       n_match=self._n_match)
-        return self._all[key]
-
-
-def _first_in_each_voxel(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Indices of the first point in each occupied voxel of edge ``voxel`` [m], ascending.
-
-    The same as ``np.sort(np.unique(keys, axis=0, return_index=True)[1])`` on the integer
-    voxel keys, whose row-wise unique sorts (n, 3) records; here the three keys are packed
-    into one int64 (21 bits each, offset by their minimum) and a 1-D unique does it (both
-    return each key's first occurrence). Keys spanning more than 2^21 voxels fall back.
-    """
-    keys = np.floor(points / voxel).astype(np.int64)
-    keys -= keys.min(axis=0)
-    if int(keys.max()) >= 1 << 21:
-        _, first = np.unique(keys, axis=0, return_index=True)
-    else:
-        _, first = np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2], return_index=True)
-    return np.sort(first)
 
 
 def _missing_names(roll_error: float | None, map_cells: float | None, with_map: bool) -> tuple[str, ...]:
@@ -471,12 +238,13 @@ class HarvestController:
 
         Beyond the paper (its collision constraints know only the robot): every camera frame
         updates an :class:`~harvest_qp.perception.obstacle_map.ObstacleMap`, and before each
-        QP step a :class:`~harvest_qp.perception.obstacle_map.MapCollisionFeed` gives the
+        QP step a :class:`~harvest_qp.perception.map_feed.MapCollisionFeed` gives the
         closest occupied cells of each arm capsule to the ``CollisionAvoidance`` limit as
         damper rows (pair names ``cell[kx,ky,kz]``). Only with the QP mapper and a collision
         limit; the cloud-sphere option (``obstacles``) feeds the same limit, so not both.
         """
-        from harvest_qp.perception.obstacle_map import MapCollisionFeed, ObstacleMap
+        from harvest_qp.perception.map_feed import MapCapsule, MapCollisionFeed
+        from harvest_qp.perception.obstacle_map import ObstacleMap
 
         m = self.settings["obstacle_map"]
         self.obstacle_map = None
@@ -491,15 +259,14 @@ class HarvestController:
 
         prefixes = ("cam_",) if m["arms"] == "camera" else ("cam_", "grasp_")
         capsules = [
-            _MapCapsule(b.name, b.link, b.capsule.p0, b.capsule.p1, b.capsule.radius)
+            MapCapsule(b.name, b.link, b.capsule.p0, b.capsule.p1, b.capsule.radius)
             for b in description.collision_bodies() if b.arm and b.name.startswith(prefixes)
         ]
         # The grasping arm's capsules near the tool, which swing with the gripper around p_sb
-        # when the stem is stretched (the swing check of p_gd, _swing_clearance).
+        # when the stem is stretched (the swing check of p_gd, perception.grasp_target).
         self._swing_capsules = [
-            (self.configuration.frame_id(b.link), np.asarray(b.capsule.p0, float), np.asarray(b.capsule.p1, float),
-             float(b.capsule.radius))
-            for b in description.collision_bodies() if b.arm and b.name in _SWING_CAPSULES
+            (b.link, np.asarray(b.capsule.p0, float), np.asarray(b.capsule.p1, float), float(b.capsule.radius))
+            for b in description.collision_bodies() if b.arm and b.name in SWING_CAPSULES
         ]
         try:
             self.obstacle_map = ObstacleMap(resolution=m["resolution"], clear_rays=m["clear_rays"])
@@ -517,26 +284,16 @@ class HarvestController:
             raise ConfigError(f"obstacle_map: {err}") from None
 
     def map_exclusions(self, T_g: np.ndarray) -> list:
-        """Regions never mapped at gripper pose ``T_g``: the held cluster and the stem.
+        """Regions never mapped at gripper pose ``T_g``: the held cluster and the stem up to the
+        latest p_sb (:func:`~harvest_qp.perception.obstacle_map.held_crop_exclusions`)."""
+        from harvest_qp.perception.obstacle_map import held_crop_exclusions
 
-        The cluster hangs along y_g from the gripper point and moves with it (a capsule of
-        radius ``cluster_radius`` whose axis runs from ``cluster_start`` to ``cluster_length``
-        below the gripper point; its rounded top reaches ``cluster_radius - cluster_start``
-        above it, so the branch at the stem base stays in the map). The stem
-        runs from the top of the crop to p_sb (the latest fit; before one, ``stem_length``
-        along -y_g): beyond the camera's stem range it is labelled an obstacle, and it must
-        never constrain the camera's approach to it nor the gripper that holds it.
-        """
-        from harvest_qp.perception.obstacle_map import ExclusionRegion
-
-        m, st = self.settings["obstacle_map"], self.state
-        p_g, y_g = T_g[:3, 3], T_g[:3, 1]
-        cluster = ExclusionRegion(tuple(p_g + m["cluster_start"] * y_g), tuple(p_g + m["cluster_length"] * y_g),
-                                  m["cluster_radius"])
-        top_of_crop = p_g - self.settings["perception"]["grasp_offset"] * y_g
-        stem_end = st.p_sb if st.p_sb is not None else top_of_crop - m["stem_length"] * y_g
-        stem = ExclusionRegion(tuple(top_of_crop), tuple(stem_end), m["stem_radius"])
-        return [cluster, stem]
+        m = self.settings["obstacle_map"]
+        return held_crop_exclusions(
+            T_g, self.state.p_sb, grasp_offset=self.settings["perception"]["grasp_offset"],
+            cluster_start=m["cluster_start"], cluster_length=m["cluster_length"], cluster_radius=m["cluster_radius"],
+            stem_length=m["stem_length"], stem_radius=m["stem_radius"],
+        )
 
     def _build_references(self) -> None:
         s = self.settings
@@ -586,72 +343,36 @@ class HarvestController:
     # ------------------------------------------------------------------ perception
 
     def _perceive(self, cloud: PointCloud, T_g: np.ndarray) -> None:
-        # Speed (per camera frame): compiled loops count the stem rows (_count_label), then
-        # check the cloud's finiteness and gather the stem rows and only the non-stem rows the
-        # unveiling law keeps (every k-th) in one pass (_split_labelled); all non-stem rows
-        # are gathered lazily where the switch or the predicted mode needs them, the obstacle
-        # rows only at the switch (numpy's masks and row gathers: 0.8 ms at 848x480, these
-        # 0.4 ms). The unveiling law then gets the split points unchecked (its public
-        # observe() checks the same points again, ~0.3 ms at 848x480). The same bytes as
-        # numpy's boolean indexing (tests/loop/test_fast_paths.py).
+        """One camera frame: S and W - S (:class:`~harvest_qp.perception.cloud_split.LabelledFrame`)
+        to the unveiling law, the cloud spheres, and during the approach the stem fit p_sb."""
         st, s = self.state, self.settings
-        labels = cloud.labels
-        points = cloud.points
-        unveiling = self.unveiling
-        compiled = _compiled_cloud(points, labels)
-        n_stem = _count_label(labels, STEM) if compiled else int(np.count_nonzero(labels == STEM))
-        n_non_stem = int(points.shape[0]) - n_stem
-        non_stem = _LabelRows(points, labels, STEM, equal=False, n_match=n_non_stem)
-        # The non-stem rows the unveiling law's paper mode uses (every k-th), gathered with
-        # the stem rows in the pass that checks the cloud's finiteness; None where the paper
-        # mode cannot run on this frame (no stem, the unveiling law off, or fewer than
-        # min_stem_points stem points with a predicted stem: its next-best-view step reads
-        # every non-stem row).
-        predicted_mode = s["unveiling"]["predicted_stem"] and n_stem < unveiling.min_stem_points
-        thinned = None
-        if compiled and n_stem > 0 and s["unveiling"]["enabled"] and not predicted_mode:
-            stride = unveiling.obstacle_stride(n_non_stem)
-            stem, thinned, finite = _split_labelled(points, labels, STEM, n_stem, stride,
-                                                    len(range(0, n_non_stem, stride)))
-            if not finite:
-                thinned = None
-            elif stride == 1:
-                non_stem = _LabelRows(points, labels, STEM, equal=False, n_match=n_non_stem, rows=thinned)
-        elif compiled:
-            finite = _scan_cloud(points, labels, STEM)[1]
-            stem = _gather_labelled(points, labels, STEM, True, 1, n_stem)
-        else:
-            stem = _rows(points, labels == STEM)
-            finite = bool(np.isfinite(points).all())
-        approach = st.phase == Phase.APPROACH
-        spheres = self.collision is not None and s["obstacles"]["enabled"]
-        obstacles = _LabelRows(points, labels, OBSTACLE) if approach or spheres else None
-        st.n_stem = n_stem
-        if n_stem > 0:
-            st.last_stem_time = cloud.timestamp
-        p_c = cloud.camera_position
-        snap = FrameSnapshot(cloud.timestamp, cloud.pixels, labels, cloud.image_size, cloud.depth)
+        frame = _Frame(cloud)
+        st.n_stem = frame.n_stem
+        if frame.n_stem > 0:
+            st.last_stem_time = frame.time
+        snap = FrameSnapshot(cloud.timestamp, cloud.pixels, cloud.labels, cloud.image_size, cloud.depth)
         self.snapshots.setdefault("start", snap)
         self.snapshots["end"] = snap
         if s["unveiling"]["enabled"]:
             # Only the predicted mode reads the predicted stem (the law ignores it once
             # min_stem_points stem points are seen): not computed on the other frames.
-            predicted = self._predicted_stem(T_g) if predicted_mode else None
-            if finite:
-                unveiling._observe_points(p_c, stem, non_stem, predicted_stem_points=predicted,
-                                          roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp,
-                                          thinned_obstacles=thinned)
-            else:  # the checked call raises the package's error naming the bad points
-                unveiling.observe(p_c, stem, non_stem[::1], predicted_stem_points=predicted,
-                                  roi_centre=self.reaching.roi_centre, timestamp=cloud.timestamp)
-        if spheres:
-            self._update_obstacle_spheres(obstacles[::1], T_g)
-        if not approach:
+            law = self.unveiling
+            predicted_mode = s["unveiling"]["predicted_stem"] and frame.n_stem < law.min_stem_points
+            # The paper mode reads only every k-th non-stem row (law.obstacle_stride): only those are
+            # gathered (and checked by the law: a non-finite point it reads raises, naming them).
+            thin = frame.n_stem > 0 and not predicted_mode
+            obstacles = frame.non_stem_every(law.obstacle_stride(frame.n_non_stem)) if thin else frame.non_stem
+            law.observe(frame.camera_position, frame.stem, obstacles,
+                        predicted_stem_points=self._predicted_stem(T_g) if predicted_mode else None,
+                        roi_centre=self.reaching.roi_centre, timestamp=frame.time)
+        if self.collision is not None and s["obstacles"]["enabled"]:
+            self._update_obstacle_spheres(frame.obstacles, T_g)
+        if st.phase != Phase.APPROACH:
             return
-        frame = _Frame(cloud.timestamp, p_c.copy(), cloud.camera_pose.copy(), stem, non_stem, obstacles)
-        if st.n_stem >= s["perception"]["min_stem_points"]:
-            fit = fit_stem(stem, T_g[:3, 3])
-            if fit.valid and np.linalg.norm(fit.base - T_g[:3, 3]) <= s["perception"]["max_base_distance"]:
+        p = s["perception"]
+        if frame.n_stem >= p["min_stem_points"]:
+            fit = fit_stem(frame.stem, T_g[:3, 3])
+            if fit.valid and np.linalg.norm(fit.base - T_g[:3, 3]) <= p["max_base_distance"]:
                 frame.fit = fit
                 st.p_sb = fit.base.copy()
                 st.stem_length = fit.length
@@ -660,27 +381,13 @@ class HarvestController:
         st.frame = frame
 
     def _update_obstacle_spheres(self, points: np.ndarray, T_g: np.ndarray) -> None:
-        """The vine seen in this frame as collision spheres for the QP (beyond the paper).
-
-        Non-stem, non-robot points within ``obstacles.max_distance`` of the gripper, one
-        sphere per occupied voxel, minus the held cluster (a capsule along y_g below the
-        gripper, which moves with it). Measured without it (default scene, lab contacts on):
-        the gripper swinging the crop towards p_gd touched a leaf at 12 s, the wrist read
-        6 N of contact force and the episode aborted on the force limit.
-        """
+        """The vine seen in this frame as collision spheres for the QP (beyond the paper;
+        :func:`~harvest_qp.perception.cloud_split.obstacle_sphere_centres`). Measured without
+        it (default scene, lab contacts on): the gripper swinging the crop towards p_gd touched
+        a leaf at 12 s, the wrist read 6 N of contact force and the episode aborted."""
         o = self.settings["obstacles"]
-        p_g, y_g = T_g[:3, 3], T_g[:3, 1]
-        offset = points - p_g
-        near = np.einsum("ij,ij->i", offset, offset) < o["max_distance"] ** 2
-        points, offset = points[near], offset[near]
-        along = np.clip(offset @ y_g, 0.0, o["cluster_length"])
-        radial = offset - along[:, None] * y_g
-        outside_cluster = np.einsum("ij,ij->i", radial, radial) > o["cluster_radius"] ** 2
-        points = points[outside_cluster]
-        if len(points):
-            centres = points[_first_in_each_voxel(points, o["voxel"])]
-        else:
-            centres = np.zeros((0, 3))
+        centres = obstacle_sphere_centres(points, T_g, max_distance=o["max_distance"], voxel=o["voxel"],
+                                          cluster_length=o["cluster_length"], cluster_radius=o["cluster_radius"])
         self.collision.set_obstacle_spheres(centres, o["radius"])
 
     def _grasp_obstacle_candidates(self, frame: _Frame) -> np.ndarray:
@@ -693,147 +400,29 @@ class HarvestController:
         """
         if not self.settings["grasping"]["exclude_held_crop"]:
             return frame.non_stem
-        points = frame.obstacles
-        T_g = self._switch_gripper_pose
         o = self.settings["obstacles"]
-        offset = points - T_g[:3, 3]
-        along = np.clip(offset @ T_g[:3, 1], 0.0, o["cluster_length"])
-        radial = offset - along[:, None] * T_g[:3, 1]
-        return points[np.einsum("ij,ij->i", radial, radial) > o["cluster_radius"] ** 2]
+        points = frame.obstacles
+        return points[outside_held_cluster(points, self._switch_gripper_pose, cluster_length=o["cluster_length"],
+                                           cluster_radius=o["cluster_radius"])]
 
     def _target_within_swing(self, free, stem_base: np.ndarray, *, T_g: np.ndarray) -> np.ndarray | None:
-        """p_gd of ``eq:attr_point`` over the free samples within ``grasping.max_swing_deg`` of the stem now.
-
-        The stem's direction now is from p_sb to the top of the held crop (gripper pose and
-        ``perception.grasp_offset``). Deviation from the paper (which takes the whole
-        free-space hemisphere): measured on the default scene and seed 1, p_gd 48-53 deg off
-        the hanging stem swung the crop up beside the branch and the gripper touched it
-        (arm-vine contacts from 0.8 s after the switch, wrist reading 6 N from the contact).
-        ``null`` keeps the paper's choice.
-
-        With ``grasping.swing_clearance`` and an obstacle map (beyond the paper), the samples
-        are first filtered by the clearance of the gripper's swing on the map
-        (:meth:`_swing_clearance`), in tiers: free, in the cone and clear (then
-        ``eq:attr_point`` among them); free and clear (the least swing); the hanging
-        direction itself or the least swing of the cone that is clear (leaving F: measured on
-        seeds 1 and 5, no sample of F swung clear of the occluding leaf); else the most
-        clearance. "Clear" is ``swing_clearance``, or the gripper's clearance now if that is
-        less (a gripper already close to the branch must not get closer).
-        """
+        """p_gd within ``grasping.max_swing_deg`` of the stem now, map-aware with
+        ``grasping.swing_clearance`` (:func:`~harvest_qp.perception.grasp_target.choose_grasp_target`)."""
         g = self.settings["grasping"]
-        max_swing = g["max_swing_deg"]
-        swing_clearance = g["swing_clearance"]
-        map_check = swing_clearance is not None and self.obstacle_map is not None and bool(self._swing_capsules)
-        self.target_choice = "eq:attr_point over the free samples in the cone"
-        if max_swing is None and not map_check:
-            self.target_choice = "eq:attr_point"
-            return free.target.copy()
-        if not np.any(free.free):
-            return None
+        swing = None
+        if g["swing_clearance"] is not None and self.obstacle_map is not None and self._swing_capsules:
+            capsules = []
+            for frame, a, b, radius in self._swing_capsules:
+                pose = self.configuration.frame_pose(frame)
+                capsules.append((pose.act(a), pose.act(b), radius))
+            swing = SwingCheck(self.obstacle_map, self.configuration.frame_position("gripper"), capsules,
+                               clearance=g["swing_clearance"], stretch=g["swing_stretch"])
         top_of_crop = T_g[:3, 3] - self.settings["perception"]["grasp_offset"] * T_g[:3, 1]
-        hanging = top_of_crop - stem_base
-        hanging /= float(np.linalg.norm(hanging))
-        samples = free.samples
-        directions = (samples - stem_base) / np.linalg.norm(samples - stem_base, axis=1)[:, None]
-        cos_swing = directions @ hanging
-        in_cone = free.free & (cos_swing >= (np.cos(np.radians(max_swing)) if max_swing is not None else -1.0))
-        if map_check:
-            # Map-aware p_gd (beyond the paper): the gripper and its wrist swing around p_sb with
-            # the crop and then move out along n_c as the stem stretches; a sample whose swing
-            # brings them within swing_clearance of a mapped cell (measured: the occluding leaf
-            # the crop is pulled towards on seeds 1 and 5, the branch) is used only when no other
-            # is left. A gripper already closer than that must not get closer.
-            limit = 2.0 * swing_clearance
-            clearance = self._swing_clearance(samples, stem_base, hanging, limit=limit)
-            now = self._swing_clearance(top_of_crop[None], stem_base, hanging, limit=limit, fractions=(0.0,),
-                                        stretches=(0.0,))[0]
-            needed = min(swing_clearance, now)
-            self.last_swing_clearance = (clearance, needed)
-            clear = clearance >= needed - 1e-9
-            if np.any(in_cone & clear):
-                in_cone = in_cone & clear
-                self.target_choice = "free, in the cone, swing clear (eq:attr_point among them)"
-            elif np.any(free.free & clear):  # outside the cone: the least swing that is clear
-                pool = np.flatnonzero(free.free & clear)
-                self.target_choice = "free, swing clear, outside the cone (least swing)"
-                return samples[pool[np.argmax(cos_swing[pool])]].copy()
-            else:
-                # No sample of F swings clear (measured on seeds 1 and 5: F lies on the camera's
-                # side, where the occluding leaf hangs). Leave F: the sample of the cone (or the
-                # hanging direction itself, no swing at all) that swings clear with the least
-                # swing, else the one that keeps the most clearance.
-                hang_point = stem_base + free.radius * hanging
-                hang_clearance = self._swing_clearance(hang_point[None], stem_base, hanging, limit=limit)[0]
-                cone = cos_swing >= (np.cos(np.radians(max_swing)) if max_swing is not None else -1.0)
-                pool = np.flatnonzero(cone & clear)
-                if hang_clearance >= needed - 1e-9:
-                    self.target_choice = "no free sample swings clear: the hanging direction (no swing)"
-                    return hang_point
-                if pool.size:
-                    self.target_choice = "no free sample swings clear: the least clear swing of the cone"
-                    return samples[pool[np.argmax(cos_swing[pool])]].copy()
-                pool = np.flatnonzero(cone) if np.any(cone) else np.arange(len(samples))
-                best = pool[np.argmax(clearance[pool])]
-                self.target_choice = "no sample swings clear: the most clearance"
-                return samples[best].copy() if clearance[best] > hang_clearance else hang_point
-        if not np.any(in_cone):  # nothing free within the cone: the free sample nearest to it
-            self.target_choice = "nothing free in the cone: the free sample nearest to it"
-            closest = np.flatnonzero(free.free)[np.argmax(cos_swing[free.free])]
-            return samples[closest].copy()
-        candidates = samples[in_cone]
-        obstacles = free.projected_obstacles
-        if len(obstacles) == 0:
-            return candidates[np.argmax(cos_swing[in_cone])].copy()
-        from scipy.spatial import cKDTree
-
-        projected_clearance, _ = cKDTree(obstacles).query(candidates)
-        return candidates[int(np.argmax(projected_clearance))].copy()
-
-    def _swing_clearance(self, samples: np.ndarray, stem_base: np.ndarray, hanging: np.ndarray, *, limit: float,
-                         fractions=_SWING_FRACTIONS, stretches=None) -> np.ndarray:
-        """Smallest map distance [m] of the gripper's capsules along its swing to each sample (capped at ``limit``).
-
-        The swing to a sample: the gripper point turns about p_sb with the stem, from its
-        hanging direction ``hanging`` (unit, p_sb -> top of the crop) to the sample's, while
-        the gripper turns by the same rotation about its own point, twice as fast
-        (``k_og`` = 2 ``k_pg`` in ``eq:superimp_g``: when the position has done a fraction f
-        of its way, the orientation has done 1 - (1 - f)^2); the gripper and the wrist links
-        next to it move rigidly with it. At the end of the turn the gripper also moves out
-        along n_c by each of ``stretches`` (the stem's slack and stretch: measured 22 mm beyond
-        the sphere S(p_sb, l) on seed 5 at 3 N). The held cluster and the stem are never in
-        the map (``map_exclusions``), so they do not count.
-        """
-        if stretches is None:
-            stretch = self.settings["grasping"]["swing_stretch"]
-            stretches = (0.5 * stretch, stretch) if stretch > 0 else ()
-        fractions = np.asarray(fractions, float)
-        turn = np.concatenate([1.0 - (1.0 - fractions) ** 2, np.ones(len(stretches))])
-        move = np.concatenate([fractions, np.ones(len(stretches))])
-        out = np.concatenate([np.zeros(len(fractions)), np.asarray(stretches, float)])
-        directions = samples - stem_base
-        directions /= np.linalg.norm(directions, axis=1)[:, None]
-        R_move = _rotations_between(hanging, directions, move)  # (n, m, 3, 3)
-        R_turn = _rotations_between(hanging, directions, turn)
-        data = self.configuration.data
-        gripper = data.oMf[self._gripper_id]
-        p_g = gripper.translation
-        # positions of the gripper point along the swing
-        points = (stem_base + np.einsum("nmij,j->nmi", R_move, p_g - stem_base)
-                  + out[None, :, None] * directions[:, None])
-        p0, p1, radii = [], [], []
-        for frame, a, b, radius in self._swing_capsules:
-            pose = data.oMf[frame]
-            for end, ends in ((a, p0), (b, p1)):
-                relative = pose.rotation @ end + pose.translation - p_g  # world offset from the gripper point now
-                ends.append(points + np.einsum("nmij,j->nmi", R_turn, relative))
-            radii.append(radius)
-        n, m = R_move.shape[:2]
-        p0 = np.stack(p0, axis=2).reshape(-1, 3)
-        p1 = np.stack(p1, axis=2).reshape(-1, 3)
-        r = np.tile(np.asarray(radii), n * m)
-        query = self.obstacle_map.closest_cells(p0, p1, r, max_distance=limit, per_capsule=1)
-        distance = np.minimum(query.min_distances(), limit).reshape(n, m * len(radii))
-        return distance.min(axis=1)
+        target = choose_grasp_target(free, stem_base, top_of_crop, max_swing_deg=g["max_swing_deg"], swing=swing)
+        self.target_choice = target.choice
+        if target.swing_clearance is not None:
+            self.last_swing_clearance = target.swing_clearance
+        return target.point
 
     def _predicted_stem(self, T_g: np.ndarray) -> np.ndarray:
         """Where the stem should be, from what the robot knows (beyond the paper).

@@ -6,13 +6,22 @@ space and grasp target p_gd) and the geometry of Section ``subsec:occlusion_cont
 
 Modules, one per concern: :mod:`.fibonacci` (sphere lattice and its inverse mapping),
 :mod:`.classify` (stem / obstacle sets), :mod:`.stem` (two-segment stem model),
-:mod:`.free_space` (free space and p_gd), :mod:`.unveiling` (eq:nearest kernel and V_cu),
-:mod:`.pipeline` (:func:`process_cloud`) and :mod:`.synthetic` (test scenes).
+:mod:`.free_space` (free space and p_gd), :mod:`.unveiling` (the ray/obstacle pairs of
+eq:nearest), :mod:`.pipeline` (:func:`process_cloud`), :mod:`.cloud_split` (one labelled frame
+split into S, W - S and the obstacle points), :mod:`.grasp_target` (p_gd within the swing bound,
+map-aware), :mod:`.obstacle_map` and :mod:`.map_feed` (the persistent obstacle map and its feed
+to the collision limit) and :mod:`.synthetic` (test scenes).
+
+Perception never imports the reference laws (:mod:`harvest_qp.references`): the data flows
+from the cloud to the laws. The unveiling velocity V_cu of the pairs is
+:func:`harvest_qp.references.unveiling.unveiling_velocity`.
 """
 
 from harvest_qp.perception.classify import SceneSplit, obstacles_near_stem_base, red_stem_mask, split_scene
+from harvest_qp.perception.cloud_split import LabelledFrame, obstacle_sphere_centres, outside_held_cluster
 from harvest_qp.perception.fibonacci import fibonacci_sphere, nearest_fibonacci_index
 from harvest_qp.perception.free_space import FreeSpace, ObstaclePlane, compute_free_space, fit_obstacle_plane
+from harvest_qp.perception.grasp_target import GraspTarget, SwingCheck, choose_grasp_target
 from harvest_qp.perception.pipeline import PerceptionResult, process_cloud
 from harvest_qp.perception.stem import LineSegment, StemModel, StemQuality, fit_stem
 from harvest_qp.perception.unveiling import (
@@ -23,20 +32,13 @@ from harvest_qp.perception.unveiling import (
     ray_obstacle_pairs,
 )
 
-# The unveiling control law moved to harvest_qp.references.unveiling; re-exported here so that
-# existing imports keep working.
-from harvest_qp.references.unveiling import (  # noqa: E402
-    barrier_potential,
-    repulsive_velocity,
-    stem_angular_velocities,
-    unveiling_velocity,
-)
-
 __all__ = [
     "NEAREST_AT_CAMERA",
     "NEAREST_AT_STEM_POINT",
     "NEAREST_INTERIOR",
     "FreeSpace",
+    "GraspTarget",
+    "LabelledFrame",
     "LineSegment",
     "ObstaclePlane",
     "PerceptionResult",
@@ -44,18 +46,18 @@ __all__ = [
     "SceneSplit",
     "StemModel",
     "StemQuality",
-    "barrier_potential",
+    "SwingCheck",
+    "choose_grasp_target",
     "compute_free_space",
     "fibonacci_sphere",
     "fit_obstacle_plane",
     "fit_stem",
     "nearest_fibonacci_index",
+    "obstacle_sphere_centres",
     "obstacles_near_stem_base",
+    "outside_held_cluster",
     "process_cloud",
     "ray_obstacle_pairs",
     "red_stem_mask",
-    "repulsive_velocity",
     "split_scene",
-    "stem_angular_velocities",
-    "unveiling_velocity",
 ]

@@ -16,8 +16,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from harvest_qp.collision import kernels as _collision
-
 BLOCK_SHIFT = 3
 BLOCK = 1 << BLOCK_SHIFT  # cells per block edge
 BLOCK_CELLS = BLOCK**3
@@ -236,44 +234,34 @@ def _trace_ray(
                 if old > 0.0 and new <= 0.0:
                     _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
             count += 1
-        if tmx < tmy:
-            if tmx < tmz:
-                if sx > 0:
-                    idx += cross_x if (ix & _MASK) == _MASK else 64
-                else:
-                    idx -= cross_x if (ix & _MASK) == 0 else 64
-                ix += sx
-                tmx += tdx
-                if ix < 0 or ix >= nx:
-                    return count
+        # Step into the next cell along the axis whose boundary is nearest (ties: z, then y).
+        if tmx < tmy and tmx < tmz:
+            if sx > 0:
+                idx += cross_x if (ix & _MASK) == _MASK else 64
             else:
-                if sz > 0:
-                    idx += cross_z if (iz & _MASK) == _MASK else 1
-                else:
-                    idx -= cross_z if (iz & _MASK) == 0 else 1
-                iz += sz
-                tmz += tdz
-                if iz < 0 or iz >= nz:
-                    return count
+                idx -= cross_x if (ix & _MASK) == 0 else 64
+            ix += sx
+            tmx += tdx
+            if ix < 0 or ix >= nx:
+                return count
+        elif tmx >= tmy and tmy < tmz:
+            if sy > 0:
+                idx += cross_y if (iy & _MASK) == _MASK else 8
+            else:
+                idx -= cross_y if (iy & _MASK) == 0 else 8
+            iy += sy
+            tmy += tdy
+            if iy < 0 or iy >= ny:
+                return count
         else:
-            if tmy < tmz:
-                if sy > 0:
-                    idx += cross_y if (iy & _MASK) == _MASK else 8
-                else:
-                    idx -= cross_y if (iy & _MASK) == 0 else 8
-                iy += sy
-                tmy += tdy
-                if iy < 0 or iy >= ny:
-                    return count
+            if sz > 0:
+                idx += cross_z if (iz & _MASK) == _MASK else 1
             else:
-                if sz > 0:
-                    idx += cross_z if (iz & _MASK) == _MASK else 1
-                else:
-                    idx -= cross_z if (iz & _MASK) == 0 else 1
-                iz += sz
-                tmz += tdz
-                if iz < 0 or iz >= nz:
-                    return count
+                idx -= cross_z if (iz & _MASK) == 0 else 1
+            iz += sz
+            tmz += tdz
+            if iz < 0 or iz >= nz:
+                return count
         if ix == jx and iy == jy and iz == jz:
             return count
         if min(tmx, min(tmy, tmz)) > length:
@@ -302,7 +290,8 @@ def _clip_to_box(ox, oy, oz, px, py, pz, lo, hi):
 
 @njit(cache=True)
 def integrate_frame(
-    points, labels, pixels, image_size, origin, rotation, regions, stride, phase_row, phase_col, near_skip, min_range, max_range,
+    points, labels, pixels, image_size, origin, rotation, regions, stride, phase_row, phase_col, near_skip, min_range,
+    max_range,
     no_return, nr_stride, nr_phase_row, nr_phase_col, intrinsics, returned, res, lo_key, dims, nby, nbz,
     log_odds, stamp, frame, hit, miss,
     clamp_min, clamp_max, dirty, dirty_list, n_dirty, counters,
@@ -497,11 +486,11 @@ def integrate_frame(
 def erase_regions(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_list, n_dirty, block_cells, block_count):
     """Forget (log-odds 0) every occupied cell whose centre lies in one of the capsule ``regions``; returns how many.
 
-    Visits only the occupied cells of the blocks the regions' boxes overlap (the block lists,
-    up to date when no block is dirty on entry; otherwise every cell of the boxes).
+    Visits only the occupied cells of the blocks the regions' boxes overlap: the block lists
+    must be up to date (no dirty block on entry: ``ObstacleMap`` rebuilds them after every change).
     """
     if n_dirty[0] > 0:
-        return _erase_regions_scan(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_list, n_dirty)
+        raise ValueError("erase_regions: the block lists are out of date (dirty blocks)")
     erased = 0
     lo_i = np.empty(3, np.int64)
     hi_i = np.empty(3, np.int64)
@@ -527,7 +516,6 @@ def erase_regions(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_l
                         iz = (bz << BLOCK_SHIFT) | (local & _MASK)
                         if not (lo_i[0] <= ix <= hi_i[0] and lo_i[1] <= iy <= hi_i[1] and lo_i[2] <= iz <= hi_i[2]):
                             continue
-                        # The same expressions as the scan: the same cells.
                         cx = (ix + lo_key[0] + 0.5) * res
                         cy = (iy + lo_key[1] + 0.5) * res
                         cz = (iz + lo_key[2] + 0.5) * res
@@ -538,35 +526,6 @@ def erase_regions(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_l
                             log_odds[idx] = 0.0
                             erased += 1
                             _mark_dirty(b, dirty, dirty_list, n_dirty)
-    return erased
-
-
-@njit(cache=True)
-def _erase_regions_scan(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_list, n_dirty):
-    """:func:`erase_regions` over every cell of the regions' boxes (block lists not needed)."""
-    erased = 0
-    for k in range(regions.shape[0]):
-        r = regions[k, 6]
-        lo_i = np.empty(3, np.int64)
-        hi_i = np.empty(3, np.int64)
-        for a in range(3):
-            lo_c = min(regions[k, a], regions[k, 3 + a]) - r
-            hi_c = max(regions[k, a], regions[k, 3 + a]) + r
-            lo_i[a] = max(int(np.floor(lo_c / res)) - lo_key[a], 0)
-            hi_i[a] = min(int(np.floor(hi_c / res)) - lo_key[a], dims[a] - 1)
-        for ix in range(lo_i[0], hi_i[0] + 1):
-            cx = (ix + lo_key[0] + 0.5) * res
-            for iy in range(lo_i[1], hi_i[1] + 1):
-                cy = (iy + lo_key[1] + 0.5) * res
-                for iz in range(lo_i[2], hi_i[2] + 1):
-                    cz = (iz + lo_key[2] + 0.5) * res
-                    if not _point_in_region(cx, cy, cz, regions, k):
-                        continue
-                    idx = cell_index(ix, iy, iz, nby, nbz)
-                    if log_odds[idx] > 0.0:
-                        log_odds[idx] = 0.0
-                        erased += 1
-                        _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
     return erased
 
 
@@ -598,15 +557,45 @@ def _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd):
     return np.sqrt(ex * ex + ey * ey + ez * ez)
 
 
+@njit(cache=True, inline="always")
+def capsule_segment(w0, w1, c):
+    """Capsule ``c``'s axis: its start (ax, ay, az), its vector (dx, dy, dz) and squared length dd."""
+    ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
+    dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
+    return ax, ay, az, dx, dy, dz, dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, inline="always")
+def cell_centre(cx0, cy0, cz0, local, res):
+    """World centre [m] of cell ``local`` of the block whose lower corner is (cx0, cy0, cz0)."""
+    x = cx0 + ((local >> 6) + 0.5) * res
+    y = cy0 + (((local >> 3) & _MASK) + 0.5) * res
+    return x, y, cz0 + ((local & _MASK) + 0.5) * res
+
+
 @njit(cache=True)
-def _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi):
-    """The map blocks ``blo..bhi`` (inclusive, per axis) that capsule ``c``'s segment box,
-    grown by ``reach`` [m], overlaps."""
+def blocks_in_reach(w0, w1, c, reach, res, lo_key, dims, nby, nbz, blocks, corners):
+    """The map blocks that capsule ``c``'s segment box, grown by ``reach`` [m], overlaps, in
+    (x, y, z) order: their ids into ``blocks``, their lower corners [m] into ``corners``
+    (both sized for every block of the map); returns how many."""
+    nb = (dims[0] >> BLOCK_SHIFT, nby, nbz)
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
     for a in range(3):
         lo_c = min(w0[c, a], w1[c, a]) - reach
         hi_c = max(w0[c, a], w1[c, a]) + reach
-        blo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
-        bhi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+        lo[a] = max((int(np.floor(lo_c / res)) - lo_key[a]) >> BLOCK_SHIFT, 0)
+        hi[a] = min((int(np.floor(hi_c / res)) - lo_key[a]) >> BLOCK_SHIFT, nb[a] - 1)
+    n = 0
+    for bx in range(lo[0], hi[0] + 1):
+        for by in range(lo[1], hi[1] + 1):
+            for bz in range(lo[2], hi[2] + 1):
+                blocks[n] = (bx * nby + by) * nbz + bz
+                corners[n, 0] = (lo_key[0] + bx * BLOCK) * res
+                corners[n, 1] = (lo_key[1] + by * BLOCK) * res
+                corners[n, 2] = (lo_key[2] + bz * BLOCK) * res
+                n += 1
+    return n
 
 
 @njit(cache=True)
@@ -623,10 +612,11 @@ def _insert_sorted(scratch_distance, scratch_index, count, m_max, d, idx):
 
 
 @njit(cache=True)
-def _keep_separated(c, count, k_max, sep2, res, nby, nbz, radius, cell_radius, scratch_index, scratch_distance,
-                    out_index, out_distance):
+def keep_separated(c, count, k_max, sep2, res, nby, nbz, radius, cell_radius, scratch_index, scratch_distance,
+                   out_index, out_distance, kept_cells):
     """Capsule ``c``'s first ``k_max`` cells of the sorted list, each at least ``sqrt(sep2)``
-    from those kept before it; their surface distances into ``out_*[c]``. Returns how many."""
+    from those kept before it; their surface distances into ``out_*[c]``. Returns how many.
+    ``kept_cells``: ``(k_max, 3)`` int scratch for the kept cells' grid coordinates."""
     kept = 0
     for j in range(count):
         if kept == k_max:
@@ -636,12 +626,15 @@ def _keep_separated(c, count, k_max, sep2, res, nby, nbz, radius, cell_radius, s
             ix, iy, iz = index_to_cell(idx, nby, nbz)
             far = True
             for i in range(kept):
-                jx, jy, jz = index_to_cell(out_index[c, i], nby, nbz)
+                jx, jy, jz = kept_cells[i, 0], kept_cells[i, 1], kept_cells[i, 2]
                 if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
                     far = False
                     break
             if not far:
                 continue
+            kept_cells[kept, 0] = ix
+            kept_cells[kept, 1] = iy
+            kept_cells[kept, 2] = iz
         out_index[c, kept] = idx
         out_distance[c, kept] = scratch_distance[j] - radius - cell_radius
         kept += 1
@@ -665,47 +658,37 @@ def closest_cells(
     """
     m_max = scratch_index.shape[0]
     k_max = out_index.shape[1]
-    nbx = dims[0] >> BLOCK_SHIFT
     block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
     half = 0.5 * BLOCK * res
     sep2 = min_separation * min_separation
-    nb = (nbx, nby, nbz)
-    blo = np.empty(3, np.int64)
-    bhi = np.empty(3, np.int64)
+    blocks = np.empty(block_count.shape[0], np.int64)
+    corners = np.empty((block_count.shape[0], 3))
+    kept_cells = np.empty((k_max, 3), np.int64)
     for c in range(w0.shape[0]):
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
+        ax, ay, az, dx, dy, dz, dd = capsule_segment(w0, w1, c)
         reach = radii[c] + max_distance + cell_radius  # centre distance that still counts
         count = 0
         worst = reach  # current admission bound on the centre distance
-        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
-        for bx in range(blo[0], bhi[0] + 1):
-            cx0 = (lo_key[0] + bx * BLOCK) * res
-            for by in range(blo[1], bhi[1] + 1):
-                cy0 = (lo_key[1] + by * BLOCK) * res
-                for bz in range(blo[2], bhi[2] + 1):
-                    b = (bx * nby + by) * nbz + bz
-                    nc = block_count[b]
-                    if nc == 0:
-                        continue
-                    cz0 = (lo_key[2] + bz * BLOCK) * res
-                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
-                    if db - block_half_diag > worst:
-                        continue
-                    for j in range(nc):
-                        local = block_cells[b, j]
-                        px = cx0 + ((local >> 6) + 0.5) * res
-                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
-                        pz = cz0 + ((local & _MASK) + 0.5) * res
-                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
-                        if d > worst:
-                            continue
-                        count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, (b << 9) | local)
-                        if count == m_max:
-                            worst = scratch_distance[m_max - 1]
-        out_count[c] = _keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
-                                       scratch_distance, out_index, out_distance)
+        for i in range(blocks_in_reach(w0, w1, c, reach, res, lo_key, dims, nby, nbz, blocks, corners)):
+            b = blocks[i]
+            nc = block_count[b]
+            if nc == 0:
+                continue
+            cx0, cy0, cz0 = corners[i, 0], corners[i, 1], corners[i, 2]
+            db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
+            if db - block_half_diag > worst:
+                continue
+            for j in range(nc):
+                local = block_cells[b, j]
+                px, py, pz = cell_centre(cx0, cy0, cz0, local, res)
+                d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
+                if d > worst:
+                    continue
+                count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, (b << 9) | local)
+                if count == m_max:
+                    worst = scratch_distance[m_max - 1]
+        out_count[c] = keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
+                                      scratch_distance, out_index, out_distance, kept_cells)
 
 
 @njit(cache=True)
@@ -783,523 +766,3 @@ def gather_cells(index, distance, max_cells, res, lo_key, nby, nbz, out_cells, o
         out_cells[i] = cells[i]
     cell_centres(out_cells[:n], res, lo_key, nby, nbz, out_centres)
     return n
-
-
-# --------------------------------------------------------------------------- per-tick feed
-# MapCollisionFeed queries the map every control tick (500 Hz) but the map changes only when
-# a camera frame is integrated (30 Hz) and the capsules move ~1 mm per tick. The feed keeps,
-# per capsule, the occupied cells within ``reach + slack`` of the capsule where it was when the
-# list was built (the candidates, in the full query's visiting order), and the blocks that
-# can hold such cells. While every capsule end point stays within ``slack`` of where it was,
-# no cell outside the list can come within ``reach`` (a segment's distance to a point moves
-# by at most the larger of its end points' displacements), so the query over the list
-# admits the same cells in the same order as the full query: the same result, bit for bit.
-# The list is rebuilt when a capsule moved farther, when the query distance changed, or when
-# one of its blocks changed occupancy since (the map stamps each rebuilt block with its
-# version).
-
-# Slots of the feed's integer state array.
-FEED_VALID = 0  # 1 when the candidate lists hold
-FEED_VERSION = 1  # map version the lists were checked against
-FEED_N_BLOCKS = 2  # blocks the lists depend on
-FEED_CHANGED = 3  # output: 1 when the fed cells differ from the last update's
-FEED_N_LAST = 4  # cells fed at the last update
-FEED_REBUILDS = 5  # lists rebuilt (diagnostics)
-FEED_STATE = 6
-
-
-@njit(cache=True)
-def _feed_candidates(
-    w0, w1, radii, max_distance, cell_radius, slack, res, lo_key, dims, nby, nbz, block_cells, block_count,
-    cand_start, cand_index, cand_xyz, rel_blocks,
-):
-    """Candidate cells of each capsule (see above) in the visiting order of :func:`closest_cells`.
-
-    Returns the number of dependent blocks written to ``rel_blocks``, or -1 when
-    ``cand_index`` or ``rel_blocks`` is too small (nothing usable is written then).
-    """
-    nbx = dims[0] >> BLOCK_SHIFT
-    block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
-    half = 0.5 * BLOCK * res
-    nb = (nbx, nby, nbz)
-    blo = np.empty(3, np.int64)
-    bhi = np.empty(3, np.int64)
-    cap_c = cand_index.shape[0]
-    cap_b = rel_blocks.shape[0]
-    n_cand = 0
-    n_rel = 0
-    for c in range(w0.shape[0]):
-        cand_start[c] = n_cand
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
-        reach = radii[c] + max_distance + cell_radius + slack
-        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
-        for bx in range(blo[0], bhi[0] + 1):
-            cx0 = (lo_key[0] + bx * BLOCK) * res
-            for by in range(blo[1], bhi[1] + 1):
-                cy0 = (lo_key[1] + by * BLOCK) * res
-                for bz in range(blo[2], bhi[2] + 1):
-                    b = (bx * nby + by) * nbz + bz
-                    cz0 = (lo_key[2] + bz * BLOCK) * res
-                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
-                    if db - block_half_diag > reach:
-                        continue
-                    if n_rel == cap_b:
-                        return -1
-                    rel_blocks[n_rel] = b
-                    n_rel += 1
-                    for j in range(block_count[b]):
-                        local = block_cells[b, j]
-                        # The same expressions as closest_cells: the same bits.
-                        px = cx0 + ((local >> 6) + 0.5) * res
-                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
-                        pz = cz0 + ((local & _MASK) + 0.5) * res
-                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
-                        if d > reach:
-                            continue
-                        if n_cand == cap_c:
-                            return -1
-                        cand_index[n_cand] = (b << 9) | local
-                        cand_xyz[n_cand, 0] = px
-                        cand_xyz[n_cand, 1] = py
-                        cand_xyz[n_cand, 2] = pz
-                        n_cand += 1
-    cand_start[w0.shape[0]] = n_cand
-    return n_rel
-
-
-@njit(cache=True)
-def feed_update(
-    w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
-    block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
-    cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-    out_count, out_cells, out_centres,
-):
-    """One tick of ``MapCollisionFeed.update`` after the capsules' world end points ``w0``, ``w1``.
-
-    Returns -1 (nothing done) when an end point is not finite, -2 when the candidate
-    arrays are too small (grow them and call again), else the number of cells written to
-    ``out_cells`` / ``out_centres`` (the other slots of ``out_centres`` at ``park``), with
-    ``state[FEED_CHANGED]`` telling whether they differ from the previous call's.
-    Switched-off capsules (``active`` False) are moved to ``park`` first, in place.
-    The result equals :func:`closest_cells` then :func:`gather_cells` (see above).
-    """
-    n = w0.shape[0]
-    for c in range(n):
-        for a in range(3):
-            if not (np.isfinite(w0[c, a]) and np.isfinite(w1[c, a])):
-                return -1
-    for c in range(n):
-        if not active[c]:
-            for a in range(3):
-                w0[c, a] = park[a]
-                w1[c, a] = park[a]
-    valid = state[FEED_VALID] == 1 and cache_distance[0] == max_distance
-    if valid:
-        slack2 = slack * slack
-        for c in range(n):
-            e0 = (w0[c, 0] - cache_w0[c, 0]) ** 2 + (w0[c, 1] - cache_w0[c, 1]) ** 2 + (w0[c, 2] - cache_w0[c, 2]) ** 2
-            e1 = (w1[c, 0] - cache_w1[c, 0]) ** 2 + (w1[c, 1] - cache_w1[c, 1]) ** 2 + (w1[c, 2] - cache_w1[c, 2]) ** 2
-            if e0 > slack2 or e1 > slack2:
-                valid = False
-                break
-    if valid and state[FEED_VERSION] != map_version:
-        version = state[FEED_VERSION]
-        for j in range(state[FEED_N_BLOCKS]):
-            if block_stamp[rel_blocks[j]] > version:
-                valid = False
-                break
-        if valid:
-            state[FEED_VERSION] = map_version
-    if not valid:
-        state[FEED_VALID] = 0
-        # A hair more than slack, so that rounding never drops a cell the query would admit.
-        n_rel = _feed_candidates(
-            w0, w1, radii, max_distance, cell_radius, slack * (1.0 + 1e-9) + 1e-12, res, lo_key, dims,
-            nby, nbz, block_cells, block_count, cand_start, cand_index, cand_xyz, rel_blocks,
-        )  # fmt: skip
-        if n_rel < 0:
-            return -2
-        state[FEED_VALID] = 1
-        state[FEED_VERSION] = map_version
-        state[FEED_N_BLOCKS] = n_rel
-        state[FEED_REBUILDS] += 1
-        cache_distance[0] = max_distance
-        cache_w0[:, :] = w0
-        cache_w1[:, :] = w1
-    m_max = scratch_index.shape[0]
-    k_max = out_index.shape[1]
-    sep2 = min_separation * min_separation
-    for c in range(n):
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
-        worst = radii[c] + max_distance + cell_radius
-        count = 0
-        for i in range(cand_start[c], cand_start[c + 1]):
-            d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
-            if d > worst:
-                continue
-            count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, cand_index[i])
-            if count == m_max:
-                worst = scratch_distance[m_max - 1]
-        kept = _keep_separated(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
-                               scratch_distance, out_index, out_distance)
-        for j in range(kept, k_max):
-            out_index[c, j] = -1
-        out_count[c] = kept
-    n_last = state[FEED_N_LAST]
-    previous = out_cells[:n_last].copy()
-    for i in range(out_centres.shape[0]):
-        for a in range(3):
-            out_centres[i, a] = park[a]
-    m = gather_cells(out_index, out_distance, out_cells.shape[0], res, lo_key, nby, nbz, out_cells, out_centres)
-    changed = m != n_last
-    if not changed:
-        for i in range(m):
-            if out_cells[i] != previous[i]:
-                changed = True
-                break
-    state[FEED_CHANGED] = 1 if changed else 0
-    state[FEED_N_LAST] = m
-    return m
-
-
-@njit(cache=True)
-def feed_tick(
-    q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p, cap_joint, cap_a, cap_b,
-    w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
-    block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
-    cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-    out_count, out_cells, out_centres,
-):
-    """:func:`feed_update` after the capsules' world end points at joint positions ``q``: the
-    collision package's forward kinematics and capsule placement (the same kernels
-    ``MapCollisionFeed.capsule_world`` calls), in the same compiled call (one dispatch per tick
-    instead of three)."""
-    _collision.forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
-    _collision.capsule_world(cap_joint, cap_a, cap_b, joint_R, joint_p, w0, w1)
-    return feed_update(
-        w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
-        block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
-        cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-        out_count, out_cells, out_centres,
-    )
-
-
-# --------------------------------------------------------------------------- packed feed tick
-# numba's dispatch costs grow with the argument count (each argument is typed and unboxed on
-# every call: ~4 us for feed_tick's 45 arguments warm, ~20 us with the caches the rest of a
-# control tick leaves, against ~1 us / ~12 us for a dozen; measured). MapCollisionFeed
-# therefore keeps the arrays that only it writes, and the constants, in two buffers (one
-# float64, one int64) built once (MapCollisionFeed._pack); feed_tick_packed cuts them back
-# into the same arrays and runs the same kernels on them (same arithmetic: the same bits).
-# ibuf starts with a header: the sizes below, then the offsets of the float parts in fbuf,
-# then those of the int parts in ibuf, in the order of FEED_FLOAT_PARTS / FEED_INT_PARTS.
-FEED_FLOAT_PARTS = (
-    "place_R", "place_p", "axis", "joint_R", "joint_p", "cap_a", "cap_b", "w0", "w1", "park", "radii",
-    "cache_w0", "cache_w1", "cache_distance", "scratch_distance", "out_distance", "out_centres", "map_floats",
-    "cand_bound", "displacement",
-)  # fmt: skip
-FEED_INT_PARTS = (
-    "parent", "idx_v", "joint_type", "cap_joint", "lo_key", "dims", "state", "cand_start", "scratch_index",
-    "out_index", "out_count", "out_cells", "map_ints", "kept_cells",
-)  # fmt: skip
-FEED_SIZES = 5  # header: joints, capsules, cells kept per capsule, scratch length, output slots
-_FO = FEED_SIZES
-_IO = FEED_SIZES + len(FEED_FLOAT_PARTS)
-FEED_HEADER = _IO + len(FEED_INT_PARTS)
-
-
-@njit(cache=True, inline="always")
-def _view2(buf, offset, rows, cols):
-    return buf[offset : offset + rows * cols].reshape((rows, cols))
-
-
-@njit(cache=True)
-def feed_tick_packed(
-    q, active, max_distance, min_separation, slack, map_version, fbuf, ibuf, cand_index, cand_xyz, rel_blocks,
-    block_cells, block_count, block_stamp,
-):
-    """:func:`feed_tick` with the feed's own arrays and constants cut from ``fbuf`` / ``ibuf``
-    (layout above; map floats: cell radius [m], resolution [m]; map ints: nby, nbz)."""
-    nj, n, k, m, slots = ibuf[0], ibuf[1], ibuf[2], ibuf[3], ibuf[4]
-    place_R = fbuf[ibuf[_FO + 0] : ibuf[_FO + 0] + 9 * nj].reshape((nj, 3, 3))
-    place_p = _view2(fbuf, ibuf[_FO + 1], nj, 3)
-    axis = _view2(fbuf, ibuf[_FO + 2], nj, 3)
-    joint_R = fbuf[ibuf[_FO + 3] : ibuf[_FO + 3] + 9 * nj].reshape((nj, 3, 3))
-    joint_p = _view2(fbuf, ibuf[_FO + 4], nj, 3)
-    cap_a = _view2(fbuf, ibuf[_FO + 5], n, 3)
-    cap_b = _view2(fbuf, ibuf[_FO + 6], n, 3)
-    w0 = _view2(fbuf, ibuf[_FO + 7], n, 3)
-    w1 = _view2(fbuf, ibuf[_FO + 8], n, 3)
-    park = fbuf[ibuf[_FO + 9] : ibuf[_FO + 9] + 3]
-    radii = fbuf[ibuf[_FO + 10] : ibuf[_FO + 10] + n]
-    cache_w0 = _view2(fbuf, ibuf[_FO + 11], n, 3)
-    cache_w1 = _view2(fbuf, ibuf[_FO + 12], n, 3)
-    cache_distance = fbuf[ibuf[_FO + 13] : ibuf[_FO + 13] + 1]
-    scratch_distance = fbuf[ibuf[_FO + 14] : ibuf[_FO + 14] + m]
-    out_distance = _view2(fbuf, ibuf[_FO + 15], n, k)
-    out_centres = _view2(fbuf, ibuf[_FO + 16], slots, 3)
-    cell_radius = fbuf[ibuf[_FO + 17]]
-    res = fbuf[ibuf[_FO + 17] + 1]
-    cand_bound = fbuf[ibuf[_FO + 18] : ibuf[_FO + 18] + n]
-    displacement = fbuf[ibuf[_FO + 19] : ibuf[_FO + 19] + n]
-    parent = ibuf[ibuf[_IO + 0] : ibuf[_IO + 0] + nj]
-    idx_v = ibuf[ibuf[_IO + 1] : ibuf[_IO + 1] + nj]
-    joint_type = ibuf[ibuf[_IO + 2] : ibuf[_IO + 2] + nj]
-    cap_joint = ibuf[ibuf[_IO + 3] : ibuf[_IO + 3] + n]
-    lo_key = ibuf[ibuf[_IO + 4] : ibuf[_IO + 4] + 3]
-    dims = ibuf[ibuf[_IO + 5] : ibuf[_IO + 5] + 3]
-    state = ibuf[ibuf[_IO + 6] : ibuf[_IO + 6] + FEED_STATE]
-    cand_start = ibuf[ibuf[_IO + 7] : ibuf[_IO + 7] + n + 1]
-    scratch_index = ibuf[ibuf[_IO + 8] : ibuf[_IO + 8] + m]
-    out_index = _view2(ibuf, ibuf[_IO + 9], n, k)
-    out_count = ibuf[ibuf[_IO + 10] : ibuf[_IO + 10] + n]
-    out_cells = ibuf[ibuf[_IO + 11] : ibuf[_IO + 11] + slots]
-    nby = ibuf[ibuf[_IO + 12]]
-    nbz = ibuf[ibuf[_IO + 12] + 1]
-    kept_cells = _view2(ibuf, ibuf[_IO + 13], k, 3)
-    _collision.forward_kinematics(q, parent, idx_v, joint_type, axis, place_R, place_p, joint_R, joint_p)
-    _collision.capsule_world(cap_joint, cap_a, cap_b, joint_R, joint_p, w0, w1)
-    return feed_update_bounded(
-        w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
-        block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
-        cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-        out_count, out_cells, out_centres, cand_bound, displacement, kept_cells,
-    )
-
-
-@njit(cache=True)
-def _feed_candidates_boxed(
-    w0, w1, radii, max_distance, cell_radius, slack, res, lo_key, dims, nby, nbz, block_cells, block_count,
-    cand_start, cand_index, cand_xyz, rel_blocks,
-):
-    """:func:`_feed_candidates` with the empty blocks of each capsule's box listed as dependent
-    without their distance test (~1.5x more dependent blocks, half the time of a rebuild: 50-63 us
-    against 109-134 us with the caches flushed, measured on the episode's maps). The candidates are
-    the same; a longer list of dependent blocks can only make the lists be rebuilt sooner (they are,
-    on nearly every camera frame anyway), never kept when a block within reach changed."""
-    nbx = dims[0] >> BLOCK_SHIFT
-    block_half_diag = 0.5 * BLOCK * res * np.sqrt(3.0)
-    half = 0.5 * BLOCK * res
-    nb = (nbx, nby, nbz)
-    blo = np.empty(3, np.int64)
-    bhi = np.empty(3, np.int64)
-    cap_c = cand_index.shape[0]
-    cap_b = rel_blocks.shape[0]
-    n_cand = 0
-    n_rel = 0
-    for c in range(w0.shape[0]):
-        cand_start[c] = n_cand
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
-        reach = radii[c] + max_distance + cell_radius + slack
-        _block_range(w0, w1, c, reach, res, lo_key, nb, blo, bhi)
-        for bx in range(blo[0], bhi[0] + 1):
-            cx0 = (lo_key[0] + bx * BLOCK) * res
-            for by in range(blo[1], bhi[1] + 1):
-                cy0 = (lo_key[1] + by * BLOCK) * res
-                for bz in range(blo[2], bhi[2] + 1):
-                    b = (bx * nby + by) * nbz + bz
-                    nc = block_count[b]
-                    if nc == 0:
-                        if n_rel == cap_b:
-                            return -1
-                        rel_blocks[n_rel] = b
-                        n_rel += 1
-                        continue
-                    cz0 = (lo_key[2] + bz * BLOCK) * res
-                    db = _point_segment_distance(cx0 + half, cy0 + half, cz0 + half, ax, ay, az, dx, dy, dz, dd)
-                    if db - block_half_diag > reach:
-                        continue
-                    if n_rel == cap_b:
-                        return -1
-                    rel_blocks[n_rel] = b
-                    n_rel += 1
-                    for j in range(nc):
-                        local = block_cells[b, j]
-                        # The same expressions as closest_cells: the same bits.
-                        px = cx0 + ((local >> 6) + 0.5) * res
-                        py = cy0 + (((local >> 3) & _MASK) + 0.5) * res
-                        pz = cz0 + ((local & _MASK) + 0.5) * res
-                        d = _point_segment_distance(px, py, pz, ax, ay, az, dx, dy, dz, dd)
-                        if d > reach:
-                            continue
-                        if n_cand == cap_c:
-                            return -1
-                        cand_index[n_cand] = (b << 9) | local
-                        cand_xyz[n_cand, 0] = px
-                        cand_xyz[n_cand, 1] = py
-                        cand_xyz[n_cand, 2] = pz
-                        n_cand += 1
-    cand_start[w0.shape[0]] = n_cand
-    return n_rel
-
-
-# A bound that skips most kept candidates without their distance (exact, argued here). Let M be
-# the length of the sorted list (scratch) and, for a capsule, D(e) its distance to candidate e
-# when the lists were built (kept in cand_xyz[:, 3]), B the M-th smallest D (cand_bound; inf
-# with fewer than M candidates) and s the larger displacement of its end points since then. A
-# segment's distance to a point moves by at most s when its end points move by at most s, so M
-# candidates are now within B + s (up to rounding, ~1e-16 m; the margin is 1e-9 m): when that is
-# within reach they are all admitted, the list ends full and its last distance W <= B + s.
-# A candidate with D(e) - s > B + s (+ margins) is then farther than W now. Such a candidate
-# never changes the final list: it sorts after every candidate within W, so while it is in the
-# list it is the one evicted (or skipped), and the candidates within W are admitted, evicted
-# and ordered exactly as without it (the list of those is never full while it holds it). When
-# B + s is beyond reach, it is farther than reach and skipped by the reach test anyway.
-_BOUND_MARGIN = 1e-9  # [m]
-
-
-@njit(cache=True)
-def _candidate_bounds(w0, w1, n, m_max, cand_start, cand_xyz, cand_bound, scratch_distance):
-    """Each candidate's distance to its capsule as the lists are built (into ``cand_xyz[:, 3]``) and
-    each capsule's M-th smallest of them (``cand_bound``; inf with fewer than ``m_max`` candidates)."""
-    for c in range(n):
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
-        count = 0
-        for i in range(cand_start[c], cand_start[c + 1]):
-            d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
-            cand_xyz[i, 3] = d
-            if count == m_max and d >= scratch_distance[m_max - 1]:
-                continue
-            pos = count if count < m_max else m_max - 1
-            while pos > 0 and scratch_distance[pos - 1] > d:
-                scratch_distance[pos] = scratch_distance[pos - 1]
-                pos -= 1
-            scratch_distance[pos] = d
-            if count < m_max:
-                count += 1
-        cand_bound[c] = scratch_distance[m_max - 1] if count == m_max else np.inf
-
-
-@njit(cache=True)
-def _keep_separated_once(c, count, k_max, sep2, res, nby, nbz, radius, cell_radius, scratch_index, scratch_distance,
-                         out_index, out_distance, kept_cells):
-    """:func:`_keep_separated` with each cell's grid coordinates computed once (``index_to_cell``'s
-    integer divisions were most of its cost): the kept cells' coordinates wait in ``kept_cells``
-    (``(k_max, 3)`` scratch). The same integers, the same tests: the same result."""
-    kept = 0
-    for j in range(count):
-        if kept == k_max:
-            break
-        idx = scratch_index[j]
-        if sep2 > 0.0:
-            ix, iy, iz = index_to_cell(idx, nby, nbz)
-            far = True
-            for i in range(kept):
-                jx, jy, jz = kept_cells[i, 0], kept_cells[i, 1], kept_cells[i, 2]
-                if ((ix - jx) ** 2 + (iy - jy) ** 2 + (iz - jz) ** 2) * res * res < sep2:
-                    far = False
-                    break
-            if not far:
-                continue
-            kept_cells[kept, 0] = ix
-            kept_cells[kept, 1] = iy
-            kept_cells[kept, 2] = iz
-        out_index[c, kept] = idx
-        out_distance[c, kept] = scratch_distance[j] - radius - cell_radius
-        kept += 1
-    return kept
-
-
-@njit(cache=True)
-def feed_update_bounded(
-    w0, w1, active, park, radii, max_distance, cell_radius, min_separation, slack, res, lo_key, dims, nby, nbz,
-    block_cells, block_count, block_stamp, map_version, state, cache_w0, cache_w1, cache_distance,
-    cand_start, cand_index, cand_xyz, rel_blocks, scratch_index, scratch_distance, out_index, out_distance,
-    out_count, out_cells, out_centres, cand_bound, displacement, kept_cells,
-):
-    """:func:`feed_update` with the candidates' bound above (``cand_xyz`` has a 4th column for their
-    distances; ``cand_bound``, ``displacement``: per-capsule scratch kept with the lists;
-    ``kept_cells``: ``(k, 3)`` int scratch of :func:`_keep_separated_once`). Same result."""
-    n = w0.shape[0]
-    for c in range(n):
-        for a in range(3):
-            if not (np.isfinite(w0[c, a]) and np.isfinite(w1[c, a])):
-                return -1
-    for c in range(n):
-        if not active[c]:
-            for a in range(3):
-                w0[c, a] = park[a]
-                w1[c, a] = park[a]
-    valid = state[FEED_VALID] == 1 and cache_distance[0] == max_distance
-    if valid:
-        slack2 = slack * slack
-        for c in range(n):
-            e0 = (w0[c, 0] - cache_w0[c, 0]) ** 2 + (w0[c, 1] - cache_w0[c, 1]) ** 2 + (w0[c, 2] - cache_w0[c, 2]) ** 2
-            e1 = (w1[c, 0] - cache_w1[c, 0]) ** 2 + (w1[c, 1] - cache_w1[c, 1]) ** 2 + (w1[c, 2] - cache_w1[c, 2]) ** 2
-            if e0 > slack2 or e1 > slack2:
-                valid = False
-                break
-            displacement[c] = np.sqrt(max(e0, e1))
-    if valid and state[FEED_VERSION] != map_version:
-        version = state[FEED_VERSION]
-        for j in range(state[FEED_N_BLOCKS]):
-            if block_stamp[rel_blocks[j]] > version:
-                valid = False
-                break
-        if valid:
-            state[FEED_VERSION] = map_version
-    m_max = scratch_index.shape[0]
-    if not valid:
-        state[FEED_VALID] = 0
-        # A hair more than slack, so that rounding never drops a cell the query would admit.
-        n_rel = _feed_candidates_boxed(
-            w0, w1, radii, max_distance, cell_radius, slack * (1.0 + 1e-9) + 1e-12, res, lo_key, dims,
-            nby, nbz, block_cells, block_count, cand_start, cand_index, cand_xyz, rel_blocks,
-        )  # fmt: skip
-        if n_rel < 0:
-            return -2
-        _candidate_bounds(w0, w1, n, m_max, cand_start, cand_xyz, cand_bound, scratch_distance)
-        displacement[:] = 0.0
-        state[FEED_VALID] = 1
-        state[FEED_VERSION] = map_version
-        state[FEED_N_BLOCKS] = n_rel
-        state[FEED_REBUILDS] += 1
-        cache_distance[0] = max_distance
-        cache_w0[:, :] = w0
-        cache_w1[:, :] = w1
-    k_max = out_index.shape[1]
-    sep2 = min_separation * min_separation
-    for c in range(n):
-        ax, ay, az = w0[c, 0], w0[c, 1], w0[c, 2]
-        dx, dy, dz = w1[c, 0] - ax, w1[c, 1] - ay, w1[c, 2] - az
-        dd = dx * dx + dy * dy + dz * dz
-        worst = radii[c] + max_distance + cell_radius
-        far = cand_bound[c] + 2.0 * displacement[c] + 3.0 * _BOUND_MARGIN  # see above
-        count = 0
-        for i in range(cand_start[c], cand_start[c + 1]):
-            if cand_xyz[i, 3] > far:
-                continue
-            d = _point_segment_distance(cand_xyz[i, 0], cand_xyz[i, 1], cand_xyz[i, 2], ax, ay, az, dx, dy, dz, dd)
-            if d > worst:
-                continue
-            count = _insert_sorted(scratch_distance, scratch_index, count, m_max, d, cand_index[i])
-            if count == m_max:
-                worst = scratch_distance[m_max - 1]
-        kept = _keep_separated_once(c, count, k_max, sep2, res, nby, nbz, radii[c], cell_radius, scratch_index,
-                                    scratch_distance, out_index, out_distance, kept_cells)
-        for j in range(kept, k_max):
-            out_index[c, j] = -1
-        out_count[c] = kept
-    n_last = state[FEED_N_LAST]
-    previous = out_cells[:n_last].copy()
-    for i in range(out_centres.shape[0]):
-        for a in range(3):
-            out_centres[i, a] = park[a]
-    m = gather_cells(out_index, out_distance, out_cells.shape[0], res, lo_key, nby, nbz, out_cells, out_centres)
-    changed = m != n_last
-    if not changed:
-        for i in range(m):
-            if out_cells[i] != previous[i]:
-                changed = True
-                break
-    state[FEED_CHANGED] = 1 if changed else 0
-    state[FEED_N_LAST] = m
-    return m

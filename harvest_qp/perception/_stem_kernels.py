@@ -1,15 +1,14 @@
 """Compiled (numba) kernels of :func:`harvest_qp.perception.stem.fit_stem`.
 
-Both replace a library call on the ~100-1,000 stem points of a frame whose Python overhead
-was most of its cost, with the same arithmetic, so the same bits (checked against the
-library calls in ``tests/perception/test_compiled_paths.py``):
+Each replaces a library call on the ~100-1,000 stem points of a frame whose Python overhead
+was most of its cost (together ~0.5 ms per approach frame), and is tested against that
+library call in ``tests/perception/test_kernels.py``:
 
 * :func:`nearest_neighbour_distances`: what ``cKDTree(p).query(p, k=2)[0][:, 1]`` returns
   (squared distance summed over x, y, z in that order, then its square root), by a sweep
   along the coordinate axis of the largest extent (a stem's length: fewer points within the
   sweep's window than along x) over the points sorted along it;
-* :func:`distinct_rows`: the rows ``np.unique(points, axis=0)`` keeps, in the same
-  (lexicographic) order as the column lexsort of ``stem._distinct_rows``;
+* :func:`distinct_rows`: the rows ``np.unique(points, axis=0)`` keeps, in lexicographic order;
 * :func:`median_nearest_neighbour_distance`: ``np.median`` of the above over the distinct
   rows, in one call (the point spacing of ``fit_stem``);
 * :func:`kmeans_labels`: the labels of ``scipy.cluster.vq.kmeans2(data, initial, iter,
@@ -49,32 +48,20 @@ def nearest_neighbour_distances(points):
         # the best distance: a farther point has d >= gap * gap >= best (d adds non-negative
         # terms to the rounded gap * gap, and rounding is monotone) and cannot be strictly
         # closer.  d itself is summed over x, y, z in that order, whatever the sweep axis.
-        q = p - 1
-        while q >= 0:
-            gap = key - keys[q]
-            if gap * gap >= best:
-                break
-            j = order[q]
-            dx = x - points[j, 0]
-            dy = y - points[j, 1]
-            dz = z - points[j, 2]
-            d = dx * dx + dy * dy + dz * dz
-            if d < best:
-                best = d
-            q -= 1
-        q = p + 1
-        while q < n:
-            gap = key - keys[q]
-            if gap * gap >= best:
-                break
-            j = order[q]
-            dx = x - points[j, 0]
-            dy = y - points[j, 1]
-            dz = z - points[j, 2]
-            d = dx * dx + dy * dy + dz * dz
-            if d < best:
-                best = d
-            q += 1
+        for step in (-1, 1):
+            q = p + step
+            while 0 <= q < n:
+                gap = key - keys[q]
+                if gap * gap >= best:
+                    break
+                j = order[q]
+                dx = x - points[j, 0]
+                dy = y - points[j, 1]
+                dz = z - points[j, 2]
+                d = dx * dx + dy * dy + dz * dz
+                if d < best:
+                    best = d
+                q += step
         out[i] = np.sqrt(best)
     return out
 

@@ -31,20 +31,11 @@ once every ``clear_stride**2`` frames, and near the camera, where rays crowd, on
 of the twice coarser grid (see :class:`ObstacleMap`). Measured speeds and the choice of the defaults:
 ``benchmarks/bench_map.py`` and the module constants below.
 
-:class:`MapCollisionFeed` turns the map into :class:`~harvest_qp.limits.CollisionAvoidance`
-obstacle spheres before each QP step: for each arm capsule, its closest occupied cells
-within the influence distance, each a sphere covering its cell (radius sqrt(3)/2 times
-the resolution), so each becomes a velocity-damper row with the limit's own d_s / d_i /
-gain, and its pair name tells the cell (``cell[kx,ky,kz]``, the cell's integer key).
-
-Typical use in a control loop::
-
-    obstacle_map = ObstacleMap()
-    feed = MapCollisionFeed(collision_limit, obstacle_map, controller.configuration)
-    # every tick, before controller.step(q):
-    if new_cloud is not None:
-        obstacle_map.update(new_cloud, exclude=[held_cluster_region])
-    feed.update(q)
+:class:`~harvest_qp.perception.map_feed.MapCollisionFeed` (its own module) turns the map into
+:class:`~harvest_qp.limits.CollisionAvoidance` obstacle spheres before each QP step: for each
+arm capsule, its closest occupied cells within the influence distance, each a sphere covering
+its cell (radius sqrt(3)/2 times the resolution), so each becomes a velocity-damper row with
+the limit's own d_s / d_i / gain, and its pair name tells the cell (``cell[kx,ky,kz]``).
 """
 
 from __future__ import annotations
@@ -68,7 +59,7 @@ __all__ = [
     "DEFAULT_RESOLUTION",
     "CellQuery",
     "ExclusionRegion",
-    "MapCollisionFeed",
+    "held_crop_exclusions",
     "MapUpdateStats",
     "ObstacleMap",
 ]
@@ -140,6 +131,35 @@ class ExclusionRegion:
         except (TypeError, ValueError):
             raise InvalidInputError(f"center must be 3 finite coordinates [m], got {center!r}") from None
         return cls(c, c, radius)  # type: ignore[arg-type]
+
+
+def held_crop_exclusions(
+    gripper_pose: NDArray[np.float64],
+    stem_base: NDArray[np.float64] | None,
+    *,
+    grasp_offset: float,
+    cluster_start: float,
+    cluster_length: float,
+    cluster_radius: float,
+    stem_length: float,
+    stem_radius: float,
+) -> list[ExclusionRegion]:
+    """Regions never mapped at gripper pose ``gripper_pose`` (4x4): the held cluster and the stem.
+
+    The cluster hangs along y_g from the gripper point and moves with it: a capsule of radius
+    ``cluster_radius`` whose axis runs from ``cluster_start`` to ``cluster_length`` [m] below the
+    gripper point (its rounded top reaches ``cluster_radius - cluster_start`` above it, so the
+    branch at the stem base stays in the map). The stem runs from the top of the crop
+    (``grasp_offset`` [m] above the gripper point) to p_sb ``stem_base`` (before a fit,
+    ``stem_length`` along -y_g), radius ``stem_radius``: beyond the camera's stem range it is
+    labelled an obstacle, and it must never constrain the camera's approach to it nor the
+    gripper that holds it.
+    """
+    p_g, y_g = gripper_pose[:3, 3], gripper_pose[:3, 1]
+    cluster = ExclusionRegion(tuple(p_g + cluster_start * y_g), tuple(p_g + cluster_length * y_g), cluster_radius)
+    top_of_crop = p_g - grasp_offset * y_g
+    stem_end = stem_base if stem_base is not None else top_of_crop - stem_length * y_g
+    return [cluster, ExclusionRegion(tuple(top_of_crop), tuple(stem_end), stem_radius)]
 
 
 @dataclass(frozen=True)
@@ -533,7 +553,8 @@ class ObstacleMap:
                 if self._returned.shape != (h, w):
                     self._returned = np.zeros((h, w), dtype=np.bool_)
         K.integrate_frame(
-            points, labels, pixels, np.array((max(int(h), 0), max(int(w), 0)), dtype=np.int64), origin, rotation, regions,
+            points, labels, pixels, np.array((max(int(h), 0), max(int(w), 0)), dtype=np.int64), origin, rotation,
+            regions,
             stride, phase // stride, phase % stride, near_skip, self.min_range, self.max_range, no_return,
             nr_stride, nr_phase // nr_stride, nr_phase % nr_stride, intrinsics,
             self._returned, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
@@ -623,7 +644,10 @@ class ObstacleMap:
         count = np.zeros(n, dtype=np.int64)
         scratch_i = np.zeros(int(candidates), dtype=np.int64)
         scratch_d = np.zeros(int(candidates))
-        self._query(a, b, r, max_distance, min_separation, scratch_i, scratch_d, index, dist, count)
+        K.closest_cells(
+            a, b, r, max_distance, self.cell_radius, min_separation, self.resolution, self.lo_key, self.dims,
+            self._nby, self._nbz, self._block_cells, self._block_count, scratch_i, scratch_d, index, dist, count,
+        )  # fmt: skip
         centres = np.full((n, k, 3), np.nan)
         valid = index >= 0
         flat = np.empty((int(valid.sum()), 3))
@@ -632,344 +656,3 @@ class ObstacleMap:
         keys = np.zeros((n, k, 3), dtype=np.int64)
         keys[valid] = self.keys(flat)
         return CellQuery(counts=count, distances=dist, centres=centres, keys=keys, indices=index)
-
-    def _query(self, a, b, r, max_distance, min_separation, scratch_i, scratch_d, index, dist, count) -> None:
-        """The compiled query on prepared arrays (no checks; for the per-tick feed)."""
-        K.closest_cells(
-            a, b, r, max_distance, self.cell_radius, min_separation, self.resolution, self.lo_key, self.dims,
-            self._nby, self._nbz, self._block_cells, self._block_count, scratch_i, scratch_d, index, dist, count,
-        )  # fmt: skip
-
-
-class MapCollisionFeed:
-    """Feeds an :class:`ObstacleMap` to a :class:`~harvest_qp.limits.CollisionAvoidance` before each QP step.
-
-    :meth:`update` finds, for each arm capsule, its ``per_capsule`` closest occupied cells
-    within the limit's influence distance plus ``margin`` (cells of one capsule at least
-    ``min_separation`` apart), and makes their union the limit's obstacle spheres (each
-    covering its cell), so the limit's own closest-pair selection turns them into damper
-    rows with its d_s / d_i / gain. The obstacle names in ``limit.capsule_names`` (hence
-    ``limit.pair_names()`` and the logged active pairs) are ``cell[kx,ky,kz]``, the cell's
-    integer key ``floor(x / resolution)``; unused slots are ``free_slot``.
-
-    The limit gets a fixed number of obstacle slots (``max_cells``) once, and
-    each update writes the cells into them in place, because
-    ``CollisionAvoidance.set_obstacle_spheres`` rebuilds the pair arrays (~55 us a call,
-    measured); unused slots are parked far below the world with radius 0, so the limit's
-    broadphase drops them. If the limit's arrays are not laid out as expected, each update
-    falls back to ``set_obstacle_spheres``.
-
-    Args:
-        limit: the collision limit to feed (its obstacle spheres are replaced).
-        obstacle_map: the map.
-        configuration: the robot (its model gives the kinematic chain of the capsules).
-        per_capsule: cells kept per capsule.
-        min_separation: a capsule's cells at least this far apart [m] (see
-            :data:`DEFAULT_MIN_SEPARATION`).
-        margin: extra query distance [m] beyond the limit's influence distance.
-        max_cells: obstacle slots given to the limit; when the capsules' cells are more, the
-            closest ones are kept. Every slot is paired with all 15 moving capsules by the
-            limit, and it keeps at most ``max_pairs`` (24) rows anyway.
-        capsules: the robot capsules to query (``CapsuleGeometry`` attached to frames);
-            default: the 15 moving capsules of :func:`harvest_qp.robot.description.collision_bodies`.
-    """
-
-    _PARK = np.array([0.0, 0.0, -1.0e3])  # where unused slots wait [m]
-    #: How far [m] a capsule end point may move before its candidate cells are gathered again
-    #: (they are, anyway, when the map's occupancy changes near them). Only a cost trade-off:
-    #: the cells fed are those of a full query whatever it is.
-    slack = 0.02
-
-    def __init__(
-        self,
-        limit,
-        obstacle_map: ObstacleMap,
-        configuration,
-        *,
-        per_capsule: int = 4,
-        min_separation: float = DEFAULT_MIN_SEPARATION,
-        margin: float = 0.01,
-        max_cells: int = 24,
-        capsules: Sequence | None = None,
-    ) -> None:
-        from harvest_qp.collision import kernels as collision_kernels
-        from harvest_qp.limits.collision_avoidance import KinematicTree
-        from harvest_qp.robot import description as desc
-
-        if not isinstance(obstacle_map, ObstacleMap):
-            raise InvalidInputError(f"obstacle_map must be an ObstacleMap, got {type(obstacle_map).__name__}")
-        if not hasattr(limit, "set_obstacle_spheres") or not hasattr(limit, "influence_distance"):
-            raise InvalidInputError(f"limit must be a CollisionAvoidance, got {type(limit).__name__}")
-        per_capsule = _positive_int(per_capsule, "per_capsule")
-        self.limit = limit
-        self._map = obstacle_map
-        self.configuration = configuration
-        self.per_capsule = int(per_capsule)
-        self.margin = as_positive_scalar(margin, "margin", allow_zero=True)
-        self.min_separation = as_positive_scalar(min_separation, "min_separation", allow_zero=True)
-        if capsules is None:
-            bodies = [b for b in desc.collision_bodies() if b.arm]
-            items = [(b.name, b.link, b.capsule.p0, b.capsule.p1, b.capsule.radius) for b in bodies]
-        else:
-            items = [(c.name, c.frame, c.p0, c.p1, c.radius) for c in capsules]
-        if not items or any(frame is None for _, frame, *_ in items):
-            raise InvalidInputError("capsules must be non-empty and each attached to a frame")
-        self.capsule_names = [name for name, *_ in items]
-        # Capsule end points in the joint frame that carries them; the world end points come
-        # from the collision package's compiled forward kinematics (2 us for both arms,
-        # against ~35 us reading pinocchio's placements from Python).
-        model = configuration.model
-        joints, a_local, b_local = [], [], []
-        for _, frame_name, p0, p1, _ in items:
-            frame = model.frames[configuration.frame_id(frame_name)]
-            joints.append(frame.parentJoint)
-            a_local.append(frame.placement.act(np.asarray(p0, dtype=float)))
-            b_local.append(frame.placement.act(np.asarray(p1, dtype=float)))
-        self._tree = KinematicTree(configuration)
-        self._capsule_world = collision_kernels.capsule_world
-        self._joints = np.array(joints, dtype=np.int64)
-        self._a_local = np.array(a_local)
-        self._b_local = np.array(b_local)
-        self._radii = np.array([r for *_, r in items], dtype=float)
-        self._radii.flags.writeable = False
-        n = len(items)
-        self._w0 = np.zeros((n, 3))
-        self._w1 = np.zeros((n, 3))
-        self._index = np.full((n, self.per_capsule), -1, dtype=np.int64)
-        self._dist = np.full((n, self.per_capsule), np.inf)
-        self._count = np.zeros(n, dtype=np.int64)
-        m = 8 * self.per_capsule if self.min_separation > 0 else self.per_capsule
-        self._scratch_i = np.zeros(m, dtype=np.int64)
-        self._scratch_d = np.zeros(m)
-        # Candidate cells kept between map changes (see _map_kernels.feed_update); grown on demand.
-        self._state = np.zeros(K.FEED_STATE, dtype=np.int64)
-        self._cache_w0 = np.zeros((n, 3))
-        self._cache_w1 = np.zeros((n, 3))
-        self._cache_distance = np.full(1, np.nan)
-        self._cand_start = np.zeros(n + 1, dtype=np.int64)
-        self._cand_bound = np.full(n, np.inf)  # see _map_kernels.feed_update_bounded
-        self._displacement = np.zeros(n)
-        self._cand_index = np.zeros(4096, dtype=np.int64)
-        self._cand_xyz = np.zeros((4096, 4))  # x, y, z [m], distance when kept [m]
-        self._rel_blocks = np.zeros(4096, dtype=np.int64)
-        self._packed: tuple | None = None  # the compiled tick's two buffers and other arrays (_pack), on first use
-        self._q_shape = (configuration.nv,)
-        self._names: dict[int, str] = {}
-        self.slots = min(n * self.per_capsule, _positive_int(max_cells, "max_cells"))
-        self._centres = np.tile(self._PARK, (self.slots, 1))
-        self._cells = np.zeros(self.slots, dtype=np.int64)
-        self._park = self._PARK.copy()
-        limit.set_obstacle_spheres(self._centres, 0.0)
-        self._first = len(limit.capsule_names) - self.slots
-        self._in_place = self._layout_ok()
-        self._slot_names = ["free_slot"] * self.slots
-        self._last = np.zeros(0, dtype=np.int64)
-        #: Linear indices of the cells fed at the last update.
-        self.cells = self._last
-        #: ``(n_capsules,)`` which capsules are queried (a capsule switched off gets no cells,
-        #: e.g. an arm that holds still and must not be pushed by its rows).
-        self.active = np.ones(n, dtype=bool)
-
-    def _layout_ok(self) -> bool:
-        """Whether the limit keeps its obstacle spheres at the end of cap_p0 / cap_p1 / cap_radius."""
-        lim, first, n = self.limit, self._first, self.slots
-        try:
-            return (
-                len(lim.capsule_names) == first + n
-                and lim.cap_p0.shape == (first + n, 3) and lim.cap_p1.shape == (first + n, 3)
-                and lim.cap_radius.shape == (first + n,)
-                and np.array_equal(lim.cap_p0[first:], self._centres)
-                and np.array_equal(lim.cap_p1[first:], self._centres)
-            )  # fmt: skip
-        except (AttributeError, TypeError):
-            return False
-
-    def _checked_q(self, q: ArrayLike | None) -> NDArray[np.float64]:
-        """``q`` [rad] as the compiled kinematics need it (default: the configuration's)."""
-        if q is None:
-            q = self.configuration.q
-        elif type(q) is np.ndarray and q.dtype == np.float64 and q.shape == (self.configuration.nv,):
-            pass  # already what np.asarray(q, dtype=float) gives (the loop's own q, every tick)
-        else:
-            # The compiled kinematics index q by joint: a short q would be read past its end.
-            try:
-                q = np.asarray(q, dtype=float)
-            except (TypeError, ValueError) as err:
-                raise InvalidInputError(f"q must be {self.configuration.nv} joint positions [rad], got {q!r}") from err
-            if q.shape != (self.configuration.nv,):
-                raise InvalidInputError(
-                    f"q must have shape ({self.configuration.nv},) (the model's joints), got shape {q.shape}"
-                )
-        return q
-
-    def capsule_world(self, q: ArrayLike | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """World end points ``(p0, p1)`` [m] of the queried capsules at ``q`` [rad] (default: the configuration's)."""
-        q = self._checked_q(q)
-        tree = self._tree
-        tree.update(q)
-        self._capsule_world(self._joints, self._a_local, self._b_local, tree.joint_R, tree.joint_p, self._w0, self._w1)
-        return self._w0, self._w1
-
-    # The compiled tick keeps candidate cells built from the map and the radii: replacing
-    # either must drop them (an audit found a reassigned map or radii changed in place fed
-    # stale cells), so both are properties and the radii array is read-only.
-    @property
-    def map(self) -> ObstacleMap:
-        """The obstacle map queried; assigning another one drops the kept candidate cells."""
-        return self._map
-
-    @map.setter
-    def map(self, obstacle_map: ObstacleMap) -> None:
-        if not isinstance(obstacle_map, ObstacleMap):
-            raise InvalidInputError(f"map must be an ObstacleMap, got {type(obstacle_map).__name__}")
-        self._map = obstacle_map
-        self._forget_candidates()
-
-    @property
-    def radii(self) -> np.ndarray:
-        """``(n_capsules,)`` capsule radii [m] (read-only; assign a new array to change them)."""
-        return self._radii
-
-    @radii.setter
-    def radii(self, value: ArrayLike) -> None:
-        radii = np.array(value, dtype=float)
-        if radii.shape != self._radii.shape or not np.all(np.isfinite(radii)) or np.any(radii < 0):
-            raise InvalidInputError(
-                f"radii must be {self._radii.shape[0]} finite values >= 0 [m] (one per capsule), got {value!r}"
-            )
-        radii.flags.writeable = False
-        self._radii = radii
-        self._forget_candidates()
-
-    def _forget_candidates(self) -> None:
-        self._state[K.FEED_VALID] = 0
-        self._packed = None  # repacked (new radii or map constants) on the next update
-
-    def _pack(self) -> tuple:
-        """Copy the feed's own arrays and the constants the compiled tick reads into one float64 and one
-        int64 buffer (layout: ``_map_kernels.FEED_FLOAT_PARTS`` / ``FEED_INT_PARTS``), and make the
-        feed's arrays views into them (values kept), so one call passes 14 arguments instead of 45."""
-        tree, m = self._tree, self._map
-        floats = {
-            "place_R": tree.place_R, "place_p": tree.place_p, "axis": tree.axis, "joint_R": tree.joint_R,
-            "joint_p": tree.joint_p, "cap_a": self._a_local, "cap_b": self._b_local, "w0": self._w0, "w1": self._w1,
-            "park": self._park, "radii": self._radii, "cache_w0": self._cache_w0, "cache_w1": self._cache_w1,
-            "cache_distance": self._cache_distance, "scratch_distance": self._scratch_d, "out_distance": self._dist,
-            "out_centres": self._centres, "map_floats": np.array([m.cell_radius, m.resolution]),
-            "cand_bound": self._cand_bound, "displacement": self._displacement,
-        }  # fmt: skip
-        ints = {
-            "parent": tree.parent, "idx_v": tree.idx_v, "joint_type": tree.joint_type, "cap_joint": self._joints,
-            "lo_key": m.lo_key, "dims": m.dims, "state": self._state, "cand_start": self._cand_start,
-            "scratch_index": self._scratch_i, "out_index": self._index, "out_count": self._count,
-            "out_cells": self._cells, "map_ints": np.array([m._nby, m._nbz]),
-            "kept_cells": np.zeros((self.per_capsule, 3), dtype=np.int64),
-        }  # fmt: skip
-        for parts, dtype in ((floats, np.float64), (ints, np.int64)):
-            for name, part in parts.items():
-                if part.dtype != dtype:  # a conversion could change a value: the layout is fixed
-                    raise TypeError(f"MapCollisionFeed._pack: {name} is {part.dtype}, expected {np.dtype(dtype)}")
-        header = K.FEED_HEADER
-        f_offsets = np.cumsum([0] + [a.size for a in floats.values()])
-        i_offsets = header + np.cumsum([0] + [a.size for a in ints.values()])
-        fbuf = np.concatenate([a.ravel() for a in floats.values()])
-        # Where the packed copy of the map's cell_radius lies (update() compares it with the live value).
-        self._cell_radius_at = int(f_offsets[list(floats).index("map_floats")])
-        ibuf = np.concatenate([np.zeros(header, dtype=np.int64)] + [a.ravel() for a in ints.values()])
-        ibuf[: K.FEED_SIZES] = (
-            tree.joint_R.shape[0], self._w0.shape[0], self._index.shape[1], self._scratch_i.shape[0], self._cells.shape[0]
-        )  # fmt: skip
-        ibuf[K.FEED_SIZES : K.FEED_SIZES + len(floats)] = f_offsets[:-1]
-        ibuf[K.FEED_SIZES + len(floats) : header] = i_offsets[:-1]
-
-        def view(buf, offsets, names, name, like):
-            j = names.index(name)
-            return buf[offsets[j] : offsets[j + 1]].reshape(like.shape)
-
-        fnames, inames = list(floats), list(ints)
-        for attr, name in (
-            ("_w0", "w0"), ("_w1", "w1"), ("_cache_w0", "cache_w0"), ("_cache_w1", "cache_w1"),
-            ("_cache_distance", "cache_distance"), ("_scratch_d", "scratch_distance"), ("_dist", "out_distance"),
-            ("_centres", "out_centres"), ("_cand_bound", "cand_bound"), ("_displacement", "displacement"),
-        ):  # fmt: skip
-            setattr(self, attr, view(fbuf, f_offsets, fnames, name, getattr(self, attr)))
-        for attr, name in (
-            ("_state", "state"), ("_cand_start", "cand_start"), ("_scratch_i", "scratch_index"), ("_index", "out_index"),
-            ("_count", "out_count"), ("_cells", "out_cells"),
-        ):  # fmt: skip
-            setattr(self, attr, view(ibuf, i_offsets, inames, name, getattr(self, attr)))
-        # The compiled tick's arguments after the per-tick values (the map's arrays are its own for life).
-        self._packed = (
-            fbuf, ibuf, self._cand_index, self._cand_xyz, self._rel_blocks, m._block_cells, m._block_count,
-            m._block_stamp,
-        )  # fmt: skip
-        return self._packed
-
-    def update(self, q: ArrayLike | None = None) -> int:
-        """Refresh the limit's obstacle spheres from the map for joint positions ``q`` [rad]
-        (default: the configuration's current ones); returns how many cells were fed."""
-        if not (type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape):
-            q = self._checked_q(q)  # the loop's own q skips the call (same test as its fast path)
-        active = self.active
-        if not (type(active) is np.ndarray and active.dtype == np.bool_ and active.shape == self._radii.shape):
-            active = np.asarray(active, dtype=bool)
-            if active.shape != self.radii.shape:
-                raise InvalidInputError(
-                    f"active must be {self.radii.shape[0]} booleans (one per capsule), got shape {active.shape}"
-                )
-        m = self.map
-        # One compiled call: the capsules at q (capsule_world's kernels), finiteness,
-        # switched-off capsules parked far below the world, the closest cells (over the
-        # candidate cells kept since the last map change: the same result as
-        # ObstacleMap.closest_cells, see _map_kernels.feed_update), their union.
-        arrays = self._packed
-        if arrays is not None and not arrays[0][self._cell_radius_at] == m.cell_radius:
-            # ObstacleMap.cell_radius (a plain attribute) was edited since the pack: the distances must
-            # use the new value, as closest_cells does, and the limit must get the new radii even if
-            # the cells stay the same (FEED_N_LAST = -1 makes the kernel report them as changed).
-            self._forget_candidates()
-            self._state[K.FEED_N_LAST] = -1
-            arrays = None
-        if arrays is None:
-            arrays = self._pack()
-        while True:
-            n = K.feed_tick_packed(
-                q, active, self.limit.influence_distance + self.margin, self.min_separation, self.slack, m._version,
-                *arrays,
-            )  # fmt: skip
-            if n != -2:
-                break
-            self._cand_index = np.zeros(2 * self._cand_index.shape[0], dtype=np.int64)
-            self._cand_xyz = np.zeros((self._cand_index.shape[0], 4))
-            self._rel_blocks = np.zeros(2 * self._rel_blocks.shape[0], dtype=np.int64)
-            self._packed = None
-            arrays = self._pack()
-        if n < 0:
-            return int(self.cells.shape[0])  # a non-finite q: keep the last cells; the QP step will fall back
-        if not self._state[K.FEED_CHANGED]:
-            return int(n)  # same cells: the limit already has them
-        cells = self._cells[:n]
-        cells = cells.copy()
-        radii = np.zeros(self.slots)
-        radii[:n] = m.cell_radius
-        for j, idx in enumerate(cells):
-            name = self._names.get(int(idx))
-            if name is None:
-                if len(self._names) > 100_000:  # a long episode: keep the cache bounded
-                    self._names.clear()
-                kx, ky, kz = m.keys(self._centres[j])
-                name = self._names[int(idx)] = f"cell[{kx},{ky},{kz}]"
-            self._slot_names[j] = name
-        for j in range(n, min(self._last.shape[0], self.slots)):
-            self._slot_names[j] = "free_slot"
-        lim, first = self.limit, self._first
-        if self._in_place:
-            lim.cap_p0[first:] = self._centres
-            lim.cap_p1[first:] = self._centres
-            lim.cap_radius[first:] = radii
-        else:
-            lim.set_obstacle_spheres(self._centres, radii)
-        lim.capsule_names[first:] = self._slot_names
-        self._last = cells
-        self.cells = cells
-        return int(n)

@@ -2,8 +2,9 @@
 ``subsec:occlusion_control_signal``.
 
 classification -> stem model, p_sb and its quality -> free space and p_gd (grasping arm) ->
-unveiling pairs and V_cu (camera arm).  ``result.stem.trusted()`` and ``result.stem.quality``
-say whether p_sb can be used (see :class:`~harvest_qp.perception.stem.StemQuality`).
+unveiling pairs (camera arm; V_cu from them is the reference law
+:func:`harvest_qp.references.unveiling.unveiling_velocity`). ``result.stem.trusted()`` and
+``result.stem.quality`` say whether p_sb can be used (see :class:`~harvest_qp.perception.stem.StemQuality`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ from harvest_qp.perception.classify import obstacles_near_stem_base, split_scene
 from harvest_qp.perception.free_space import FreeSpace, compute_free_space
 from harvest_qp.perception.stem import StemModel, fit_stem
 from harvest_qp.perception.unveiling import RayObstaclePairs, ray_obstacle_pairs
-from harvest_qp.references.unveiling import unveiling_velocity
 from harvest_qp.validation import as_positive_scalar
 
 __all__ = ["PerceptionResult", "process_cloud"]
@@ -36,9 +36,8 @@ class PerceptionResult:
         grasp_obstacles: ``(n_O, 3)`` the grasping arm's obstacles O = (W - S) inside
             S(p_sb, r_o) [m]; empty when the stem model is invalid.
         free_space: free space and p_gd, ``None`` when the stem model is invalid.
-        unveiling: ray/obstacle pairs of the camera arm, whose obstacles are all non-stem
-            points (``unveiling.obstacle_points``).
-        unveiling_velocity: V_cu, ``(6,)`` [linear m/s; angular rad/s] in the world frame.
+        unveiling: ray/obstacle pairs of the camera arm (``eq:nearest``), whose obstacles are
+            all non-stem points (``unveiling.obstacle_points``).
     """
 
     stem_points: NDArray[np.float64]
@@ -47,7 +46,6 @@ class PerceptionResult:
     grasp_obstacles: NDArray[np.float64]
     free_space: FreeSpace | None
     unveiling: RayObstaclePairs
-    unveiling_velocity: NDArray[np.float64]
 
     @property
     def stem_base(self) -> NDArray[np.float64] | None:
@@ -70,7 +68,6 @@ def process_cloud(
     n_samples: int = 500,
     d_o: float = 0.001,
     d_a: float = 0.01,
-    k_c: float = 0.00025,
     min_stem_points: int = 10,
     stem_radius: float | None = None,
     target_selection: str = "clearance",
@@ -89,7 +86,6 @@ def process_cloud(
         n_samples: Fibonacci samples of the free-space sphere.
         d_o: obstacle sphere radius [m].
         d_a: influence distance of the unveiling potential [m].
-        k_c: unveiling gain of ``eq:v_c2``.
         min_stem_points: fewer stem points make the stem model invalid.
         stem_radius: known stem radius [m] for the near-surface correction of p_sb;
             ``None`` estimates it (:func:`~harvest_qp.perception.stem.fit_stem`).
@@ -100,7 +96,7 @@ def process_cloud(
 
     Returns:
         A :class:`PerceptionResult`.  The unveiling part does not need the stem model and is
-        always computed (V_cu = 0 when n_S = 0).
+        always computed (no pairs when n_S = 0).
 
     Raises:
         InvalidInputError: wrong shapes, non-finite positions or invalid parameters.
@@ -109,7 +105,6 @@ def process_cloud(
     gripper = as_point("gripper_position", gripper_position)
     if r_o is not None:
         r_o = as_positive_scalar(r_o, "r_o")
-    k_c = as_positive_scalar(k_c, "k_c")
     # Checked here too so that a bad value fails on every frame, not only on frames where
     # the stem model is valid and the free space is computed.
     n_samples = positive_int("n_samples", n_samples)
@@ -146,5 +141,4 @@ def process_cloud(
         grasp_obstacles=grasp_obstacles,
         free_space=free_space,
         unveiling=pairs,
-        unveiling_velocity=unveiling_velocity(pairs, k_c=k_c),
     )

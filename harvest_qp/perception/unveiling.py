@@ -46,12 +46,8 @@ NEAREST_AT_CAMERA = 0
 NEAREST_INTERIOR = 1
 NEAREST_AT_STEM_POINT = 2
 
-# Rays per bundle: larger bundles mean fewer Python-level steps but wider cones, hence more
-# obstacle candidates per ray.
+# Rays per bundle: larger bundles mean wider cones, hence more obstacle candidates per ray.
 _BUNDLE_SIZE = 64
-# Steps 2-3 by the compiled kernel (_unveiling_kernels.bundle_pairs: the same arithmetic as the
-# numpy blocks below, 0.3-0.8 ms -> ~0.05 ms per frame in the paper episode); False: numpy.
-_COMPILED_BLOCKS = True
 
 
 @dataclass(frozen=True)
@@ -133,26 +129,14 @@ class _Cone:
             return None
         return cls(axis, cos_half_angle, float(np.sqrt(1.0 - cos_half_angle**2)))
 
-    def may_reach(self, along_axis: NDArray[np.float64], slant: NDArray[np.float64], reach: float) -> NDArray[np.bool_]:
-        """Whether points may lie within ``reach`` of a ray of the cone.
-
-        A point at distance rho >= reach from the apex can only be within reach of a ray if
-        its angle psi to the axis is below alpha + asin(reach / rho), i.e.
-        rho cos(psi) > cos(alpha) sqrt(rho^2 - reach^2) - sin(alpha) reach.
-
-        Args:
-            along_axis: rho cos(psi), the points' offsets from the apex projected on the axis.
-            slant: sqrt(max(rho^2 - reach^2, 0)), from :func:`_slant`.
-            reach: the distance [m].
-
-        Points closer than ``reach`` to the apex have slant 0 and pass whenever
-        rho cos(psi) > -sin(alpha) reach, so callers must also keep them explicitly.
-        """
-        return along_axis > self.cos_half_angle * slant - self.sin_half_angle * reach
-
 
 def _slant(squared_distance: NDArray[np.float64], reach: float) -> NDArray[np.float64]:
-    """sqrt(max(rho^2 - reach^2, 0)) for the cone test of :meth:`_Cone.may_reach`."""
+    """sqrt(max(rho^2 - reach^2, 0)) for the cone test of the kernels.
+
+    A point at distance rho >= reach from a cone's apex can only be within reach of a ray of
+    the cone (axis a, half-angle alpha) if its angle psi to the axis is below
+    alpha + asin(reach / rho), i.e. rho cos(psi) > cos(alpha) sqrt(rho^2 - reach^2) - sin(alpha) reach.
+    """
     return np.sqrt(np.maximum(squared_distance - reach * reach, 0.0))
 
 
@@ -167,8 +151,7 @@ def _candidate_obstacles(
 
     Returns their indices and offsets p_o - p_c [m].  Conservative: only obstacles further
     than ``reach`` from every segment are dropped.  One compiled pass over the cloud
-    (:func:`._unveiling_kernels.candidate_obstacles`); :func:`_candidate_obstacles_numpy` is
-    the same test in numpy.
+    (:func:`._unveiling_kernels.candidate_obstacles`: 1.8 ms -> ~0.2 ms per 848x480 frame).
     """
     cone = _Cone.around(ray_directions)
     if cone is None:  # rays spread over a hemisphere or more: nothing to cull by direction
@@ -184,59 +167,14 @@ def _candidate_obstacles(
     return index[:n], offsets[:n]
 
 
-def _candidate_obstacles_numpy(
-    rays: NDArray[np.float64],
-    ray_directions: NDArray[np.float64],
-    obstacles: NDArray[np.float64],
-    camera: NDArray[np.float64],
-    reach: float,
-) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-    """:func:`_candidate_obstacles` in numpy (the oracle of the compiled cull in the tests)."""
-    cone = _Cone.around(ray_directions)
-    if cone is None:
-        return np.arange(obstacles.shape[0]), obstacles - camera
-    # Depth along the axis first: one matrix-vector product over the whole cloud, without
-    # copying it, drops the background behind the stem and everything behind the camera.
-    depth = obstacles @ cone.axis - camera @ cone.axis
-    index = np.flatnonzero((depth > -reach) & (depth < (rays @ cone.axis).max() + reach))
-    offsets = np.take(obstacles, index, axis=0) - camera
-    squared_distance = np.einsum("ij,ij->i", offsets, offsets)
-    longest_ray = np.sqrt(np.einsum("ij,ij->i", rays, rays).max())
-    keep = cone.may_reach(np.take(depth, index), _slant(squared_distance, reach), reach)
-    keep |= squared_distance < reach * reach  # within reach of every ray's camera end
-    keep &= squared_distance < (longest_ray + reach) ** 2
-    return np.compress(keep, index), np.compress(keep, offsets, axis=0)
-
-
-def _ray_bundles(directions: NDArray[np.float64], max_size: int) -> list[NDArray[np.intp]]:
-    """Split rays into compact bundles of at most ``max_size`` (sort-tile packing)."""
-    order, cuts = _ray_bundle_order(directions, max_size)
-    return np.split(order, cuts)
-
-
 def _ray_bundle_order(directions: NDArray[np.float64], max_size: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """The rays in bundle order and where each bundle after the first starts (see :func:`_ray_bundles`).
+    """The rays in compact bundles of at most ``max_size`` (sort-tile packing): the rays in bundle
+    order and where each bundle after the first starts.
 
     The directions are sorted along their major principal axis and cut into strips, each
     strip is sorted along the minor axis and cut into bundles; the strip count makes the
     bundles roughly square in direction space.  Two sorts, no per-bundle Python work.
     """
-    n_rays = directions.shape[0]
-    if n_rays <= max_size:
-        return np.arange(n_rays), np.zeros(0, dtype=np.intp)
-    n_bundles = -(-n_rays // max_size)
-    centred = directions - directions.mean(axis=0)
-    _, spread, axes = np.linalg.svd(centred, full_matrices=False)
-    major, minor = centred @ axes[0], centred @ axes[1]
-    aspect = spread[0] / max(spread[1], spread[0] * 1e-6) if spread[0] > 0.0 else 1.0
-    n_strips = int(np.clip(np.round(np.sqrt(n_bundles * aspect)), 1, n_bundles))
-    strip_size = -(-n_rays // n_strips)
-    # The sorts and cuts compiled (~0.1 ms of numpy calls on 250 rays); the numpy form below.
-    return _kernels.bundle_order(major, minor, strip_size, max_size)
-
-
-def _ray_bundle_order_numpy(directions: NDArray[np.float64], max_size: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """:func:`_ray_bundle_order` in numpy (the oracle of its compiled sorts in the tests)."""
     n_rays = directions.shape[0]
     if n_rays <= max_size:
         return np.arange(n_rays), np.zeros(0, dtype=np.intp)
@@ -322,64 +260,19 @@ def _ray_obstacle_pairs_unchecked(
     slant = _slant(squared_offsets, slack_reach)
     near_camera = squared_offsets < slack_reach * slack_reach
 
-    if _COMPILED_BLOCKS and candidates.size:
-        order, cuts = _ray_bundle_order(ray_directions, _BUNDLE_SIZE)
-        starts = np.concatenate(([0], cuts, [order.size])).astype(np.int64)
-        stem_index, local, s, distance, away = _kernels.bundle_pairs(
-            rays, squared_lengths, ray_directions, order.astype(np.int64), starts, np.ascontiguousarray(offsets),
-            squared_offsets, slant, near_camera, slack_reach, reach * reach,
-        )  # fmt: skip
-        obstacle_index = np.take(candidates, local)
-        return _pairs_result(stem_index, obstacle_index, s, distance, away, stem, obstacles, camera, d_a, d_o,
-                             candidates.size)  # fmt: skip
-    offsets_t = np.ascontiguousarray(offsets.T)  # p_co_k as columns
-    rays_t = np.ascontiguousarray(rays.T)
-    parts: dict[str, list[NDArray]] = {name: [] for name in ("ray", "obstacle", "s", "nearest", "away", "distance")}
-    bundles = _ray_bundles(ray_directions, _BUNDLE_SIZE) if candidates.size else []
-    for bundle in bundles:
-        cone = _Cone.around(np.take(ray_directions, bundle, axis=0))
-        if cone is None:
-            near = np.arange(candidates.size)
-        else:
-            near = np.flatnonzero(cone.may_reach(offsets @ cone.axis, slant, slack_reach) | near_camera)
-        if near.size == 0:
-            continue
-        bundle_rays_t = np.take(rays_t, bundle, axis=1)
-        near_offsets_t = np.take(offsets_t, near, axis=1)
-        # Dense block: dot[i, k] = p_cs_i . p_co_k; s = dot / |p_cs_i|^2 is the segment
-        # parameter of eq:nearest and t = clip(s, 0, 1) gives p_hat = p_c + t p_cs_i, whose
-        # squared distance to the obstacle is |p_co|^2 + t (t |p_cs|^2 - 2 dot).
-        dot = bundle_rays_t.T @ near_offsets_t
-        ray_squared = np.take(squared_lengths, bundle)[:, None]
-        s = dot / ray_squared
-        t = np.clip(s, 0.0, 1.0)
-        squared_distance = np.take(squared_offsets, near)[None, :] + t * (t * ray_squared - 2.0 * dot)
-        ray_local, obstacle_local = np.nonzero(squared_distance < reach * reach)
-        if ray_local.size == 0:
-            continue
-        # p_hat - p_o recomputed from the vectors for the pairs that passed, in (3, P)
-        # layout and while the block is in cache, so that r_hat and the direction of e_jk
-        # are exact to rounding.
-        flat = ray_local * near.size + obstacle_local
-        step = np.take(t, flat) * np.take(bundle_rays_t, ray_local, axis=1)  # p_hat - p_c
-        gap = step - np.take(near_offsets_t, obstacle_local, axis=1)  # p_hat - p_o
-        distance = np.sqrt(np.einsum("ij,ij->j", gap, gap))
-        inverse_distance = np.divide(1.0, distance, out=np.zeros_like(distance), where=distance > 0.0)
-        parts["away"].append(gap * inverse_distance)
-        parts["distance"].append(distance)
-        parts["s"].append(np.take(s, flat))
-        parts["ray"].append(np.take(bundle, ray_local))
-        parts["obstacle"].append(np.take(candidates, np.take(near, obstacle_local)))
-
-    if parts["ray"]:
-        stem_index, obstacle_index, s, distance = (
-            np.concatenate(parts[name]) for name in ("ray", "obstacle", "s", "distance")
-        )
-        away = np.concatenate(parts["away"], axis=1)
-    else:
-        stem_index = obstacle_index = np.zeros(0, dtype=np.intp)
-        s = distance = np.zeros(0)
-        away = np.zeros((3, 0))
+    if candidates.size == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return _pairs_result(empty, empty, np.zeros(0), np.zeros(0), np.zeros((3, 0)), stem, obstacles, camera, d_a,
+                             d_o, 0)  # fmt: skip
+    # Steps 2-3 compiled (_unveiling_kernels.bundle_pairs: per bundle of rays, its cone culls the
+    # candidates, then eq:nearest on each ray/obstacle pair).
+    order, cuts = _ray_bundle_order(ray_directions, _BUNDLE_SIZE)
+    starts = np.concatenate(([0], cuts, [order.size])).astype(np.int64)
+    stem_index, local, s, distance, away = _kernels.bundle_pairs(
+        rays, squared_lengths, ray_directions, order.astype(np.int64), starts, np.ascontiguousarray(offsets),
+        squared_offsets, slant, near_camera, slack_reach, reach * reach,
+    )  # fmt: skip
+    obstacle_index = np.take(candidates, local)
     return _pairs_result(stem_index, obstacle_index, s, distance, away, stem, obstacles, camera, d_a, d_o,
                          candidates.size)  # fmt: skip
 

@@ -1,199 +1,158 @@
-"""The controller's compiled cloud split equals numpy's boolean indexing, bit for bit.
+"""One labelled camera frame split into S, W - S and the obstacle points, and the grasping arm's cloud filters.
 
-``_perceive`` splits each camera frame with numba kernels (``_scan_cloud``: stem count and
-finiteness in one pass; ``_gather_labelled``: the rows of one label, or of every other label,
-thinned by a stride) and hands the unveiling law only the non-stem rows it uses. Oracles:
-numpy's boolean indexing and ``np.isfinite`` on the same arrays, and the unveiling law's
-checked public ``observe`` on the numpy split of the whole cloud.
+Public API of :mod:`harvest_qp.perception.cloud_split`, as the controller uses it on every camera
+frame. Oracles: the labels written by hand next to each point (a loop over the rows, not numpy's
+boolean indexing on the same mask), and hand-placed points around a gripper pose.
 """
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import pytest
 
+from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
-from harvest_qp.loop.controller import (
-    HarvestController,
-    Phase,
-    _count_label,
-    _gather_labelled,
-    _labelled_rows,
-    _LabelRows,
-    _scan_cloud,
-    _split_labelled,
-)
-from harvest_qp.loop.settings import check_settings
+from harvest_qp.perception.cloud_split import LabelledFrame, obstacle_sphere_centres, outside_held_cluster
 
 
-def _bits(values) -> list[int]:
-    return np.asarray(values, dtype=np.float64).reshape(-1).view(np.int64).tolist()
-
-
-def _cloud_arrays(rng: np.random.Generator, n: int, stem_fraction: float = 0.1):
-    points = rng.normal(size=(n, 3))
-    points[::97] = -0.0  # signed zeros must survive the copy
-    u = rng.random(n)
-    labels = np.where(u < stem_fraction, STEM, np.where(u < 0.7, OBSTACLE, ROBOT)).astype(np.int8)
-    return points, labels
-
-
-@pytest.mark.parametrize("n", [0, 1, 7, 5003])
-def test_scan_and_gather_equal_boolean_indexing(n):
-    """Catches: a stride that skips the first matching row or counts all rows instead of the
-    matching ones (``[::k]`` of the matches), a label test inverted, rows copied partly
-    (two of three coordinates), a stem count off by the robot rows."""
-    rng = np.random.default_rng(n + 3)
-    points, labels = _cloud_arrays(rng, n)
-    n_stem, finite = _scan_cloud(points, labels, STEM)
-    assert n_stem == int(np.count_nonzero(labels == STEM)) and finite
-    for label in (STEM, OBSTACLE, ROBOT):
-        for equal in (True, False):
-            mask = labels == label if equal else labels != label
-            for stride in (1, 2, 5, 1000):
-                expected = points[mask][::stride]
-                got = _labelled_rows(points, labels, label, equal=equal, stride=stride)
-                assert got.shape == expected.shape and _bits(got) == _bits(expected)
-                count = len(range(0, int(mask.sum()), stride))
-                assert _bits(_gather_labelled(points, labels, label, equal, stride, count)) == _bits(expected)
-
-
-@pytest.mark.parametrize("n", [0, 1, 5003])
-def test_split_equals_boolean_indexing(n):
-    """``_split_labelled`` gives the stem rows and every k-th other row in one pass. Catches:
-    the stride counted over all rows instead of the non-stem ones, the first non-stem row
-    skipped, stem rows counted into the stride."""
-    rng = np.random.default_rng(n + 30)
-    points, labels = _cloud_arrays(rng, n, stem_fraction=0.3)
-    is_stem = labels == STEM
-    for stride in (1, 2, 7):
-        n_other = len(range(0, int((~is_stem).sum()), stride))
-        stem, other, finite = _split_labelled(points, labels, STEM, int(is_stem.sum()), stride, n_other)
-        assert finite and _count_label(labels, STEM) == int(is_stem.sum())
-        assert _bits(stem) == _bits(points[is_stem]) and stem.shape == (int(is_stem.sum()), 3)
-        assert _bits(other) == _bits(points[~is_stem][::stride]) and other.shape == (n_other, 3)
-    if n:
-        with pytest.raises(ValueError, match="row counts"):
-            _split_labelled(points, labels, STEM, int(is_stem.sum()) + 1, 1, int((~is_stem).sum()))
-
-
-def test_labelled_rows_fall_back_on_other_layouts():
-    """float32 points, Fortran order, strided rows and int64 labels go through numpy's own
-    indexing; the values are the same. Catches: the kernel called on a layout it cannot read."""
-    rng = np.random.default_rng(5)
-    points, labels = _cloud_arrays(rng, 801)
-    for p, lab in ((points.astype(np.float32), labels), (np.asfortranarray(points), labels),
-                   (points[::2], labels[::2]), (points, labels.astype(np.int64))):
-        expected = p[lab != STEM][::3]
-        np.testing.assert_array_equal(_labelled_rows(p, lab, STEM, equal=False, stride=3), expected)
-
-
-@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
-@pytest.mark.parametrize("where", [(0, 0), (400, 1), (800, 2)])
-def test_scan_finds_every_non_finite_coordinate(bad, where):
-    """Catches: only the first coordinate (or only stem rows) checked, the check stopping the
-    stem count once a bad point is found."""
-    rng = np.random.default_rng(9)
-    points, labels = _cloud_arrays(rng, 801)
-    points[where] = bad
-    n_stem, finite = _scan_cloud(points, labels, STEM)
-    assert finite == bool(np.isfinite(points).all()) is False
-    assert n_stem == int(np.count_nonzero(labels == STEM))
-    n_other = int(np.count_nonzero(labels != STEM))
-    for stride in (1, 3):  # the split checks every row, also those it does not gather
-        *_, finite = _split_labelled(points, labels, STEM, n_stem, stride, len(range(0, n_other, stride)))
-        assert finite is False
-
-
-def test_label_rows_gather_once_on_first_use():
-    """Catches: the lazy rows re-gathered from a later frame, or the given rows ignored."""
-    rng = np.random.default_rng(12)
-    points, labels = _cloud_arrays(rng, 2003)
-    rows = _LabelRows(points, labels, OBSTACLE)
-    assert rows._all is None
-    assert rows.shape == (int(np.count_nonzero(labels == OBSTACLE)), 3)
-    first = rows[::1]
-    assert rows[::1] is not first and np.shares_memory(rows[::1], first)
-    np.testing.assert_array_equal(rows[::4], points[labels == OBSTACLE][::4])
-    given = np.zeros((3, 3))
-    assert _LabelRows(points, labels, STEM, equal=False, rows=given)[::1].base is given
-
-
-def _cloud(points, labels, camera_position, t):
+def _cloud(points, labels, camera=(0.6, 0.0, 0.4), t=0.1) -> PointCloud:
     pose = np.eye(4)
-    pose[:3, 3] = camera_position
+    pose[:3, 3] = camera
     n = len(points)
-    return PointCloud(points=points, labels=labels, colors=np.zeros((n, 3), np.uint8), camera_pose=pose,
-                      timestamp=t, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(8, 8))
+    return PointCloud(points=np.asarray(points, float), labels=np.asarray(labels, np.int8),
+                      colors=np.zeros((n, 3), np.uint8), camera_pose=pose, timestamp=t, depth=np.ones(n),
+                      pixels=np.zeros((n, 2), np.int32), image_size=(8, 8))
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 503])
+def test_frame_splits_the_cloud_by_label_in_order(n):
+    """Catches: a label test inverted, the robot's points in the obstacle set, rows reordered or
+    partly copied, W - S missing the robot's points (the camera arm's obstacles are all of them)."""
+    rng = np.random.default_rng(n)
+    points = rng.normal(size=(n, 3))
+    points[::97] = -0.0
+    labels = rng.choice([STEM, OBSTACLE, ROBOT], size=n)
+    stem = [p for p, label in zip(points, labels) if label == STEM]
+    non_stem = [p for p, label in zip(points, labels) if label != STEM]
+    obstacles = [p for p, label in zip(points, labels) if label == OBSTACLE]
+    frame = LabelledFrame(_cloud(points, labels, t=0.25))
+    assert frame.time == 0.25 and frame.n_stem == len(stem) and frame.fit is None
+    np.testing.assert_array_equal(frame.camera_position, (0.6, 0.0, 0.4))
+    for got, expected in ((frame.stem, stem), (frame.non_stem, non_stem), (frame.obstacles, obstacles)):
+        assert got.shape == (len(expected), 3)
+        np.testing.assert_array_equal(got, np.reshape(expected, (-1, 3)))
+    assert frame.non_stem is frame.non_stem  # gathered once
+    assert frame.n_non_stem == len(non_stem)
+
+
+@pytest.mark.parametrize("stride", [1, 2, 5, 1000])
+def test_every_kth_non_stem_row_is_the_thinned_split(stride):
+    """``non_stem_every(k)`` (what the unveiling law's paper mode reads) is ``W - S`` thinned by k:
+    the first matching row, then every k-th, before and after W - S itself was gathered.
+    Catches: a stride over all rows instead of the non-stem ones, the first row skipped."""
+    rng = np.random.default_rng(stride)
+    points = rng.normal(size=(2003, 3))
+    labels = rng.choice([STEM, OBSTACLE, ROBOT], size=2003)
+    expected = np.reshape([p for p, label in zip(points, labels) if label != STEM], (-1, 3))[::stride]
+    frame = LabelledFrame(_cloud(points, labels))
+    np.testing.assert_array_equal(frame.non_stem_every(stride), expected)
+    frame.non_stem  # noqa: B018 (gathered: the thinned rows are taken from it)
+    np.testing.assert_array_equal(frame.non_stem_every(stride), expected)
+
+
+def test_frame_keeps_its_own_camera_pose():
+    """Catches: the frame holding the cloud's pose array (a caller that edits it moves the frame)."""
+    cloud = _cloud(np.zeros((2, 3)), [STEM, OBSTACLE])
+    frame = LabelledFrame(cloud)
+    cloud.camera_pose[:3, 3] = 9.0
+    np.testing.assert_array_equal(frame.camera_position, (0.6, 0.0, 0.4))
+    np.testing.assert_array_equal(frame.camera_pose[:3, 3], (0.6, 0.0, 0.4))
+
+
+def test_frame_refuses_what_is_not_a_labelled_cloud():
+    with pytest.raises(InvalidInputError, match="PointCloud"):
+        LabelledFrame(np.zeros((3, 3)))
+    bad = _cloud(np.zeros((3, 3)), [STEM, STEM, STEM])
+    object.__setattr__(bad, "labels", np.zeros(2, np.int8))
+    with pytest.raises(InvalidInputError, match="labels"):
+        LabelledFrame(bad)
+
+
+def _gripper_pose() -> np.ndarray:
+    """Gripper at (0, 0, 1) with y_g (the hanging direction) along -z."""
+    T = np.eye(4)
+    T[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
+    T[:3, 3] = (0.0, 0.0, 1.0)
+    return T
+
+
+def test_held_cluster_is_the_capsule_below_the_gripper():
+    """Hand-placed points: on the hanging axis within the cluster's length, just inside and just
+    outside its radius, beyond its end, above the gripper (the rounded top), and to the side.
+    Catches: the capsule along another axis, its length or radius swapped, a cylinder without
+    the rounded ends."""
+    T = _gripper_pose()
+    points = np.array([
+        (0.0, 0.0, 0.95),    # on the axis, 5 cm below: held
+        (0.029, 0.0, 0.9),   # 2.9 cm off the axis: held
+        (0.031, 0.0, 0.9),   # 3.1 cm off the axis: outside
+        (0.0, 0.0, 0.875),   # 12.5 cm below the gripper, 2.5 cm past the end: on the rounded end, held
+        (0.0, 0.0, 0.86),    # 14 cm below: outside
+        (0.0, 0.0, 1.02),    # 2 cm above the gripper point: the rounded top, held
+        (0.0, 0.0, 1.04),    # 4 cm above: outside
+        (0.2, 0.0, 0.95),    # to the side: outside
+    ])
+    outside = outside_held_cluster(points, T, cluster_length=0.1, cluster_radius=0.03)
+    assert outside.tolist() == [False, False, True, False, True, False, True, True]
+
+
+def test_obstacle_spheres_are_the_first_point_of_each_voxel_near_the_gripper():
+    """Catches: the held cluster or far points turned into spheres, the last point of a voxel
+    kept instead of the first, centres out of the cloud's order."""
+    T = _gripper_pose()
+    points = np.array([
+        (0.105, 0.005, 0.955),   # voxel (10, 0, 95): first
+        (0.205, 0.005, 0.955),   # voxel (20, 0, 95): first
+        (0.106, 0.006, 0.956),   # voxel (10, 0, 95) again: not a sphere
+        (0.0, 0.0, 0.955),       # in the held cluster
+        (0.9, 0.0, 1.0),         # farther than max_distance
+        (-0.105, 0.005, 0.955),  # voxel (-11, 0, 95)
+    ])
+    centres = obstacle_sphere_centres(points, T, max_distance=0.5, cluster_length=0.1, cluster_radius=0.03,
+                                      voxel=0.01)
+    np.testing.assert_array_equal(centres, points[[0, 1, 5]])
+    none = obstacle_sphere_centres(points[[3, 4]], T, max_distance=0.5, cluster_length=0.1, cluster_radius=0.03,
+                                   voxel=0.01)
+    assert none.shape == (0, 3)
 
 
 @pytest.mark.parametrize("n_obstacles", [300, 4000])
-def test_perceive_gives_the_unveiling_law_the_checked_result(n_obstacles):
-    """The loop's unveiling target (thinned non-stem rows gathered by the kernel) equals the
-    checked ``Unveiling.observe`` on numpy's split of the same cloud, bit for bit, in the
-    paper mode with and without thinning (``max_obstacle_points`` 1000 here) and in the
-    predicted mode. Catches: a thinning stride other than the law's, the thinned rows used
-    in the predicted mode, the frame keeping thinned rows as its non-stem cloud."""
-    settings = check_settings({})
-    c = HarvestController(settings)
+def test_the_laws_every_kth_rows_give_the_laws_own_thinning(n_obstacles):
+    """The controller hands the unveiling law's paper mode ``non_stem_every(law.obstacle_stride(n))``
+    instead of all of W - S; the law must reach the same V_cu target as when it thins W - S itself
+    (``max_obstacle_points`` 1000 here: strides 1 and 4). Oracle: the law's public ``observe`` on
+    the whole W - S. Catches: a stride other than the law's, rows counted over the whole cloud."""
+    from harvest_qp.loop.settings import check_settings
+    from harvest_qp.references import Unveiling
+
+    u = check_settings({})["unveiling"]
     rng = np.random.default_rng(n_obstacles)
     camera = np.array([0.6, 0.0, 0.4])
-    for n_stem in (40, 3):  # the paper mode, then (fewer than min_stem_points) the predicted mode
-        stem = np.column_stack((0.02 * rng.normal(size=n_stem), 0.02 * rng.normal(size=n_stem),
-                                0.5 + 0.1 * rng.random(n_stem)))
-        leaves = np.column_stack((0.3 + 0.05 * rng.normal(size=n_obstacles), 0.05 * rng.normal(size=n_obstacles),
-                                  0.55 + 0.05 * rng.normal(size=n_obstacles)))
-        robot = rng.normal(size=(50, 3))
-        points = np.vstack((leaves[: n_obstacles // 2], stem, robot, leaves[n_obstacles // 2:]))
-        labels = np.array([OBSTACLE] * (n_obstacles // 2) + [STEM] * n_stem + [ROBOT] * 50
-                          + [OBSTACLE] * (n_obstacles - n_obstacles // 2), dtype=np.int8)
-        order = rng.permutation(len(points))
-        points, labels = np.ascontiguousarray(points[order]), labels[order]
-        T_g = np.eye(4)
-        T_g[:3, 3] = (0.0, 0.0, 0.3)
-        loop_law = c.unveiling
-        loop_law.max_obstacle_points = 1000
-        c.state = type(c.state)()
-        c.reaching.reset(np.array([0.0, 0.0, 0.55]))
-        loop_law.reset()
-        oracle = copy.deepcopy(loop_law)
-        c._perceive(_cloud(points, labels, camera, 0.1), T_g)
-        oracle.observe(camera, points[labels == STEM], points[labels != STEM],
-                       predicted_stem_points=c._predicted_stem(T_g), roi_centre=c.reaching.roi_centre, timestamp=0.1)
-        assert loop_law.mode == oracle.mode == ("paper" if n_stem == 40 else "predicted")
-        assert loop_law.n_pairs == oracle.n_pairs
-        assert (loop_law.n_pairs > 0) == (n_stem == 40)  # the law acts: pairs found in the paper mode
-        assert _bits(loop_law.raw) == _bits(oracle.raw)
-        assert c.state.phase == Phase.APPROACH
-        np.testing.assert_array_equal(c.state.frame.non_stem, points[labels != STEM])
-        np.testing.assert_array_equal(c.state.frame.obstacles, points[labels == OBSTACLE])
-        np.testing.assert_array_equal(c.state.frame.stem, points[labels == STEM])
-
-
-def test_gather_with_a_wrong_count_raises_instead_of_writing_past_the_end():
-    """Catches: the kernel trusting its caller's count (a count too small wrote past the array)."""
-    points = np.zeros((10, 3))
-    labels = np.full(10, STEM, np.int8)
-    for count in (3, 11):
-        with pytest.raises(ValueError, match="row count"):
-            _gather_labelled(points, labels, STEM, True, 1, count)
-
-
-def test_a_nan_in_a_row_the_thinned_law_skips_still_raises():
-    """Paper mode with thinning (stride 5): a NaN in a non-stem row the law does not use
-    still raises the package's error naming the obstacle points, as the checked observe of
-    the whole cloud did. Catches: the finiteness checked on the gathered rows only."""
-    from harvest_qp.exceptions import InvalidInputError
-
-    c = HarvestController(check_settings({}))
-    c.unveiling.max_obstacle_points = 100
-    rng = np.random.default_rng(31)
-    n_stem, n_other = 40, 500
-    points = np.vstack((rng.normal(size=(n_stem, 3)), rng.normal(size=(n_other, 3))))
-    labels = np.array([STEM] * n_stem + [OBSTACLE] * n_other, dtype=np.int8)
-    points[n_stem + 1, 2] = np.nan  # the second non-stem row: not in [::5]
-    c.reaching.reset(np.zeros(3))
-    with pytest.raises(InvalidInputError, match="obstacle_points"):
-        c._perceive(_cloud(points, labels, np.array([0.6, 0.0, 0.4]), 0.1), np.eye(4))
+    stem = np.column_stack((0.02 * rng.normal(size=40), 0.02 * rng.normal(size=40), 0.5 + 0.1 * rng.random(40)))
+    leaves = np.column_stack((0.3 + 0.05 * rng.normal(size=n_obstacles), 0.05 * rng.normal(size=n_obstacles),
+                              0.55 + 0.05 * rng.normal(size=n_obstacles)))
+    points = np.vstack((leaves, stem, rng.normal(size=(50, 3))))
+    labels = np.array([OBSTACLE] * n_obstacles + [STEM] * 40 + [ROBOT] * 50)
+    order = rng.permutation(len(points))
+    frame = LabelledFrame(_cloud(points[order], labels[order], camera))
+    laws = []
+    for _ in range(2):
+        law = Unveiling(k_c=u["k_c"], d_a=u["d_a"], d_o=u["d_o"], time_constant=u["time_constant"],
+                        max_linear=u["max_linear"], max_angular=u["max_angular"], min_pivot=u["min_pivot"])
+        law.max_obstacle_points = 1000
+        laws.append(law)
+    thinned, whole = laws
+    thinned.observe(camera, frame.stem, frame.non_stem_every(thinned.obstacle_stride(frame.n_non_stem)), timestamp=0.1)
+    whole.observe(camera, frame.stem, frame.non_stem, timestamp=0.1)
+    assert thinned.mode == whole.mode == "paper" and thinned.n_pairs == whole.n_pairs > 0
+    np.testing.assert_array_equal(thinned.raw, whole.raw)

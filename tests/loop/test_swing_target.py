@@ -1,9 +1,10 @@
 """The map-aware p_gd: the gripper's swing to p_gd keeps clear of what the obstacle map holds.
 
-No episode: a controller at a fixed arm pose, a free space computed by the perception
-pipeline, and a leaf inserted in the controller's obstacle map from a synthetic cloud. The
-oracle is the control law's own end state, computed here independently of the controller's
-swing model: with e_p = 0 and alignment = 0 (``eq:gr_pos_contr``, ``eq:rot_contr``) the
+No episode: the arms at their initial pose, a free space computed by the perception
+pipeline, and a leaf inserted in an obstacle map from a synthetic cloud; p_gd from
+:func:`harvest_qp.perception.grasp_target.choose_grasp_target` with the settings' bounds. The
+oracle is the control law's own end state, computed here independently of the swing model:
+with e_p = 0 and alignment = 0 (``eq:gr_pos_contr``, ``eq:rot_contr``) the
 gripper point lies on the line p_sb + s n_c (s from the stem's length to 3 cm beyond) and
 y_g = n_c, reached by the shortest turn of the gripper; its capsule (from the robot
 description, placed with pinocchio) is measured against the leaf's points by brute force.
@@ -14,10 +15,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from harvest_qp.configuration import Configuration
 from harvest_qp.interface import OBSTACLE, PointCloud
-from harvest_qp.loop.controller import HarvestController
 from harvest_qp.loop.settings import check_settings
 from harvest_qp.perception import compute_free_space
+from harvest_qp.perception.grasp_target import SWING_CAPSULES, SwingCheck, choose_grasp_target
+from harvest_qp.perception.obstacle_map import ObstacleMap
 from harvest_qp.robot import description
 
 STEM_LENGTH = 0.08  # [m]
@@ -40,17 +43,17 @@ def _shortest_turn(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 class _Scene:
-    """A controller at its initial pose, the stem hanging along y_g, the camera to one side."""
+    """The arms at their initial pose, the stem hanging along y_g, the camera to one side."""
 
     def __init__(self, swing_clearance):
-        settings = check_settings({"grasping": {"swing_clearance": swing_clearance}})
-        self.controller = c = HarvestController(settings)
-        c.configuration.update(c.configuration.q)
-        c._switch_gripper_pose = T_g = _pose(c, "gripper")
-        self.T_g = T_g
+        self.settings = settings = check_settings({"grasping": {"swing_clearance": swing_clearance}})
+        self.configuration = Configuration.dual_ur5e()
+        m = settings["obstacle_map"]
+        self.obstacle_map = ObstacleMap(resolution=m["resolution"], clear_rays=m["clear_rays"])
+        self.T_g = T_g = _pose(self, "gripper")
         self.p_g, self.R_g = T_g[:3, 3], T_g[:3, :3]
-        top = self.p_g - settings["perception"]["grasp_offset"] * self.R_g[:, 1]
-        self.p_sb = top - STEM_LENGTH * self.R_g[:, 1]
+        self.top = self.p_g - settings["perception"]["grasp_offset"] * self.R_g[:, 1]
+        self.p_sb = self.top - STEM_LENGTH * self.R_g[:, 1]
         # camera 0.35 m away across the stem (along the gripper's approach axis, backwards);
         # a wall of obstacle points behind the stem keeps F on the camera's side.
         side = -self.R_g[:, 2]
@@ -60,8 +63,22 @@ class _Scene:
         wall = self.p_sb - 0.04 * side + grid[:, None, None] * u + grid[None, :, None] * w
         self.free = compute_free_space(wall.reshape(-1, 3), self.p_sb, STEM_LENGTH, self.camera, n_samples=500)
 
+    def choice(self):
+        g = self.settings["grasping"]
+        swing = None
+        if g["swing_clearance"] is not None:
+            capsules = []
+            for body in description.collision_bodies():
+                if body.arm and body.name in SWING_CAPSULES:
+                    pose = self.configuration.frame_pose(body.link)
+                    ends = [pose.act(np.asarray(p, float)) for p in (body.capsule.p0, body.capsule.p1)]
+                    capsules.append((*ends, float(body.capsule.radius)))
+            swing = SwingCheck(self.obstacle_map, self.p_g, capsules, clearance=g["swing_clearance"],
+                               stretch=g["swing_stretch"])
+        return choose_grasp_target(self.free, self.p_sb, self.top, max_swing_deg=g["max_swing_deg"], swing=swing)
+
     def target(self) -> np.ndarray:
-        return self.controller._target_within_swing(self.free, self.p_sb, T_g=self.T_g)
+        return self.choice().point
 
     def capsules_at_end(self, target: np.ndarray, stretch: float) -> list[tuple[np.ndarray, np.ndarray, float]]:
         """The gripper-side capsules when the law has converged on ``target`` (see the module docstring)."""
@@ -69,19 +86,18 @@ class _Scene:
         turn = _shortest_turn(self.R_g[:, 1], n_c)
         reach = np.linalg.norm(self.p_g - self.p_sb) + stretch
         p_end = self.p_sb + reach * n_c
-        c = self.controller
         out = []
         for body in description.collision_bodies():
             if body.name not in ("grasp_gripper", "grasp_wrist_3"):
                 continue
-            pose = c.configuration.frame_pose(body.link)
+            pose = self.configuration.frame_pose(body.link)
             ends = [pose.act(np.asarray(p, float)) for p in (body.capsule.p0, body.capsule.p1)]
             out.append(tuple(p_end + turn @ (e - self.p_g) for e in ends) + (body.capsule.radius,))
         return out
 
 
-def _pose(controller, frame: str) -> np.ndarray:
-    pose = controller.configuration.frame_pose(frame)
+def _pose(scene, frame: str) -> np.ndarray:
+    pose = scene.configuration.frame_pose(frame)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = pose.rotation, pose.translation
     return T
@@ -130,8 +146,8 @@ def test_without_the_map_check_the_gripper_ends_in_the_leaf(leaf_scene):
     and far from the gripper now (so the check has room)."""
     plain, target, leaf = leaf_scene
     assert _min_distance(plain.capsules_at_end(target, 0.015), leaf) < 0.005
-    now = [(plain.controller.configuration.frame_pose(b.link).act(np.asarray(b.capsule.p0, float)),
-            plain.controller.configuration.frame_pose(b.link).act(np.asarray(b.capsule.p1, float)), b.capsule.radius)
+    now = [(plain.configuration.frame_pose(b.link).act(np.asarray(b.capsule.p0, float)),
+            plain.configuration.frame_pose(b.link).act(np.asarray(b.capsule.p1, float)), b.capsule.radius)
            for b in description.collision_bodies() if b.name in ("grasp_gripper", "grasp_wrist_3")]
     assert _min_distance(now, leaf) > 0.03
 
@@ -147,15 +163,16 @@ def test_map_aware_target_keeps_the_gripper_clear_of_the_mapped_leaf(leaf_scene)
     not caught here: this leaf is hit by the turn's end state already.)"""
     _, plain_target, leaf = leaf_scene
     scene = _Scene(0.02)
-    c = scene.controller
     cloud = _leaf_cloud(leaf, scene.camera)
     for _ in range(3):
-        c.obstacle_map.update(cloud)
-    assert c.obstacle_map.num_occupied > 10  # the leaf (4 x 4 cm) is in the map
-    target = scene.target()
+        scene.obstacle_map.update(cloud)
+    assert scene.obstacle_map.num_occupied > 10  # the leaf (4 x 4 cm) is in the map
+    choice = scene.choice()
+    target = choice.point
     assert np.linalg.norm(target - plain_target) > 0.005
     assert abs(np.linalg.norm(target - scene.p_sb) - STEM_LENGTH) < 1e-9  # on the sphere S(p_sb, l)
     for stretch in (0.0, 0.015, 0.03):
         assert _min_distance(scene.capsules_at_end(target, stretch), leaf) >= 0.02 - 1e-9, stretch
-    clearance, needed = c.last_swing_clearance
+    clearance, needed = choice.swing_clearance
     assert needed == pytest.approx(0.02)
+    assert choice.choice.startswith("free, in the cone, swing clear")

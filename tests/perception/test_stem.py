@@ -209,24 +209,3 @@ def test_distinct_rows_are_numpys_unique_rows():
         assert got.shape == expected.shape
         key = lambda a: np.lexsort((a[:, 2], a[:, 1], a[:, 0]))  # noqa: E731
         np.testing.assert_array_equal(got[key(got)], expected[key(expected)])
-
-
-def test_linear_quantiles_are_numpys_quantiles_bit_for_bit():
-    """stem._linear_quantiles (fit_stem's end quantiles) against np.quantile (method "linear"),
-    bytes equal, on sizes 1..120 with ties, quantiles 0, tiny, 0.02, 0.1, 0.249 and their
-    complements, and where (n - 1) q lands exactly on an index or on the last one.
-    Catches (planted and checked): _lerp's gamma >= 0.5 branch left out (last-bit
-    differences), n instead of n - 1 in the virtual index, the above-bounds rule dropped
-    (index error / wrong value at q = 1)."""
-    from harvest_qp.perception.stem import _linear_quantiles
-
-    rng = np.random.default_rng(11)
-    for n in list(range(1, 12)) + [45, 46, 99, 120]:
-        for trial in range(6):
-            values = rng.normal(scale=10.0 ** rng.uniform(-4, 1), size=n)
-            if trial % 2:
-                values = np.round(values, 3)  # ties
-            for q in (0.0, 1e-12, 0.02, 0.1, 0.25 - 1e-9, 0.249, 1.0 / max(n - 1, 1)):
-                got = np.array(_linear_quantiles(values, q, 1.0 - q))
-                expected = np.quantile(values, (q, 1.0 - q))
-                assert got.dtype == expected.dtype and got.tobytes() == expected.tobytes(), (n, q, got, expected)

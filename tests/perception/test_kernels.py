@@ -1,9 +1,10 @@
-"""The compiled fast paths of perception against the code they replace (speed work, same results).
+"""The compiled kernels of perception against independent references.
 
-Each fast path must give exactly what the plainer computation gives: the obstacle cull of
-``ray_obstacle_pairs`` against its numpy form, the block-list erase of the obstacle map
-against a brute force over the occupied cells, the per-pixel clearing-grid tables against
-the modulo rule.
+Each kernel is tested against a plain computation that does not share its code: the
+ray/obstacle pairs of ``ray_obstacle_pairs`` against a dense evaluation of ``eq:nearest`` over
+every (ray, obstacle), the block-list erase of the obstacle map against a brute force over the
+occupied cells, the clearing-grid tables against the modulo rule, the stem kernels against
+scipy (``kmeans2``, ``cKDTree``) and numpy (``np.unique``, ``np.median``).
 """
 
 from __future__ import annotations
@@ -14,11 +15,7 @@ import pytest
 from harvest_qp.interface import OBSTACLE, STEM, PointCloud
 from harvest_qp.perception import _map_kernels as K
 from harvest_qp.perception.obstacle_map import ExclusionRegion, ObstacleMap
-from harvest_qp.perception.unveiling import (
-    _candidate_obstacles,
-    _candidate_obstacles_numpy,
-    ray_obstacle_pairs,
-)
+from harvest_qp.perception.unveiling import ray_obstacle_pairs
 
 SMALL = ((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4))
 
@@ -43,29 +40,44 @@ def _scene(rng, n_stem, n_obstacles):
     return stem, np.vstack([obstacles, near, far]), camera
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_compiled_obstacle_cull_keeps_exactly_the_numpy_culls_obstacles(seed):
-    """The compiled cull of ray_obstacle_pairs keeps the same obstacles, in the same order, with
-    the same offsets (bit for bit), as the numpy cull it replaced. Catches a dropped clause of
-    the test (e.g. the "within reach of the camera" one, which the points next to the camera
-    need) or a wrong depth window."""
-    rng = np.random.default_rng(seed)
-    stem, obstacles, camera = _scene(rng, int(rng.integers(5, 300)), int(rng.integers(100, 5000)))
+def _dense_pairs(stem, obstacles, camera, d_a, d_o):
+    """eq:nearest over every (ray, obstacle): s, the pair mask, p_hat - p_o and its norm."""
     rays = stem - camera
-    directions = rays / np.linalg.norm(rays, axis=1)[:, None]
-    reach = (0.01 + 0.001) * (1.0 + 1e-9)
-    index, offsets = _candidate_obstacles(rays, directions, obstacles, camera, reach)
-    expected_index, expected_offsets = _candidate_obstacles_numpy(rays, directions, obstacles, camera, reach)
-    assert 0 < index.size < obstacles.shape[0]
-    np.testing.assert_array_equal(index, expected_index)
-    assert np.array_equal(offsets, expected_offsets)
-    # And the pairs found from them are all the pairs there are (the dense check of every (j, k)).
-    pairs = ray_obstacle_pairs(stem, obstacles, camera)
     s = np.einsum("ij,kj->ik", rays, obstacles - camera) / np.einsum("ij,ij->i", rays, rays)[:, None]
     t = np.clip(s, 0.0, 1.0)
     gap = camera + t[..., None] * rays[:, None, :] - obstacles[None]
-    dense = np.linalg.norm(gap, axis=-1) - 0.001 < 0.01
-    assert len(pairs) == int(dense.sum()) and np.all(dense[pairs.stem_index, pairs.obstacle_index])
+    distance = np.linalg.norm(gap, axis=-1)
+    return s, distance - d_o < d_a, gap, distance
+
+
+def _assert_pairs_are_the_dense_pairs(pairs, stem, obstacles, camera, d_a, d_o):
+    s, inside, gap, distance = _dense_pairs(stem, obstacles, camera, d_a, d_o)
+    j, k = pairs.stem_index, pairs.obstacle_index
+    assert len(pairs) == int(inside.sum()) > 0 and np.all(inside[j, k])
+    assert len(set(zip(j.tolist(), k.tolist()))) == len(pairs)  # each pair once
+    np.testing.assert_allclose(pairs.segment_parameter, np.clip(s[j, k], 0.0, 1.0), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(pairs.surface_distance, distance[j, k] - d_o, rtol=0, atol=1e-12)
+    expected_case = (s[j, k] > 0.0).astype(np.int8) + (s[j, k] >= 1.0)
+    assert np.array_equal(pairs.case, expected_case)
+    away = gap[j, k] / np.where(distance[j, k] > 0, distance[j, k], 1.0)[:, None]
+    np.testing.assert_allclose(pairs.away_directions, away, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_pairs_are_every_pair_of_the_dense_evaluation(seed):
+    """The compiled cull and pair kernels find exactly the pairs of eq:nearest evaluated over every
+    (ray, obstacle) with numpy, with their s, r_hat, branch and away direction. Obstacles next to
+    the camera and behind it, rays in every direction (bundles without a useful cone) on one seed
+    in three. Catches a dropped clause of the cull (e.g. the "within reach of the camera" one,
+    which the points next to the camera need), a wrong depth window, a bundle cone too narrow, or a
+    wrong branch of eq:nearest."""
+    rng = np.random.default_rng(seed)
+    stem, obstacles, camera = _scene(rng, int(rng.integers(5, 300)), int(rng.integers(100, 5000)))
+    if seed % 3 == 2:
+        stem = camera + rng.normal(size=stem.shape)
+    pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
+    assert 0 < pairs.n_candidate_obstacles <= obstacles.shape[0]
+    _assert_pairs_are_the_dense_pairs(pairs, stem, obstacles, camera, 0.02, 0.002)
 
 
 # --------------------------------------------------------------------------- obstacle map
@@ -112,22 +124,6 @@ def test_erase_over_the_block_lists_forgets_exactly_the_occupied_cells_in_the_re
     assert np.array_equal(m.occupied_centres(), centres[~inside])
     changed = np.flatnonzero(m.log_odds != before)
     assert changed.size == erased and np.all(m.log_odds[changed] == 0.0)
-
-
-def test_block_list_erase_equals_the_cell_scan():
-    """Both erase paths of the kernel (block lists; every cell of the boxes, used while blocks are
-    dirty) forget the same cells."""
-    rng = np.random.default_rng(7)
-    m1, m2 = _occupied_map(rng), None
-    m2 = ObstacleMap(bounds=SMALL)
-    m2.log_odds[:] = m1.log_odds
-    regions = np.array([[0.3, 0.0, 1.0, 0.5, 0.1, 1.1, 0.12], [0.0, -0.2, 0.8, 0.0, -0.2, 0.8, 0.2]])
-    args = (m1.resolution, m1.lo_key, m1.dims, m1._nby, m1._nbz)
-    n1 = K.erase_regions(regions, *args, m1.log_odds, m1._dirty, m1._dirty_list, m1._n_dirty, m1._block_cells,
-                         m1._block_count)  # fmt: skip
-    n2 = K._erase_regions_scan(regions, *args, m2.log_odds, m2._dirty, m2._dirty_list, m2._n_dirty)
-    assert n1 == n2 > 0
-    assert np.array_equal(m1.log_odds, m2.log_odds)
 
 
 @pytest.mark.parametrize("stride", [1, 2, 3, 6])
@@ -221,42 +217,19 @@ def test_compiled_kmeans_gives_scipys_kmeans2_labels(seed):
 
 @pytest.mark.parametrize("seed", range(2))
 def test_compiled_nearest_neighbours_give_ckdtrees_distances(seed):
-    """The point spacing's compiled nearest-neighbour sweep gives cKDTree's distances bit for bit.
-    Catches a sweep that stops too early (a closer point farther along x missed)."""
+    """The point spacing's compiled nearest-neighbour sweep gives cKDTree's distances. Catches a
+    sweep that stops too early (a closer point farther along x missed)."""
     from scipy.spatial import cKDTree
 
     from harvest_qp.perception import _stem_kernels
-    from harvest_qp.perception.stem import _distinct_rows
 
     for points in _stem_like_clouds(seed):
-        distinct = _distinct_rows(points)
+        distinct = np.unique(points, axis=0)
         if distinct.shape[0] < 2:
             continue
         expected = cKDTree(distinct).query(distinct, k=2)[0][:, 1]
-        assert np.array_equal(_stem_kernels.nearest_neighbour_distances(np.ascontiguousarray(distinct)), expected)
-
-
-@pytest.mark.parametrize("seed", range(6))
-def test_compiled_ray_blocks_give_the_numpy_blocks_pairs_in_the_same_order(seed, monkeypatch):
-    """Steps 2-3 of ray_obstacle_pairs compiled (bundle cones, eq:nearest on the blocks) give the
-    pairs of the numpy blocks in the same order (the velocity sums them in that order), with
-    the same values (bit for bit where numpy's BLAS rounds the dot products as the kernel's
-    fused multiply-adds, as OpenBLAS does on this machine; within 1e-15 m elsewhere). Catches
-    pairs emitted obstacle by obstacle instead of ray by ray, or a wrong branch of eq:nearest."""
-    import harvest_qp.perception.unveiling as unveiling
-
-    rng = np.random.default_rng(100 + seed)
-    stem, obstacles, camera = _scene(rng, int(rng.integers(1, 400)), int(rng.integers(100, 5000)))
-    if seed % 3 == 2:  # rays in every direction: bundles without a useful cone
-        stem = camera + rng.normal(size=stem.shape)
-    compiled = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
-    monkeypatch.setattr(unveiling, "_COMPILED_BLOCKS", False)
-    expected = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
-    assert len(expected) > 0
-    for name in ("stem_index", "obstacle_index", "case", "n_candidate_obstacles"):
-        assert np.array_equal(getattr(compiled, name), getattr(expected, name)), name
-    for name in ("surface_distance", "segment_parameter", "away_directions"):
-        np.testing.assert_allclose(getattr(compiled, name), getattr(expected, name), rtol=0, atol=1e-15)
+        got = _stem_kernels.nearest_neighbour_distances(np.ascontiguousarray(distinct))
+        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=0)
 
 
 def _rows_with_ties(rng, n):
@@ -276,29 +249,26 @@ def _rows_with_ties(rng, n):
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_compiled_distinct_rows_are_the_lexsort_rows_bit_for_bit(seed):
-    """The compiled distinct rows are those of the numpy column lexsort (``_distinct_rows_numpy``,
-    itself checked against ``np.unique(axis=0)``), in the same order and with the same bits,
-    including which of 0.0 / -0.0 is kept (the first in input order, lexsort being stable).
-    Catches an unstable sort within runs of equal x (the other zero kept) or runs sorted by
-    z before y."""
+def test_compiled_distinct_rows_are_numpys_unique_rows(seed):
+    """The compiled distinct rows are ``np.unique(axis=0)``'s, in the same lexicographic order
+    (0.0 and -0.0 compare equal in both). Catches runs of equal x not sorted by (y, z), or
+    runs sorted by z before y (rows out of order, duplicates not adjacent and kept)."""
     from harvest_qp.perception import _stem_kernels
-    from harvest_qp.perception.stem import _distinct_rows_numpy
 
     rng = np.random.default_rng(seed)
     for n in (2, 3, 7, 40, 300):
         rows = _rows_with_ties(rng, n)
-        expected = _distinct_rows_numpy(rows)
+        expected = np.unique(rows, axis=0)
         got = _stem_kernels.distinct_rows(np.ascontiguousarray(rows))
         assert got.shape == expected.shape
-        assert got.tobytes() == expected.tobytes()  # bytes: the sign of each zero too
+        np.testing.assert_array_equal(got, expected)
 
 
 @pytest.mark.parametrize("seed", range(2))
 def test_compiled_point_spacing_is_the_median_of_ckdtrees_distances_over_unique_rows(seed):
     """``_point_spacing`` (one compiled call: distinct rows, the nearest-neighbour sweep along the
     widest axis, the median) equals numpy's median of cKDTree's nearest-neighbour distances
-    over ``np.unique(axis=0)``'s rows, bit for bit, for clouds elongated along x, y or z.
+    over ``np.unique(axis=0)``'s rows, for clouds elongated along x, y or z.
     Catches a sweep pruned on the wrong axis's gap, a median of an even count taken as one
     middle value, or duplicates counted."""
     from scipy.spatial import cKDTree
@@ -316,29 +286,22 @@ def test_compiled_point_spacing_is_the_median_of_ckdtrees_distances_over_unique_
     for points in clouds:
         unique = np.unique(points, axis=0)
         expected = 0.0 if unique.shape[0] < 2 else float(np.median(cKDTree(unique).query(unique, k=2)[0][:, 1]))
-        assert _point_spacing(points) == expected
+        assert _point_spacing(points) == pytest.approx(expected, rel=1e-12, abs=0.0)
 
 
-def test_compiled_ray_blocks_keep_every_pair_when_their_outputs_grow(monkeypatch):
+def test_pair_kernel_keeps_every_pair_when_its_outputs_grow():
     """Many more pairs than the compiled kernel's first output size (1,024 or 8 per ray): 12 rays
     through a dense cloud of 3,000 obstacle points around them (~20,000 pairs), so the outputs
-    are grown several times mid-bundle. The pairs must still be the numpy blocks' pairs, in
-    their order. Catches a growth that drops the pairs already found (outputs not copied) or
-    overruns them."""
-    import harvest_qp.perception.unveiling as unveiling
-
+    are grown several times mid-bundle. The pairs must still be the dense evaluation's. Catches a
+    growth that drops the pairs already found (outputs not copied) or overruns them."""
     rng = np.random.default_rng(7)
     camera = np.zeros(3)
     stem = np.column_stack([rng.uniform(-0.005, 0.005, 12), rng.uniform(-0.005, 0.005, 12), np.full(12, 0.4)])
-    obstacles = np.column_stack([rng.uniform(-0.01, 0.01, 3000), rng.uniform(-0.01, 0.01, 3000), rng.uniform(0.0, 0.4, 3000)])
-    compiled = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
-    monkeypatch.setattr(unveiling, "_COMPILED_BLOCKS", False)
-    expected = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
-    assert len(expected) > 8 * 1024
-    for name in ("stem_index", "obstacle_index", "case"):
-        assert np.array_equal(getattr(compiled, name), getattr(expected, name)), name
-    for name in ("surface_distance", "segment_parameter", "away_directions"):
-        np.testing.assert_allclose(getattr(compiled, name), getattr(expected, name), rtol=0, atol=1e-15)
+    obstacles = np.column_stack([rng.uniform(-0.01, 0.01, 3000), rng.uniform(-0.01, 0.01, 3000),
+                                 rng.uniform(0.0, 0.4, 3000)])
+    pairs = ray_obstacle_pairs(stem, obstacles, camera, d_a=0.02, d_o=0.002)
+    assert len(pairs) > 8 * 1024
+    _assert_pairs_are_the_dense_pairs(pairs, stem, obstacles, camera, 0.02, 0.002)
 
 
 def _random_capsules(rng, n):
@@ -413,28 +376,6 @@ def test_exclusion_counts_every_obstacle_point_in_the_regions():
     assert not m.is_occupied((only_inside + 0.5) * 0.01).any()
 
 
-@pytest.mark.parametrize("seed", range(2))
-def test_compiled_bundle_order_is_the_numpy_sorts_order(seed):
-    """The ray bundles' compiled sorts and cuts give the order and cuts of the numpy form
-    (``_ray_bundle_order_numpy``: a stable argsort along the major axis, ``np.lexsort`` by strip
-    and minor axis), which fix the order the pairs are summed in. Directions rounded to a
-    coarse grid make ties along both axes. Catches an unstable sort within a strip (ties in
-    another order) or bundles cut across strips."""
-    from harvest_qp.perception.unveiling import _ray_bundle_order, _ray_bundle_order_numpy
-
-    rng = np.random.default_rng(seed)
-    for trial in range(60):
-        n = int(rng.integers(1, 700))
-        directions = rng.normal(size=(n, 3)) * rng.uniform(0.01, 1.0, 3) + (0.0, 0.0, 5.0)
-        if trial % 2 == 0:
-            directions = np.round(directions, 1)  # ties
-        directions /= np.linalg.norm(directions, axis=1)[:, None]
-        for max_size in (1, 7, 64):
-            order, cuts = _ray_bundle_order(directions, max_size)
-            expected_order, expected_cuts = _ray_bundle_order_numpy(directions, max_size)
-            assert np.array_equal(order, expected_order) and np.array_equal(cuts, expected_cuts)
-
-
 def test_every_non_finite_coordinate_makes_a_point_invalid():
     """The update's finiteness test (one sum of the coordinates times zero) counts a point with
     NaN, +inf or -inf in any single coordinate as invalid, and no finite point (huge, tiny,
@@ -459,3 +400,111 @@ def test_every_non_finite_coordinate_makes_a_point_invalid():
     )  # fmt: skip
     stats = ObstacleMap(bounds=((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4)), min_range=0.0).update(cloud)
     assert stats.invalid == int(bad.sum())
+
+
+# --------------------------------------------------------------------------- per-tick map feed
+
+
+def _occupy(m: ObstacleMap, keys) -> None:
+    """Make the cells with integer ``keys`` occupied: one frame of obstacle points at their centres."""
+    centres = (np.asarray(keys, float).reshape(-1, 3) + 0.5) * m.resolution
+    n = centres.shape[0]
+    pose = np.eye(4)
+    pose[:3, 3] = (0.0, 0.0, 1.0)
+    m.update(PointCloud(
+        points=centres, labels=np.full(n, OBSTACLE, np.int8), colors=np.zeros((n, 3), np.uint8), camera_pose=pose,
+        timestamp=0.0, depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(1, 1),
+    ))  # fmt: skip
+
+
+def _feed_and_full_query(m: ObstacleMap, n: int):
+    """One tick of the compiled feed (its lists kept between ticks) and the oracle: the full block search
+    ``ObstacleMap.closest_cells`` then the union of the capsules' cells. The kernel reads the map's block
+    lists, which only the map's own code may reach: this test is the kernel's."""
+    from harvest_qp.perception import _feed_kernels as FK
+
+    k, m_max, max_distance, separation = 4, 32, 0.11, 0.03
+    s = dict(
+        state=np.zeros(FK.FEED_STATE, np.int64), cache_w0=np.zeros((n, 3)), cache_w1=np.zeros((n, 3)),
+        cache_distance=np.full(1, np.nan), cand_start=np.zeros(n + 1, np.int64), cand_index=np.zeros(4096, np.int64),
+        cand_xyz=np.zeros((4096, 4)), rel_blocks=np.zeros(4096, np.int64), scratch_index=np.zeros(m_max, np.int64),
+        scratch_distance=np.zeros(m_max), out_index=np.full((n, k), -1, np.int64), out_distance=np.full((n, k), np.inf),
+        out_count=np.zeros(n, np.int64), out_cells=np.zeros(24, np.int64), out_centres=np.zeros((24, 3)),
+        cand_bound=np.full(n, np.inf), displacement=np.zeros(n), kept_cells=np.zeros((k, 3), np.int64),
+    )  # fmt: skip
+
+    def tick(w0, w1, radii):
+        fed = FK.feed_update(
+            w0.copy(), w1.copy(), np.ones(n, bool), np.array([0.0, 0.0, -1e3]), radii, max_distance, m.cell_radius,
+            separation, 0.02, m.resolution, m.lo_key, m.dims, m._nby, m._nbz, m._block_cells, m._block_count,
+            m._block_stamp, m._version, s["state"], s["cache_w0"], s["cache_w1"], s["cache_distance"],
+            s["cand_start"], s["cand_index"], s["cand_xyz"], s["rel_blocks"], s["scratch_index"],
+            s["scratch_distance"], s["out_index"], s["out_distance"], s["out_count"], s["out_cells"],
+            s["out_centres"], s["cand_bound"], s["displacement"], s["kept_cells"],
+        )  # fmt: skip
+        query = m.closest_cells(w0, w1, radii, max_distance=max_distance, per_capsule=k, min_separation=separation,
+                                candidates=m_max)
+        assert np.array_equal(s["out_count"], query.counts)
+        valid = query.indices >= 0
+        assert np.array_equal(s["out_index"][valid], query.indices[valid])
+        np.testing.assert_allclose(s["out_distance"][valid], query.distances[valid], rtol=0, atol=1e-12)
+        best: dict[int, float] = {}
+        for i, d in zip(query.indices[valid], query.distances[valid]):
+            best[int(i)] = min(best.get(int(i), np.inf), float(d))
+        expected = sorted(sorted(best, key=best.get)[:24])
+        assert fed == len(expected) and s["out_cells"][:fed].tolist() == expected
+        return fed, s
+
+    return tick
+
+
+def test_feed_skips_only_kept_candidates_that_cannot_change_the_closest_cells():
+    """The per-tick feed keeps each capsule's candidate cells between map changes and skips a kept
+    candidate without its distance when, at the lists' capsule pose, it was farther than the M-th
+    closest candidate by more than twice the capsule's displacement since. Oracle: the full block
+    search (``ObstacleMap.closest_cells``, checked against brute force in test_obstacle_map.py)
+    every tick. Scene 1 (hand-built): 40 cells on one side of a capsule, 8 cells 3 cm farther on
+    the other, the capsule then moves 1.6 cm towards them (inside the 2 cm slack, no rebuild): the
+    far cells become the closest; then a cell appears in a block that was empty. Catches (planted
+    and checked) a bound without the displacement (the far cells are skipped), and empty blocks not
+    listed as dependent (the new cell is never fed). Scene 2: random cells and capsules wandering in
+    steps up to 6 mm (rebuilds when past the slack or when cells are added or erased)."""
+    from harvest_qp.perception import _feed_kernels as FK
+
+    m = ObstacleMap(bounds=((-0.4, -0.4, 0.6), (0.4, 0.4, 1.4)))
+    near = [(kx, ky, kz) for kx in (-13, -14) for ky in (-1, 0) for kz in range(100, 110)]
+    far = [(15, ky, kz) for ky in (-1, 0) for kz in range(100, 104)]
+    _occupy(m, near + far)
+    tick = _feed_and_full_query(m, 1)
+    radii = np.array([0.05])
+    fed_far = False
+    for shift in (0.0, 0.008, 0.016):
+        w0, w1 = np.array([[shift, 0.0, 1.0]]), np.array([[shift, 0.0, 1.1]])
+        count, s = tick(w0, w1, radii)
+        assert s["state"][FK.FEED_REBUILDS] == 1  # lists kept from the first tick
+        fed_far = fed_far or bool((m.keys(s["out_centres"][:count])[:, 0] == 15).any())
+    assert fed_far  # the far cells were reached through the kept lists
+    # A cell appears in a block that was empty, next to the capsule, which holds still.
+    _occupy(m, [(6, 0, 105)])
+    count, s = tick(w0, w1, radii)
+    assert s["state"][FK.FEED_REBUILDS] == 2
+    assert (m.keys(s["out_centres"][:count]) == (6, 0, 105)).all(axis=1).any()
+    # Scene 2.
+    rng = np.random.default_rng(3)
+    m = ObstacleMap(bounds=((-0.4, -0.4, 0.6), (0.4, 0.4, 1.4)))
+    cells = rng.integers((-12, -12, 88), (12, 12, 112), size=(700, 3))
+    _occupy(m, cells)
+    n = 3
+    tick = _feed_and_full_query(m, n)
+    radii = np.array([0.04, 0.05, 0.03])
+    centre = np.zeros((n, 3)) + [0.0, 0.0, 1.0]
+    axis = rng.normal(size=(n, 3)) * 0.05
+    for step in range(200):
+        centre += rng.normal(size=(n, 3)) * (0.002 if step % 40 else 0.03)
+        centre = np.clip(centre, [-0.1, -0.1, 0.9], [0.1, 0.1, 1.1])
+        axis += rng.normal(size=(n, 3)) * 0.001
+        if step % 25 == 12:
+            gone = (cells[rng.integers(0, len(cells), 20)] + 0.5) * m.resolution
+            m.erase([ExclusionRegion.sphere(p, 0.004) for p in gone])  # some cells forgotten
+            _occupy(m, rng.integers((-12, -12, 88), (12, 12, 112), size=(15, 3)))  # some new ones
+        tick(centre - axis, centre + axis, radii)
