@@ -96,20 +96,6 @@ class WristForceSensor:
         self._last = np.zeros(3)
         self._history = np.zeros((config.tare_samples, 3))
         self._count = 0
-        self._adr = int(model.sensor_adr[self.sensor_id])
-        self._bound: tuple[mujoco.MjData, NDArray[np.float64], NDArray[np.float64]] | None = None
-        # No noise, no filter: a sample is the world force plus the tool's weight, which
-        # SimRobot.step takes in one compiled call on views bound by bind() (_plain).
-        self._plain = False
-        self._rotation: NDArray[np.float64] | None = None
-        self._site_force: NDArray[np.float64] | None = None
-
-    def bind(self, data: mujoco.MjData) -> None:
-        """Bind views of ``data``'s buffers for SimRobot's fused sample (``_plain`` says whether it applies)."""
-        adr = self._adr
-        self._rotation = data.site_xmat[self.site_id].reshape(3, 3)
-        self._site_force = data.sensordata[adr : adr + 3]
-        self._plain = self.config.noise_std == 0 and self.config.filter_time_constant == 0
 
     def reset(self, *, seed: int | None = None) -> None:
         """Clear the tare offset and the filter; optionally reseed the noise."""
@@ -127,17 +113,7 @@ class WristForceSensor:
 
     def update(self, data: mujoco.MjData, dt: float) -> NDArray[np.float64]:
         """Take one sample (after a physics step of ``dt`` [s]) and return the reading [N, world]."""
-        self._sample(data, dt)
-        return self.reading()
-
-    def _sample(self, data: mujoco.MjData, dt: float) -> None:
-        """:meth:`update` without building the reading (the robot's step does not use it)."""
-        bound = self._bound
-        if bound is None or bound[0] is not data:
-            # site_force_world's operands as live views into this data's buffers, made once.
-            adr = self._adr
-            bound = self._bound = (data, data.site_xmat[self.site_id].reshape(3, 3), data.sensordata[adr : adr + 3])
-        f = bound[1] @ bound[2] + self._tool_weight
+        f = self.raw(data)
         if self.config.noise_std > 0:
             f = f + self._rng.normal(0.0, self.config.noise_std, 3)
         tau = self.config.filter_time_constant
@@ -151,6 +127,7 @@ class WristForceSensor:
         self._last = f
         self._history[self._count % len(self._history)] = f
         self._count += 1
+        return self.reading()
 
     def reading(self) -> NDArray[np.float64]:
         """Latest sample minus the tare offset [N, world]."""

@@ -56,7 +56,7 @@ from harvest_qp.robot import description as desc
 from harvest_qp.robot import paths
 from harvest_qp.robot.meshes import strip_visual_meshes
 from harvest_qp.sim.actuation import ActuationConfig, add_joint_actuators
-from harvest_qp.sim.contacts import _segment_distances
+from harvest_qp.sim.contacts import segment_distances
 from harvest_qp.validation import as_positive_scalar, check_field_types
 
 __all__ = [
@@ -495,7 +495,7 @@ def _petiole_blocks(petiole, origins: NDArray, targets: NDArray) -> bool:
     a, b = petiole
     if np.linalg.norm(b - a) <= 1e-3:
         return False
-    dist = _segment_distances(np.asarray(origins, float), np.asarray(targets, float), a[None], b[None])
+    dist = segment_distances(np.asarray(origins, float), np.asarray(targets, float), a[None], b[None])
     return bool(np.any(dist < _PETIOLE_RADIUS + _SIGHT_MARGIN))
 
 
@@ -822,7 +822,7 @@ def _other_clusters(
             start = top + stem_len * down
             axis = (start, start + length * down)
             ok = all(_segment_distance(axis[0], axis[1], a, b) > radius + rad + 0.03 for a, b, rad in keep_clear)
-            ok = ok and not np.any(_segment_distances(sight[0], sight[1], axis[0][None], axis[1][None]) < radius + 0.01)
+            ok = ok and not np.any(segment_distances(sight[0], sight[1], axis[0][None], axis[1][None]) < radius + 0.01)
             if not ok:
                 continue
             centres = []
