@@ -674,63 +674,76 @@ def _draw(
 
 @njit(cache=True)
 def compact_cloud(
-    depth,  # (n,) z-depth per pixel [m] (inf / nan: no hit)
-    geomid,  # (n,) geom hit per pixel (-1: none)
-    rays_c,  # (n, 3) unit pixel rays in the camera frame
+    depth,  # (h*w,) per pixel: z-depth, or the ray length when along_ray [m] (-1 / inf / nan: no hit)
+    along_ray,  # True: ``depth`` holds ray lengths (the ray caster's), else z-depths (the renderer's)
+    geomid,  # (h*w,) geom hit per pixel (-1: none)
+    rays_x,  # (h*w,) x of the unit pixel rays in the camera frame, row-major
+    rays_y,  # (h*w,) their y
+    rays_z,  # (h*w,) their z
     rotation,  # (3, 3) camera rotation (world from camera)
     origin,  # (3,) camera position
     min_depth,
     max_depth,
     stem_range,
-    noise,  # (n,) standard normal draws for depth noise, or (0,)
+    noise,  # (h*w,) standard normal draws for depth noise, or (0,)
     noise_scale,  # depth noise std at 1 m [m]
-    keep,  # (n,) bool: pixel not dropped out, or (0,)
+    keep,  # (h*w,) bool: pixel not dropped out, or (0,)
     geom_ok,  # (ngeom,) bool: geoms the camera may see
     geom_label,  # (ngeom,) int8
     geom_color,  # (ngeom, 3) uint8
-    pixel_color,  # (n, 3) uint8 rendered colours, or (0, 3)
+    pixel_color,  # (h*w, 3) uint8 rendered colours, or (0, 3)
     stem_label,
     obstacle_label,
-    out_points,  # (n, 3)
-    out_labels,  # (n,) int8
-    out_colors,  # (n, 3) uint8
-    out_depth,  # (n,)
-    out_pixels,  # (n, 2) int32
+    out_points,  # (h*w, 3)
+    out_labels,  # (h*w,) int8
+    out_colors,  # (h*w, 3) uint8
+    out_depth,  # (h*w,)
+    out_pixels,  # (h*w, 2) int32
+    height,
     width,
 ):
-    """Valid pixels -> world points, labels, colours; returns the number of points written."""
+    """Valid pixels -> world points, labels, colours, z-depths, pixels; returns the number of points written."""
     count = 0
     n = depth.shape[0]
     use_noise = noise.shape[0] == n
     use_keep = keep.shape[0] == n
     use_pixel_color = pixel_color.shape[0] == n
-    for i in range(n):
-        g = geomid[i]
-        if g < 0 or not geom_ok[g]:
-            continue
-        z = depth[i]
-        if not (z >= min_depth and z <= max_depth):
-            continue
-        if use_keep and not keep[i]:
-            continue
-        if use_noise:
-            # Stereo depth error grows with depth squared (fixed disparity error).
-            z = z + noise[i] * noise_scale * z * z
-        s = z / rays_c[i, 2]
-        x = rays_c[i, 0] * s
-        y = rays_c[i, 1] * s
-        zz = rays_c[i, 2] * s
-        for k in range(3):
-            out_points[count, k] = origin[k] + rotation[k, 0] * x + rotation[k, 1] * y + rotation[k, 2] * zz
-        label = geom_label[g]
-        # Beyond the detection range a stem point is just another obstacle (the paper).
-        if label == stem_label and s > stem_range:
-            label = obstacle_label
-        out_labels[count] = label
-        for k in range(3):
-            out_colors[count, k] = pixel_color[i, k] if use_pixel_color else geom_color[g, k]
-        out_depth[count] = z
-        out_pixels[count, 0] = i // width
-        out_pixels[count, 1] = i % width
-        count += 1
+    # The rotation and origin in scalars: the compiler cannot tell that the outputs do not alias them.
+    r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
+    r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
+    r20, r21, r22 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    for v in range(height):
+        for u in range(width):
+            i = v * width + u
+            g = geomid[i]
+            if g < 0 or not geom_ok[g]:
+                continue
+            rz = rays_z[i]
+            z = depth[i] * rz if along_ray else depth[i]
+            if not (z >= min_depth and z <= max_depth):
+                continue
+            if use_keep and not keep[i]:
+                continue
+            if use_noise:
+                # Stereo depth error grows with depth squared (fixed disparity error).
+                z = z + noise[i] * noise_scale * z * z
+            s = z / rz
+            x = rays_x[i] * s
+            y = rays_y[i] * s
+            zz = rz * s
+            out_points[count, 0] = o0 + r00 * x + r01 * y + r02 * zz
+            out_points[count, 1] = o1 + r10 * x + r11 * y + r12 * zz
+            out_points[count, 2] = o2 + r20 * x + r21 * y + r22 * zz
+            label = geom_label[g]
+            # Beyond the detection range a stem point is just another obstacle (the paper).
+            if label == stem_label and s > stem_range:
+                label = obstacle_label
+            out_labels[count] = label
+            for k in range(3):
+                out_colors[count, k] = pixel_color[i, k] if use_pixel_color else geom_color[g, k]
+            out_depth[count] = z
+            out_pixels[count, 0] = v
+            out_pixels[count, 1] = u
+            count += 1
     return count

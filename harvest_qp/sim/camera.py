@@ -232,16 +232,20 @@ class DepthCamera:
         depth: NDArray[np.float64],
         geom: NDArray[np.int32],
         timestamp: float,
+        *,
+        along_ray: bool = False,
         colors: NDArray[np.uint8] | None = None,
     ) -> PointCloud:
-        """Turn per-pixel z-depth [m] and geom id (-1: none) into a labelled world cloud."""
+        """Turn per-pixel z-depth (or ray length, ``along_ray``) [m] and geom id (-1: none) into a
+        labelled world cloud."""
         cfg = self.config
         keep, noise, (points, labels, rgb, z, pixels) = self._frame_arrays(depth.shape[0])
+        h, w = cfg.image_size
         count = _raycast.compact_cloud(
-            depth, geom, self._rays_c, np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
-            cfg.min_depth, cfg.max_depth, cfg.stem_range, noise, cfg.depth_noise, keep, self._geom_ok,
-            self._labels, self._colors, self._no_color if colors is None else colors, STEM, OBSTACLE,
-            points, labels, rgb, z, pixels, cfg.image_size[1],
+            depth, along_ray, geom, self._ray_x, self._ray_y, self._ray_z, np.ascontiguousarray(pose[:3, :3]),
+            np.ascontiguousarray(pose[:3, 3]), cfg.min_depth, cfg.max_depth, cfg.stem_range, noise, cfg.depth_noise,
+            keep, self._geom_ok, self._labels, self._colors, self._no_color if colors is None else colors, STEM,
+            OBSTACLE, points, labels, rgb, z, pixels, h, w,
         )  # fmt: skip
         return self._cloud(pose, timestamp, count, points, labels, rgb, z, pixels)
 
@@ -323,7 +327,7 @@ class RayCastCamera(DepthCamera):
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
             raise InvalidInputError(f"pose must be a finite 4x4 transform, got shape {pose.shape}")
         dist, geomid = self.cast(data, pose)
-        return self._finish(pose, dist * self._ray_z, geomid, timestamp)  # ray length -> z-depth
+        return self._finish(pose, dist, geomid, timestamp, along_ray=True)
 
 
 class OpenGLCamera(DepthCamera):
@@ -382,7 +386,7 @@ class OpenGLCamera(DepthCamera):
         colors = None
         if self.config.rendered_rgb:
             colors = r.render().reshape(-1, 3)
-        return self._finish(np.asarray(pose, dtype=float), depth, geom, timestamp, colors)
+        return self._finish(np.asarray(pose, dtype=float), depth, geom, timestamp, colors=colors)
 
 
 def make_camera(
