@@ -125,11 +125,11 @@ def _capsule_search(xpos, xmat, geoms, axis, half, radius, exact, na, max_distan
 
     ``geoms`` holds the ``na`` arm geoms, then the vine geoms; ``axis``, ``half``,
     ``radius``, ``exact`` describe their capsules (see :func:`_enclosing_capsules`).
-    Writes every pair's capsule distance (a lower bound of its true distance) to
-    ``bounds``. Returns the smallest distance over the exact pairs (both geoms their own
-    capsules) if below ``max_distance`` (else ``max_distance``), its pair index (-1: none),
-    and the number of inexact pairs whose bound is below it, their indices written to
-    ``candidates`` nearest bound first.
+    Writes a lower bound of every pair's true distance to ``bounds``: its capsule distance
+    where that can matter, else its bounding spheres' gap. Returns the smallest distance
+    over the exact pairs (both geoms their own capsules) if below ``max_distance`` (else
+    ``max_distance``), its pair index (-1: none), and the number of inexact pairs whose
+    bound is below it, their indices written to ``candidates`` nearest bound first.
     """
     ng = geoms.shape[0]
     nv = ng - na
@@ -140,21 +140,30 @@ def _capsule_search(xpos, xmat, geoms, axis, half, radius, exact, na, max_distan
             off = h * xmat[g, 3 * c + ax]
             ends[i, c] = xpos[g, c] - off
             ends[i, 3 + c] = xpos[g, c] + off
+    # First the bounding spheres: a lower bound of every pair's capsule distance (centre
+    # distance minus both half-lengths and radii) and, for the exact pairs, an upper bound
+    # (the centres lie on the segments: centre distance minus both radii).
+    upper = max_distance
+    for i in range(na):
+        for m in range(nv):
+            j = na + m
+            cx = xpos[geoms[i], 0] - xpos[geoms[j], 0]
+            cy = xpos[geoms[i], 1] - xpos[geoms[j], 1]
+            cz = xpos[geoms[i], 2] - xpos[geoms[j], 2]
+            centres = math.sqrt(cx * cx + cy * cy + cz * cz)
+            bounds[i * nv + m] = centres - half[i] - radius[i] - half[j] - radius[j]
+            if exact[i] and exact[j]:
+                upper = min(upper, centres - radius[i] - radius[j])
+    # Then the capsule distance of the pairs whose lower bound can beat that (a few dozen):
+    # a pair left out can be neither the best nor a candidate.
     best = max_distance
     best_k = -1
     for i in range(na):
         for m in range(nv):
             k = i * nv + m
-            j = na + m
-            # The bounding spheres' gap first: a lower bound of the capsule distance, enough
-            # when it cannot beat the best (the pair then can be neither best nor candidate).
-            cx = xpos[geoms[i], 0] - xpos[geoms[j], 0]
-            cy = xpos[geoms[i], 1] - xpos[geoms[j], 1]
-            cz = xpos[geoms[i], 2] - xpos[geoms[j], 2]
-            gap = math.sqrt(cx * cx + cy * cy + cz * cz) - half[i] - radius[i] - half[j] - radius[j]
-            if gap >= best:
-                bounds[k] = gap
+            if bounds[k] >= upper:
                 continue
+            j = na + m
             d = _clamped_distance(
                 ends[i, 3] - ends[i, 0], ends[i, 4] - ends[i, 1], ends[i, 5] - ends[i, 2],
                 ends[j, 3] - ends[j, 0], ends[j, 4] - ends[j, 1], ends[j, 5] - ends[j, 2],

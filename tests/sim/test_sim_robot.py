@@ -99,7 +99,7 @@ def test_payload_compensation_is_the_clusters_weight_through_the_tool_jacobian(d
     with the compensation switched off: the grasping arm's controls differ by
     ``-(J^T m g) / kp``, J the tool-fixed point at the cluster's centre of mass
     differentiated joint by joint (``mj_kinematics`` on perturbed joints), m the cluster's
-    mass, kp the servo gains.
+    mass, kp the servo gains. Planted and caught: the torque subtracted instead of added.
     """
     on, off = SimRobot(default_scene, camera=None), SimRobot(default_scene, camera=None)
     off.payload_compensation = False
