@@ -102,23 +102,19 @@ def _span_distances(
             py = oy + t * dy
             inside = (s0 <= 0.0 or abs(px) <= s0) and (s1 <= 0.0 or abs(py) <= s1)
             out[j] = t if (not dz > -1e-15 and t >= 0.0 and inside) else -1.0
-    elif gt == 2:
-        c = ox * ox + oy * oy + oz * oz - s0 * s0
-        for j in range(n):
-            ex, ey, ez = ex_[j], ey_[j], ez_[j]
-            dx = r00 * ex + r10 * ey + r20 * ez
-            dy = r01 * ex + r11 * ey + r21 * ez
-            dz = r02 * ex + r12 * ey + r22 * ez
-            out[j] = _root(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz, c)
-    elif gt == 4:
-        # Ellipsoid: scaled to the unit sphere (t is unchanged).
-        px, py, pz = ox / s0, oy / s1, oz / s2
+    elif gt == 2 or gt == 4:
+        # Sphere or ellipsoid (semi-axes a, b, c; a sphere's all its radius): scaled to the
+        # unit sphere (t is unchanged).
+        ia = 1.0 / s0
+        ib = ia if gt == 2 else 1.0 / s1
+        ic = ia if gt == 2 else 1.0 / s2
+        px, py, pz = ox * ia, oy * ib, oz * ic
         c = px * px + py * py + pz * pz - 1.0
         for j in range(n):
             ex, ey, ez = ex_[j], ey_[j], ez_[j]
-            dx = (r00 * ex + r10 * ey + r20 * ez) / s0
-            dy = (r01 * ex + r11 * ey + r21 * ez) / s1
-            dz = (r02 * ex + r12 * ey + r22 * ez) / s2
+            dx = (r00 * ex + r10 * ey + r20 * ez) * ia
+            dy = (r01 * ex + r11 * ey + r21 * ez) * ib
+            dz = (r02 * ex + r12 * ey + r22 * ez) * ic
             out[j] = _root(dx * dx + dy * dy + dz * dz, px * dx + py * dy + pz * dz, c)
     else:
         # Capsule: the cylinder's side within its half-length, and the two end spheres.

@@ -227,7 +227,7 @@ def _views(robot):
 
 
 # Two finite tilted planes whose edges are in view (seen from behind in some views), an
-# infinite one (size 0) as the floor, and a ball and a capsule partly in front of them.
+# infinite one (size 0) as the floor, and a ball, a capsule, a cylinder and a box partly in front of them.
 PLANES_XML = """
 <mujoco>
   <worldbody>
@@ -236,6 +236,8 @@ PLANES_XML = """
     <geom name="tile" type="plane" pos="0.8 -0.3 0.1" euler="20 -60 0" size="0.08 0.2 0.01"/>
     <geom name="ball" type="sphere" pos="0.7 0.05 0.02" size="0.05"/>
     <geom name="bar" type="capsule" fromto="0.6 -0.2 -0.1 0.75 0.2 0.05" size="0.02"/>
+    <geom name="can" type="cylinder" pos="0.75 0.15 -0.1" euler="30 10 0" size="0.04 0.06"/>
+    <geom name="crate" type="box" pos="0.85 -0.15 -0.15" euler="10 20 30" size="0.05 0.04 0.03"/>
   </worldbody>
 </mujoco>
 """
@@ -284,7 +286,8 @@ def test_numba_caster_agrees_with_mj_multiray(vine_robot, case):
     valid pixels, ray lengths within 1e-9 m, the same labels, and the same geom ids except
     where two geoms are hit at the same distance (touching capsules). Cases: the paper's
     camera (283x160) on the lab's views of the stem, random views around the canopy and
-    the floor (downsample 6), and finite and infinite planes seen from both sides.
+    the floor (downsample 6), and finite and infinite planes seen from both sides with a
+    sphere, a capsule, a cylinder and a box.
     Planted and caught: ``_root`` returning the far root first.
     """
     rng = np.random.default_rng(7)
@@ -322,6 +325,8 @@ def test_numba_caster_agrees_with_mj_multiray(vine_robot, case):
     seen = {int(kind): int(hits[model.geom_type == kind].sum()) for kind in range(int(mujoco.mjtGeom.mjGEOM_BOX) + 1)}
     assert seen[int(mujoco.mjtGeom.mjGEOM_CAPSULE)] > 100
     assert case == "lab_frames" or seen[int(mujoco.mjtGeom.mjGEOM_PLANE)] > 1000
+    solids = (seen[int(mujoco.mjtGeom.mjGEOM_CYLINDER)], seen[int(mujoco.mjtGeom.mjGEOM_BOX)])
+    assert case != "planes" or min(solids) > 100
     assert case == "planes" or seen[int(mujoco.mjtGeom.mjGEOM_ELLIPSOID)] > 1000
 
 
