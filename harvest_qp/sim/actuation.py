@@ -180,11 +180,15 @@ class SpeedjServo:
 
     def update(self, data: mujoco.MjData, dt: float) -> None:
         """Advance the reference by ``dt`` [s] and write the servo controls into ``data.ctrl``."""
+        self.step(data.qpos, data.ctrl, dt)
+
+    def step(self, qpos: NDArray[np.float64], ctrl: NDArray[np.float64], dt: float) -> None:
+        """:meth:`update` on the arrays ``qpos`` and ``ctrl`` (e.g. views of an MjData's, bound once)."""
         # One numba call: this runs every 2 ms and numpy's per-call overhead on 12-element
-        # arrays cost ~10x the arithmetic (the same operations, in the same order).
+        # arrays cost ~10x the arithmetic.
         _servo_step(
             self.qd_ref, self.qd_cmd, self.acc_limit, float(dt), self.q_ref, self._q_lo, self._q_hi,
-            data.qpos, self.qpos_ids, self.config.max_following_error, self._ff, data.ctrl, self.ctrl_ids,
+            qpos, self.qpos_ids, self.config.max_following_error, self._ff, ctrl, self.ctrl_ids,
         )  # fmt: skip
 
 

@@ -76,6 +76,7 @@ class ContactMonitor:
         self._axis, self._half, self._radius, self._exact = _enclosing_capsules(model, geoms)
         self._candidates = np.zeros(self.arm_geoms.size * self.vine_geoms.size, dtype=np.int64)
         self._bounds = np.zeros(self.arm_geoms.size * self.vine_geoms.size)
+        self._views: tuple[mujoco.MjData, NDArray[np.float64], NDArray[np.float64]] | None = None
 
     def contact_counts(self, data: mujoco.MjData) -> dict[str, int]:
         """Number of active contacts of each kind of :data:`CONTACT_KINDS` (penetrating or within margin)."""
@@ -102,8 +103,11 @@ class ContactMonitor:
         na, nv = self.arm_geoms.size, self.vine_geoms.size
         if na == 0 or nv == 0:
             return self.max_distance, -1, -1
+        views = self._views
+        if views is None or views[0] is not data:
+            views = self._views = (data, data.geom_xpos, data.geom_xmat)  # live views, made once
         best, best_k, n = _capsule_search(
-            data.geom_xpos, data.geom_xmat, self._geoms, self._axis, self._half, self._radius, self._exact, na,
+            views[1], views[2], self._geoms, self._axis, self._half, self._radius, self._exact, na,
             self.max_distance, self._bounds, self._candidates,
         )  # fmt: skip
         arm = vine = -1

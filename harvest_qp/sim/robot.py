@@ -31,7 +31,7 @@ from harvest_qp.robot import description as desc
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
 from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor
-from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor, site_force_world
+from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
 from harvest_qp.validation import as_positive_scalar, check_field_types
 
@@ -159,6 +159,7 @@ class SimRobot(RobotInterface):
             )
         self.control_period = float(control_period)
         self._substeps = int(round(substeps))
+        self._timestep = dt
         self.payload_compensation = bool(payload_compensation)
         self.settle_time = float(settle_time)
 
@@ -207,6 +208,17 @@ class SimRobot(RobotInterface):
         self._grasp_kp = np.ascontiguousarray(self._kp[6:])
         self._viewer = None
         self._viewer_every = 16
+        # Live views of the MjData arrays every physics step reads (MjData allocates them once
+        # and never moves them; each ``data.x`` builds a new view, ~1-3 us apiece with the
+        # caches the rest of the control loop leaves).
+        d = self.data
+        self._qpos, self._qvel, self._ctrl = d.qpos, d.qvel, d.ctrl
+        self._warning_counts = d.warning.number
+        self._cluster_com = d.xipos[self._cluster]
+        adr = int(m.sensor_adr[self._stem_force_sensor])
+        self._stem_rotation = d.site_xmat[self._stem_end_site].reshape(3, 3)
+        self._stem_sensor = d.sensordata[adr : adr + 3]
+        self._stem_end = d.site_xpos[self._stem_end_site]
         self.reset()
 
     # ------------------------------------------------------------------ setup
@@ -291,10 +303,10 @@ class SimRobot(RobotInterface):
         return self._ticks * self.control_period
 
     def joint_positions(self) -> NDArray[np.float64]:
-        return self.data.qpos[self._qpos_ids]  # fancy indexing copies
+        return self._qpos[self._qpos_ids]  # fancy indexing copies
 
     def joint_velocities(self) -> NDArray[np.float64]:
-        return self.data.qvel[self._dof_ids]
+        return self._qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
         return self._force.reading()
@@ -375,12 +387,12 @@ class SimRobot(RobotInterface):
 
     def stem_force(self) -> NDArray[np.float64]:
         """True force the stem applies to the cluster [N, world] (ground truth, not measurable)."""
-        return site_force_world(self.model, self.data, self._stem_force_sensor, self._stem_end_site)
+        return self._stem_rotation @ self._stem_sensor  # site_force_world on views bound once
 
     def stem_tension(self) -> float:
         """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""
         fx, fy, fz = self.stem_force().tolist()
-        px, py, pz = self.data.site_xpos[self._stem_end_site].tolist()
+        px, py, pz = self._stem_end.tolist()
         bx, by, bz = self._stem_base
         magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
         # Positive when the force on the cluster points from the stem end towards the base.
@@ -488,13 +500,15 @@ class SimRobot(RobotInterface):
         every reading refers to the same instant.
         """
         m, d = self.model, self.data
-        self._servo.update(d, m.opt.timestep)
+        self._servo.step(self._qpos, self._ctrl, self._timestep)
         if self.payload_compensation and self._holding:
             # Like a UR5e's payload setting: hold the cluster's weight in the joint torques.
             # The weld keeps the cluster's centre of mass fixed on the tool.
             jacp = self._jacp
-            mujoco.mj_jac(m, d, jacp, None, d.xipos[self._cluster], self._grasp_tool)
-            _add_payload_torque(jacp, self._grasp_dofs, self._payload_weight, d.ctrl, self._grasp_ctrl, self._grasp_kp)
+            mujoco.mj_jac(m, d, jacp, None, self._cluster_com, self._grasp_tool)
+            _add_payload_torque(
+                jacp, self._grasp_dofs, self._payload_weight, self._ctrl, self._grasp_ctrl, self._grasp_kp
+            )  # fmt: skip
         mujoco.mj_step2(m, d)
         mujoco.mj_step1(m, d)
 
@@ -513,9 +527,8 @@ class SimRobot(RobotInterface):
             self._tear_time = self.time
 
     def _check_physics(self) -> None:
-        d = self.data
-        counts = d.warning.number
-        if _diverged(counts, self._warnings, d.qvel):
+        counts = self._warning_counts
+        if _diverged(counts, self._warnings, self._qvel):
             counts = np.asarray(counts, dtype=np.int64)
             new = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts > self._warnings)]
             self._warnings = counts
