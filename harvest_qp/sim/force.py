@@ -120,6 +120,11 @@ class WristForceSensor:
 
     def update(self, data: mujoco.MjData, dt: float) -> NDArray[np.float64]:
         """Take one sample (after a physics step of ``dt`` [s]) and return the reading [N, world]."""
+        self.sample(data, dt)
+        return self.reading()
+
+    def sample(self, data: mujoco.MjData, dt: float) -> None:
+        """Take one sample (after a physics step of ``dt`` [s]): :meth:`update` without the reading."""
         f = self.raw(data)
         if self.config.noise_std > 0:
             f = f + self._rng.normal(0.0, self.config.noise_std, 3)
@@ -134,7 +139,6 @@ class WristForceSensor:
         self._last = f
         self._history[self._count % len(self._history)] = f
         self._count += 1
-        return self.reading()
 
     def reading(self) -> NDArray[np.float64]:
         """Latest sample minus the tare offset [N, world]."""

@@ -197,7 +197,7 @@ class SimRobot(RobotInterface):
         self._slide_damping = float(m.dof_damping[self._slide_dof])
         self._stem_force_sensor = int(ids["stem_force"])
         self._stem_end_site = int(ids["stem_end_site"])
-        self._stem_base = tuple(float(x) for x in scene.stem_base)
+        self._stem_base = np.array(scene.stem_base, dtype=float)
         self._spring0 = m.qpos_spring.copy()
         self._stem_qpos = self._stem_spring_addresses()
         self._jacp = np.zeros((3, m.nv))
@@ -333,7 +333,7 @@ class SimRobot(RobotInterface):
             self._check_tear()  # every physics step: the tension may not overshoot for a whole tick
         self._check_physics()
         self._ticks += 1
-        self._force.update(self.data, self.control_period)
+        self._force.sample(self.data, self.control_period)
         if self._camera is not None and self._ticks >= self._next_frame_tick:
             self._maybe_capture()
         if self._viewer is not None and self._ticks % self._viewer_every == 0:
@@ -391,12 +391,7 @@ class SimRobot(RobotInterface):
 
     def stem_tension(self) -> float:
         """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""
-        fx, fy, fz = self.stem_force().tolist()
-        px, py, pz = self._stem_end.tolist()
-        bx, by, bz = self._stem_base
-        magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
-        # Positive when the force on the cluster points from the stem end towards the base.
-        return magnitude if fx * (bx - px) + fy * (by - py) + fz * (bz - pz) >= 0 else -magnitude
+        return _signed_tension(self._stem_rotation, self._stem_sensor, self._stem_end, self._stem_base)
 
     def site_pose(self, name: str) -> NDArray[np.float64]:
         """World pose (4x4) of a site, e.g. ``"camera"``, ``"gripper"``, ``"cutter_tip"``."""
@@ -589,6 +584,19 @@ def uses_own_ground_truth(robot: object) -> bool:
 
 
 _OWN_GROUND_TRUTH = SimRobot.ground_truth
+
+
+@njit(cache=True)
+def _signed_tension(rotation, sensor, end, base):
+    """|R f| [N], positive when the world force R f on the cluster points from the stem end towards its base."""
+    tension = 0.0
+    along = 0.0
+    for r in range(3):
+        f = rotation[r, 0] * sensor[0] + rotation[r, 1] * sensor[1] + rotation[r, 2] * sensor[2]
+        tension += f * f
+        along += f * (base[r] - end[r])
+    tension = math.sqrt(tension)
+    return tension if along >= 0.0 else -tension
 
 
 @njit(cache=True)
