@@ -704,6 +704,7 @@ def compact_cloud(
     use_noise = noise.shape[0] == n
     use_keep = keep.shape[0] == n
     use_pixel_color = pixel_color.shape[0] == n
+    colors = pixel_color if use_pixel_color else geom_color  # indexed by pixel, or by geom
     # The rotation and origin in scalars: the compiler cannot tell that the outputs do not alias them.
     r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
     r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
@@ -736,8 +737,10 @@ def compact_cloud(
             if label == stem_label and s > stem_range:
                 label = obstacle_label
             out_labels[count] = label
-            for k in range(3):
-                out_colors[count, k] = pixel_color[i, k] if use_pixel_color else geom_color[g, k]
+            c = i if use_pixel_color else g
+            out_colors[count, 0] = colors[c, 0]
+            out_colors[count, 1] = colors[c, 1]
+            out_colors[count, 2] = colors[c, 2]
             out_depth[count] = z
             out_pixels[count, 0] = v
             out_pixels[count, 1] = u
