@@ -1,18 +1,16 @@
-"""Fast single-origin ray casting against MuJoCo primitive geoms (numba).
+"""Single-origin ray casting against MuJoCo primitive geoms (numba), the camera's ``"numba"`` engine.
 
 :func:`mujoco.mj_multiRay` tests every ray against every geom (about 20 ms for the
 283x160 image of the vine scene with its ~75 geoms, too slow for 30 Hz at 3x real
-time). This kernel gives the same distances and geom ids (agreement to ~1e-12 m, see
-tests/sim/test_camera.py) by testing each geom only against the pixels inside its
-projected bounding sphere (and, for ellipsoids, capsules and cylinders, its quadric's
-footprint on each row), with the same filters as ``mj_multiRay`` (transparent geoms,
-``bodyexclude``, static geoms when ``flg_static`` is 0, geoms farther than ``cutoff``).
-Planes, spheres, ellipsoids and capsules are intersected a row span at a time in vectorised
-loops, and the span's hits merged into the image by another branch-free loop (the same
-operations per pixel as the scalar code: its results bit for bit, see
-tests/sim/test_sim_fastpaths.py and tests/sim/test_sim_camera_planes.py).
-It handles planes, spheres, capsules, ellipsoids, cylinders and boxes; a model with
-other geom types (meshes, height fields, SDFs) must use ``mj_multiRay``.
+time). :func:`cast_rays` gives the same distances and geom ids (``mj_multiRay`` is its
+reference: tests/sim/test_sim_camera.py holds the two to 1e-9 m on lab frames) in
+~0.5-0.8 ms by testing each geom only against the pixels inside its projected bounding
+sphere (and, for ellipsoids, capsules and cylinders, its quadric's footprint on each
+row), with the same filters as ``mj_multiRay`` (transparent geoms, ``bodyexclude``,
+geoms farther than ``cutoff``). Planes, spheres, ellipsoids and capsules are intersected
+a row span at a time in branch-free loops that the compiler vectorises; cylinders and
+boxes a pixel at a time. A model with other geom types (meshes, height fields, SDFs)
+must use ``mj_multiRay``.
 """
 
 from __future__ import annotations
@@ -58,25 +56,6 @@ def supports_model(model: mujoco.MjModel) -> bool:
 
 
 @njit(cache=True, inline="always")
-def _quadratic(a: float, b: float, c: float) -> float:
-    """Smallest non-negative root of a t^2 + 2 b t + c = 0, or -1."""
-    det = b * b - a * c
-    if det < 0.0 or a < 1e-15:
-        return -1.0
-    s = math.sqrt(det)
-    t0 = (-b - s) / a
-    if t0 >= 0.0:
-        return t0
-    t1 = (-b + s) / a
-    return t1 if t1 >= 0.0 else -1.0
-
-
-@njit(cache=True, inline="always")
-def _sphere(ox, oy, oz, dx, dy, dz, r):
-    return _quadratic(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz, ox * ox + oy * oy + oz * oz - r * r)
-
-
-@njit(cache=True, inline="always")
 def _keep(best, t):
     if t >= 0.0 and (best < 0.0 or t < best):
         return t
@@ -85,7 +64,8 @@ def _keep(best, t):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _root(a, b, c):
-    """:func:`_quadratic` without branches: the same operations, the kept one selected."""
+    """Smallest non-negative root of a t^2 + 2 b t + c = 0, or -1 (branch-free: both roots
+    computed, the kept one selected)."""
     det = b * b - a * c
     s = math.sqrt(det) if det >= 0.0 else 0.0
     t0 = (-b - s) / a
@@ -94,35 +74,15 @@ def _root(a, b, c):
     return t if (det >= 0.0 and a >= 1e-15) else -1.0
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _root_front(a, b, c):
-    """:func:`_root` where the far root can never be the answer: the ray origin clearly outside
-    the quadric (``c > 1e-8 |o|^2``, see :func:`_front_only`), so that a negative near root
-    means a negative far root too (then -1 either way); one division instead of two."""
-    det = b * b - a * c
-    s = math.sqrt(det) if det >= 0.0 else 0.0
-    t0 = (-b - s) / a
-    return t0 if (det >= 0.0 and a >= 1e-15 and t0 >= 0.0) else -1.0
-
-
-@njit(cache=True, inline="always")
-def _front_only(c, o2):
-    """True when ``c = |o|^2 - r^2`` (``o2 = |o|^2``, in the metric of the quadric) is above
-    1e-8 |o|^2: then b^2 <= |o|^2 a (Cauchy-Schwarz) gives a c > 1e-8 b^2, so sqrt(b^2 - a c)
-    stays below |b| (1 - 5e-9), far beyond round-off: with t0 = (-b - s) / a < 0, b > 0 and
-    t1 = (-b + s) / a < 0 as computed too."""
-    return c > 1e-8 * o2
-
-
 @njit(cache=True, error_model="numpy")
 def _span_distances(
     gt, rays_x, rays_y, rays_z, base, ua, ub, r00, r01, r02, r10, r11, r12, r20, r21, r22, ox, oy, oz, s0, s1, s2,
     tbuf,
 ):  # fmt: skip
     """Distances (-1: miss) of the rays base+ua .. base+ub to a plane (0), a sphere (2), an ellipsoid (4)
-    or a capsule (3) into ``tbuf[ua..ub]``: :func:`_geom_local`'s arithmetic (the same operations in
-    the same order), branch-free so that it vectorises. ``error_model="numpy"`` leaves out
-    the zero-division checks (no division here is by zero where its result is kept).
+    or a capsule (3) into ``tbuf[ua..ub]``, branch-free so that it vectorises (``_root``: the
+    smallest non-negative root of a t^2 + 2 b t + c). ``error_model="numpy"`` leaves out the
+    zero-division checks (no division here is by zero where its result is kept).
     """
     n = ub + 1 - ua
     ex_ = rays_x[base + ua : base + ub + 1]
@@ -142,60 +102,22 @@ def _span_distances(
             py = oy + t * dy
             inside = (s0 <= 0.0 or abs(px) <= s0) and (s1 <= 0.0 or abs(py) <= s1)
             out[j] = t if (not dz > -1e-15 and t >= 0.0 and inside) else -1.0
-    elif gt == 2:
-        c = ox * ox + oy * oy + oz * oz - s0 * s0
-        if _front_only(c, ox * ox + oy * oy + oz * oz):
-            for j in range(n):
-                ex, ey, ez = ex_[j], ey_[j], ez_[j]
-                dx = r00 * ex + r10 * ey + r20 * ez
-                dy = r01 * ex + r11 * ey + r21 * ez
-                dz = r02 * ex + r12 * ey + r22 * ez
-                out[j] = _root_front(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz, c)
-        else:
-            for j in range(n):
-                ex, ey, ez = ex_[j], ey_[j], ez_[j]
-                dx = r00 * ex + r10 * ey + r20 * ez
-                dy = r01 * ex + r11 * ey + r21 * ez
-                dz = r02 * ex + r12 * ey + r22 * ez
-                out[j] = _root(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz, c)
-    elif gt == 4:
-        px, py, pz = ox / s0, oy / s1, oz / s2
-        c = px * px + py * py + pz * pz - 1.0 * 1.0
-        if _front_only(c, px * px + py * py + pz * pz):
-            for j in range(n):
-                ex, ey, ez = ex_[j], ey_[j], ez_[j]
-                dx = (r00 * ex + r10 * ey + r20 * ez) / s0
-                dy = (r01 * ex + r11 * ey + r21 * ez) / s1
-                dz = (r02 * ex + r12 * ey + r22 * ez) / s2
-                out[j] = _root_front(dx * dx + dy * dy + dz * dz, px * dx + py * dy + pz * dz, c)
-        else:
-            for j in range(n):
-                ex, ey, ez = ex_[j], ey_[j], ez_[j]
-                dx = (r00 * ex + r10 * ey + r20 * ez) / s0
-                dy = (r01 * ex + r11 * ey + r21 * ez) / s1
-                dz = (r02 * ex + r12 * ey + r22 * ez) / s2
-                out[j] = _root(dx * dx + dy * dy + dz * dz, px * dx + py * dy + pz * dz, c)
-    elif _front_only(ox * ox + oy * oy - s0 * s0, ox * ox + oy * oy) and _front_only(
-        ox * ox + oy * oy + (oz - s1) * (oz - s1) - s0 * s0, ox * ox + oy * oy + (oz - s1) * (oz - s1)
-    ) and _front_only(ox * ox + oy * oy + (oz + s1) * (oz + s1) - s0 * s0, ox * ox + oy * oy + (oz + s1) * (oz + s1)):
-        c_side = ox * ox + oy * oy - s0 * s0
-        zl = oz - s1
-        zh = oz + s1
-        c_low = ox * ox + oy * oy + zl * zl - s0 * s0
-        c_high = ox * ox + oy * oy + zh * zh - s0 * s0
+    elif gt == 2 or gt == 4:
+        # Sphere or ellipsoid (semi-axes a, b, c; a sphere's all its radius): scaled to the
+        # unit sphere (t is unchanged).
+        ia = 1.0 / s0
+        ib = ia if gt == 2 else 1.0 / s1
+        ic = ia if gt == 2 else 1.0 / s2
+        px, py, pz = ox * ia, oy * ib, oz * ic
+        c = px * px + py * py + pz * pz - 1.0
         for j in range(n):
             ex, ey, ez = ex_[j], ey_[j], ez_[j]
-            dx = r00 * ex + r10 * ey + r20 * ez
-            dy = r01 * ex + r11 * ey + r21 * ez
-            dz = r02 * ex + r12 * ey + r22 * ez
-            t = _root_front(dx * dx + dy * dy, ox * dx + oy * dy, c_side)
-            t = t if (t >= 0.0 and abs(oz + t * dz) <= s1) else -1.0
-            a = dx * dx + dy * dy + dz * dz
-            t2 = _root_front(a, ox * dx + oy * dy + zl * dz, c_low)
-            t = t2 if (t2 >= 0.0 and (t < 0.0 or t2 < t)) else t
-            t3 = _root_front(a, ox * dx + oy * dy + zh * dz, c_high)
-            out[j] = t3 if (t3 >= 0.0 and (t < 0.0 or t3 < t)) else t
+            dx = (r00 * ex + r10 * ey + r20 * ez) * ia
+            dy = (r01 * ex + r11 * ey + r21 * ez) * ib
+            dz = (r02 * ex + r12 * ey + r22 * ez) * ic
+            out[j] = _root(dx * dx + dy * dy + dz * dz, px * dx + py * dy + pz * dz, c)
     else:
+        # Capsule: the cylinder's side within its half-length, and the two end spheres.
         c_side = ox * ox + oy * oy - s0 * s0
         zl = oz - s1
         zh = oz + s1
@@ -238,38 +160,14 @@ def _merge_span(dist, geomid, tbuf, row, ua, ub, bound, cutoff, g):
         ids[j] = gid if take else old
 
 
-@njit(cache=True)
-def _geom_local(gtype, size, ox, oy, oz, dx, dy, dz):
-    """Distance along the ray to a geom in its local frame (ray origin o, direction d), or -1."""
-    if gtype == 0:  # plane: front face only, within the rectangle (size 0 = infinite)
-        if dz > -1e-15:
-            return -1.0
-        t = -oz / dz
-        if t < 0.0:
-            return -1.0
-        px = ox + t * dx
-        py = oy + t * dy
-        if (size[0] <= 0.0 or abs(px) <= size[0]) and (size[1] <= 0.0 or abs(py) <= size[1]):
-            return t
-        return -1.0
-    if gtype == 2:  # sphere
-        return _sphere(ox, oy, oz, dx, dy, dz, size[0])
-    if gtype == 3:  # capsule: cylinder side and two end spheres
-        r, h = size[0], size[1]
-        best = -1.0
-        t = _quadratic(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - r * r)
-        if t >= 0.0 and abs(oz + t * dz) <= h:
-            best = t
-        best = _keep(best, _sphere(ox, oy, oz - h, dx, dy, dz, r))
-        best = _keep(best, _sphere(ox, oy, oz + h, dx, dy, dz, r))
-        return best
-    if gtype == 4:  # ellipsoid: scale to the unit sphere (t is unchanged)
-        sx, sy, sz = size[0], size[1], size[2]
-        return _sphere(ox / sx, oy / sy, oz / sz, dx / sx, dy / sy, dz / sz, 1.0)
+@njit(cache=True, error_model="numpy")
+def _cylinder_or_box(gtype, size, ox, oy, oz, dx, dy, dz):
+    """Distance along the ray to a cylinder (5) or a box (6) in its local frame (ray origin o,
+    direction d), or -1."""
     if gtype == 5:  # cylinder: side and two end disks
         r, h = size[0], size[1]
         best = -1.0
-        t = _quadratic(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - r * r)
+        t = _root(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - r * r)
         if t >= 0.0 and abs(oz + t * dz) <= h:
             best = t
         if abs(dz) > 1e-15:
@@ -470,7 +368,6 @@ def _quadric_row_span(w0, w1, w2, o0, o1, o2, a0, a1, a2, rg, y, focal, width, p
 
 @njit(cache=True)
 def cast_rays(
-    rays_c,  # (h*w, 3) unit pixel rays in the camera frame, row-major
     height,
     width,
     focal,
@@ -485,9 +382,9 @@ def cast_rays(
     cutoff,  # ignore geoms farther than this [m]
     geomid,  # out (h*w,) int32
     dist,  # out (h*w,) float64 (-1: no hit)
-    rays_x,  # (h*w,) rays_c[:, 0], contiguous (the vectorised spans read these)
-    rays_y,  # (h*w,) rays_c[:, 1]
-    rays_z,  # (h*w,) rays_c[:, 2]
+    rays_x,  # (h*w,) x of the unit pixel rays in the camera frame, row-major
+    rays_y,  # (h*w,) their y
+    rays_z,  # (h*w,) their z
 ):
     """For every pixel ray, the nearest geom hit (id, distance) as ``mj_multiRay`` returns them.
 
@@ -497,7 +394,7 @@ def cast_rays(
     occluded geoms cost a comparison per pixel. Ties in distance go to the lowest geom id,
     as when the geoms are tested in id order.
     """
-    n = rays_c.shape[0]
+    n = rays_x.shape[0]
     for i in range(n):
         geomid[i] = -1
         dist[i] = -1.0
@@ -765,19 +662,7 @@ def _draw(
                 dx = r00 * ex + r10 * ey + r20 * ez
                 dy = r01 * ex + r11 * ey + r21 * ez
                 dz = r02 * ex + r12 * ey + r22 * ez
-                # The commonest types inline (same arithmetic as _geom_local).
-                if gt == 2:
-                    t = _sphere(ox, oy, oz, dx, dy, dz, s0)
-                elif gt == 4:
-                    t = _sphere(ox / s0, oy / s1, oz / s2, dx / s0, dy / s1, dz / s2, 1.0)
-                elif gt == 3:
-                    t = _quadratic(dx * dx + dy * dy, ox * dx + oy * dy, ox * ox + oy * oy - s0 * s0)
-                    if not (t >= 0.0 and abs(oz + t * dz) <= s1):
-                        t = -1.0
-                    t = _keep(t, _sphere(ox, oy, oz - s1, dx, dy, dz, s0))
-                    t = _keep(t, _sphere(ox, oy, oz + s1, dx, dy, dz, s0))
-                else:
-                    t = _geom_local(gt, size, ox, oy, oz, dx, dy, dz)
+                t = _cylinder_or_box(gt, size, ox, oy, oz, dx, dy, dz)
                 if t >= 0.0 and t <= cutoff and (best < 0.0 or t < best or (t == best and g < geomid[i])):
                     dist[i] = t
                     geomid[i] = g
@@ -785,75 +670,12 @@ def _draw(
 
 @njit(cache=True)
 def compact_cloud(
-    depth,  # (n,) z-depth per pixel [m] (inf / nan: no hit)
-    geomid,  # (n,) geom hit per pixel (-1: none)
-    rays_c,  # (n, 3) unit pixel rays in the camera frame
-    rotation,  # (3, 3) camera rotation (world from camera)
-    origin,  # (3,) camera position
-    min_depth,
-    max_depth,
-    stem_range,
-    noise,  # (n,) standard normal draws for depth noise, or (0,)
-    noise_scale,  # depth noise std at 1 m [m]
-    keep,  # (n,) bool: pixel not dropped out, or (0,)
-    geom_ok,  # (ngeom,) bool: geoms the camera may see
-    geom_label,  # (ngeom,) int8
-    geom_color,  # (ngeom, 3) uint8
-    pixel_color,  # (n, 3) uint8 rendered colours, or (0, 3)
-    stem_label,
-    obstacle_label,
-    out_points,  # (n, 3)
-    out_labels,  # (n,) int8
-    out_colors,  # (n, 3) uint8
-    out_depth,  # (n,)
-    out_pixels,  # (n, 2) int32
-    width,
-):
-    """Valid pixels -> world points, labels, colours; returns the number of points written."""
-    count = 0
-    n = depth.shape[0]
-    use_noise = noise.shape[0] == n
-    use_keep = keep.shape[0] == n
-    use_pixel_color = pixel_color.shape[0] == n
-    for i in range(n):
-        g = geomid[i]
-        if g < 0 or not geom_ok[g]:
-            continue
-        z = depth[i]
-        if not (z >= min_depth and z <= max_depth):
-            continue
-        if use_keep and not keep[i]:
-            continue
-        if use_noise:
-            # Stereo depth error grows with depth squared (fixed disparity error).
-            z = z + noise[i] * noise_scale * z * z
-        s = z / rays_c[i, 2]
-        x = rays_c[i, 0] * s
-        y = rays_c[i, 1] * s
-        zz = rays_c[i, 2] * s
-        for k in range(3):
-            out_points[count, k] = origin[k] + rotation[k, 0] * x + rotation[k, 1] * y + rotation[k, 2] * zz
-        label = geom_label[g]
-        # Beyond the detection range a stem point is just another obstacle (the paper).
-        if label == stem_label and s > stem_range:
-            label = obstacle_label
-        out_labels[count] = label
-        for k in range(3):
-            out_colors[count, k] = pixel_color[i, k] if use_pixel_color else geom_color[g, k]
-        out_depth[count] = z
-        out_pixels[count, 0] = i // width
-        out_pixels[count, 1] = i % width
-        count += 1
-    return count
-
-
-@njit(cache=True)
-def compact_rays(
-    dist,  # (h*w,) ray length per pixel [m] (-1: no hit)
+    depth,  # (h*w,) per pixel: z-depth, or the ray length when along_ray [m] (-1 / inf / nan: no hit)
+    along_ray,  # True: ``depth`` holds ray lengths (the ray caster's), else z-depths (the renderer's)
     geomid,  # (h*w,) geom hit per pixel (-1: none)
     rays_x,  # (h*w,) x of the unit pixel rays in the camera frame, row-major
-    rays_y,  # (h*w,) y of the rays
-    rays_z,  # (h*w,) z of the rays
+    rays_y,  # (h*w,) their y
+    rays_z,  # (h*w,) their z
     rotation,  # (3, 3) camera rotation (world from camera)
     origin,  # (3,) camera position
     min_depth,
@@ -865,6 +687,7 @@ def compact_rays(
     geom_ok,  # (ngeom,) bool: geoms the camera may see
     geom_label,  # (ngeom,) int8
     geom_color,  # (ngeom, 3) uint8
+    pixel_color,  # (h*w, 3) uint8 rendered colours, or (0, 3)
     stem_label,
     obstacle_label,
     out_points,  # (h*w, 3)
@@ -875,19 +698,13 @@ def compact_rays(
     height,
     width,
 ):
-    """:func:`compact_cloud` of :func:`cast_rays`' output, with the z-depth ``dist * rays_c[:, 2]``
-    taken per pixel (the same product) instead of in a separate array, and the pixel's row and
-    column from the loop instead of an integer division per point.
-
-    The rays are read from the per-coordinate copies :func:`cast_rays` has just read (the
-    same values as ``rays_c``'s columns): in the control loop they are still in the cache,
-    the (h*w, 3) table is not (0.54 -> 0.47 ms per 283x160 frame with the caches the rest of
-    the tick leaves).
-    """
+    """Valid pixels -> world points, labels, colours, z-depths, pixels; returns the number of points written."""
     count = 0
-    n = dist.shape[0]
+    n = depth.shape[0]
     use_noise = noise.shape[0] == n
     use_keep = keep.shape[0] == n
+    use_pixel_color = pixel_color.shape[0] == n
+    colors = pixel_color if use_pixel_color else geom_color  # indexed by pixel, or by geom
     # The rotation and origin in scalars: the compiler cannot tell that the outputs do not alias them.
     r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
     r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
@@ -900,7 +717,7 @@ def compact_rays(
             if g < 0 or not geom_ok[g]:
                 continue
             rz = rays_z[i]
-            z = dist[i] * rz
+            z = depth[i] * rz if along_ray else depth[i]
             if not (z >= min_depth and z <= max_depth):
                 continue
             if use_keep and not keep[i]:
@@ -920,9 +737,10 @@ def compact_rays(
             if label == stem_label and s > stem_range:
                 label = obstacle_label
             out_labels[count] = label
-            out_colors[count, 0] = geom_color[g, 0]
-            out_colors[count, 1] = geom_color[g, 1]
-            out_colors[count, 2] = geom_color[g, 2]
+            c = i if use_pixel_color else g
+            out_colors[count, 0] = colors[c, 0]
+            out_colors[count, 1] = colors[c, 1]
+            out_colors[count, 2] = colors[c, 2]
             out_depth[count] = z
             out_pixels[count, 0] = v
             out_pixels[count, 1] = u

@@ -174,34 +174,22 @@ class SpeedjServo:
         vmax = self.config.max_velocity
         self.qd_cmd = np.clip(qd, -vmax, vmax)
 
-    def _command_unchecked(self, qdot: NDArray[np.float64]) -> None:
-        """:meth:`command` for a finite float64 (12,) array checked by the caller (the episode runner).
-
-        Writes into ``qd_cmd`` in place (one compiled call; two ufuncs and a new array cost
-        ~3x as much per tick); ``qd_cmd`` is always the servo's own array (``reset`` and
-        :meth:`command` make new ones), never the caller's.
-        """
-        _clip_into(qdot, self.config.max_velocity, self.qd_cmd)
-
     def at_rest(self) -> bool:
         """True when the reference velocity is zero."""
         return not np.any(self.qd_ref)
 
     def update(self, data: mujoco.MjData, dt: float) -> None:
         """Advance the reference by ``dt`` [s] and write the servo controls into ``data.ctrl``."""
+        self.step(data.qpos, data.ctrl, dt)
+
+    def step(self, qpos: NDArray[np.float64], ctrl: NDArray[np.float64], dt: float) -> None:
+        """:meth:`update` on the arrays ``qpos`` and ``ctrl`` (e.g. views of an MjData's, bound once)."""
         # One numba call: this runs every 2 ms and numpy's per-call overhead on 12-element
-        # arrays cost ~10x the arithmetic (the same operations, in the same order).
+        # arrays cost ~10x the arithmetic.
         _servo_step(
             self.qd_ref, self.qd_cmd, self.acc_limit, float(dt), self.q_ref, self._q_lo, self._q_hi,
-            data.qpos, self.qpos_ids, self.config.max_following_error, self._ff, data.ctrl, self.ctrl_ids,
+            qpos, self.qpos_ids, self.config.max_following_error, self._ff, ctrl, self.ctrl_ids,
         )  # fmt: skip
-
-
-@njit(cache=True, _nrt=False)
-def _clip_into(qdot, vmax, out):
-    """``out[:] = np.clip(qdot, -vmax, vmax)`` for finite ``qdot`` (the same values: exact comparisons)."""
-    for j in range(out.shape[0]):
-        out[j] = min(max(qdot[j], -vmax), vmax)
 
 
 @njit(cache=True)

@@ -96,20 +96,7 @@ class WristForceSensor:
         self._last = np.zeros(3)
         self._history = np.zeros((config.tare_samples, 3))
         self._count = 0
-        self._adr = int(model.sensor_adr[self.sensor_id])
-        self._bound: tuple[mujoco.MjData, NDArray[np.float64], NDArray[np.float64]] | None = None
-        # No noise, no filter: a sample is the world force plus the tool's weight, which
-        # SimRobot.step takes in one compiled call on views bound by bind() (_plain).
-        self._plain = False
-        self._rotation: NDArray[np.float64] | None = None
-        self._site_force: NDArray[np.float64] | None = None
-
-    def bind(self, data: mujoco.MjData) -> None:
-        """Bind views of ``data``'s buffers for SimRobot's fused sample (``_plain`` says whether it applies)."""
-        adr = self._adr
-        self._rotation = data.site_xmat[self.site_id].reshape(3, 3)
-        self._site_force = data.sensordata[adr : adr + 3]
-        self._plain = self.config.noise_std == 0 and self.config.filter_time_constant == 0
+        self._views: tuple[mujoco.MjData, NDArray[np.float64], NDArray[np.float64]] | None = None
 
     def reset(self, *, seed: int | None = None) -> None:
         """Clear the tare offset and the filter; optionally reseed the noise."""
@@ -123,21 +110,22 @@ class WristForceSensor:
 
     def raw(self, data: mujoco.MjData) -> NDArray[np.float64]:
         """Noise-free force the tool applies to what it holds [N, world], not tared."""
-        return site_force_world(self.model, data, self.sensor_id, self.site_id) + self._tool_weight
+        views = self._views
+        if views is None or views[0] is not data:
+            # site_force_world's operands as live views of this data's arrays, made once (each
+            # ``data.x`` builds a new view: ~1-3 us per tick with the caches the loop leaves).
+            adr = int(self.model.sensor_adr[self.sensor_id])
+            views = self._views = (data, data.site_xmat[self.site_id].reshape(3, 3), data.sensordata[adr : adr + 3])
+        return views[1] @ views[2] + self._tool_weight
 
     def update(self, data: mujoco.MjData, dt: float) -> NDArray[np.float64]:
         """Take one sample (after a physics step of ``dt`` [s]) and return the reading [N, world]."""
-        self._sample(data, dt)
+        self.sample(data, dt)
         return self.reading()
 
-    def _sample(self, data: mujoco.MjData, dt: float) -> None:
-        """:meth:`update` without building the reading (the robot's step does not use it)."""
-        bound = self._bound
-        if bound is None or bound[0] is not data:
-            # site_force_world's operands as live views into this data's buffers, made once.
-            adr = self._adr
-            bound = self._bound = (data, data.site_xmat[self.site_id].reshape(3, 3), data.sensordata[adr : adr + 3])
-        f = bound[1] @ bound[2] + self._tool_weight
+    def sample(self, data: mujoco.MjData, dt: float) -> None:
+        """Take one sample (after a physics step of ``dt`` [s]): :meth:`update` without the reading."""
+        f = self.raw(data)
         if self.config.noise_std > 0:
             f = f + self._rng.normal(0.0, self.config.noise_std, 3)
         tau = self.config.filter_time_constant

@@ -28,23 +28,14 @@ from numpy.typing import ArrayLike, NDArray
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
 from harvest_qp.interface import N_JOINTS, ROBOT, PointCloud, RobotInterface
 from harvest_qp.robot import description as desc
-from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo, _servo_step
+from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
-from harvest_qp.sim.contacts import (
-    _DSBL_CONTACT,
-    CONTACT_KINDS,
-    ContactCertificate,
-    ContactMonitor,
-    _certify_step,
-    _count_kinds,
-)
+from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor
 from harvest_qp.sim.force import ForceSensorConfig, WristForceSensor
 from harvest_qp.sim.scene import CAMERA_NAME, VineScene, VineSceneParams, build_vine_scene
 from harvest_qp.validation import as_positive_scalar, check_field_types
 
 __all__ = ["SensorFaults", "SimRobot", "SimulationError"]
-
-_get_contactfilter = mujoco.get_mjcb_contactfilter
 
 
 class SimulationError(HarvestQPError):
@@ -79,10 +70,6 @@ class SensorFaults:
                 raise InvalidInputError(f"SensorFaults.{name} must be None or a finite number >= 0, got {value!r}")
 
 
-#: The methods :meth:`SimRobot.ground_truth` reports; overriding one makes it call them one by one.
-_TRUTH_PARTS = frozenset(("stem_tension", "stem_force", "velocity_reference", "contact_counts", "min_vine_distance"))
-
-
 class SimRobot(RobotInterface):
     """MuJoCo simulation of the dual-UR5e in the vine scene.
 
@@ -101,19 +88,14 @@ class SimRobot(RobotInterface):
         settle_time: time the scene settles at reset before the clock starts [s].
         faults: sensor faults (lost camera frames, frame latency, force noise).
         vine_distance_every: :meth:`ground_truth` measures ``min_vine_distance`` on every
-            this many control ticks and repeats the last value in between (~20 us per
-            measurement inside the paper episode, most of it MuJoCo's distance of the
-            nearest leaf: capsule bounds of the few pairs that can be nearest since a
-            baseline, then MuJoCo's distance for those whose bound beats the best).
+            this many control ticks and repeats the last value in between (capsule
+            bounds of every arm-vine pair, then MuJoCo's distance for the few whose bound
+            beats the best: :class:`~harvest_qp.sim.contacts.ContactMonitor`).
 
     The model's physics options (``model.opt.timestep`` among them), the servo's limits and
     the substep count are read when the robot is built: build a new robot to change them.
-    Each physics step skips MuJoCo's collision detection when it provably cannot find a
-    contact (:class:`~harvest_qp.sim.contacts.ContactCertificate`; the same results bit for
-    bit). Editing ``model``'s collision geometry between steps (body or geom poses, sizes,
-    margins, gaps, contype/conaffinity, explicit pairs, contact options) is honoured: the
-    certificate compares what it proved against with the live model on every step and
-    rebuilds itself on any change.
+    Every physics step runs MuJoCo's full collision detection (``mj_step``'s own), so
+    editing ``model``'s collision geometry between steps is honoured at once.
     """
 
     def __init__(
@@ -177,6 +159,7 @@ class SimRobot(RobotInterface):
             )
         self.control_period = float(control_period)
         self._substeps = int(round(substeps))
+        self._timestep = dt
         self.payload_compensation = bool(payload_compensation)
         self.settle_time = float(settle_time)
 
@@ -184,9 +167,6 @@ class SimRobot(RobotInterface):
         joint_ids = np.array([m.joint(n).id for n in names])
         self._qpos_ids = m.jnt_qposadr[joint_ids].copy()
         self._dof_ids = m.jnt_dofadr[joint_ids].copy()
-        # The arms' joints are consecutive in qpos and qvel: a slice copy is cheaper than fancy indexing.
-        self._qpos_slice = _as_slice(self._qpos_ids)
-        self._dof_slice = _as_slice(self._dof_ids)
         act_ids = np.array([m.actuator(n).id for n in scene.actuator_names])
         self._servo = SpeedjServo(m, act_ids, self._qpos_ids, actuation if actuation is not None else ActuationConfig())
         self._kp = m.actuator_gainprm[act_ids, 0].astype(float)
@@ -211,17 +191,13 @@ class SimRobot(RobotInterface):
             stand_geoms=robot_geoms[m.geom_bodyid[robot_geoms] == base], vine_geoms=scene.vine_geoms,
             floor_geoms=np.array(floor, dtype=np.int64),
         )  # fmt: skip
-        # Proves, step by step, when MuJoCo's collision detection cannot find a contact (see
-        # ContactCertificate): mj_step1 then skips it, with the same result bit for bit.
-        self._certificate = ContactCertificate(m)
         slide = ids["stem_slide"]
         self._slide_dof = int(m.jnt_dofadr[slide])
         self._slide_stiffness = float(m.jnt_stiffness[slide])
         self._slide_damping = float(m.dof_damping[self._slide_dof])
-        self._stem_force_adr = int(m.sensor_adr[ids["stem_force"]])
+        self._stem_force_sensor = int(ids["stem_force"])
         self._stem_end_site = int(ids["stem_end_site"])
-        self._stem_base = tuple(float(x) for x in scene.stem_base)
-        self._stem_base_array = np.array(self._stem_base)
+        self._stem_base = np.array(scene.stem_base, dtype=float)
         self._spring0 = m.qpos_spring.copy()
         self._stem_qpos = self._stem_spring_addresses()
         self._jacp = np.zeros((3, m.nv))
@@ -230,57 +206,22 @@ class SimRobot(RobotInterface):
         self._grasp_dofs = self._dof_ids[6:].astype(np.int64)
         self._grasp_ctrl = np.ascontiguousarray(self._servo.ctrl_ids[6:], dtype=np.int64)
         self._grasp_kp = np.ascontiguousarray(self._kp[6:])
-        # mj_jac's operands for the payload torque (see _payload_jacobian): the cluster's root
-        # body (its subtree centre of mass is the offset's origin), the last dof moving the
-        # gripper and the dof tree.
-        self._jac_root = int(m.body_rootid[self._grasp_tool])
-        weld = int(m.body_weldid[self._grasp_tool])
-        self._jac_last_dof = int(m.body_dofadr[weld] + m.body_dofnum[weld] - 1) if weld else -1
-        self._dof_parentid = np.ascontiguousarray(m.dof_parentid, dtype=np.int64)
         self._viewer = None
         self._viewer_every = 16
-        # Live views into MjData's buffers (allocated once with the MjData, never moved):
-        # building them anew costs ~0.1-1 us per access, several times per tick.
+        # Live views of the MjData arrays every physics step reads (MjData allocates them once
+        # and never moves them; each ``data.x`` builds a new view, ~1-3 us apiece with the
+        # caches the rest of the control loop leaves).
         d = self.data
+        self._qpos, self._qvel, self._ctrl = d.qpos, d.qvel, d.ctrl
         self._warning_counts = d.warning.number
-        self._sensordata, self._site_xmat, self._site_xpos = d.sensordata, d.site_xmat, d.site_xpos
-        self._cluster_xipos = d.xipos[self._cluster]
-        self._cdof, self._subtree_com = d.cdof, d.subtree_com
-        self._qpos, self._ctrl, self._qvel = d.qpos, d.ctrl, d.qvel
-        self._arm_qpos = None if self._qpos_slice is None else self._qpos[self._qpos_slice]
-        self._arm_qvel = None if self._dof_slice is None else self._qvel[self._dof_slice]
-        self._ncon_view = ContactMonitor.ncon_view(d)  # None where MuJoCo's layout is not the probed one
-        self._force.bind(d)
-        self._pack_servo_operands()
-        # ground_truth() inlines its parts unless a subclass (or the instance) overrides one.
-        # site_force_world's operands for the stem force (the stem end's rotation, the sensor).
-        adr = self._stem_force_adr
-        self._stem_force_operands = (d.site_xmat[self._stem_end_site].reshape(3, 3), d.sensordata[adr : adr + 3])
+        self._cluster_com = d.xipos[self._cluster]
+        adr = int(m.sensor_adr[self._stem_force_sensor])
+        self._stem_rotation = d.site_xmat[self._stem_end_site].reshape(3, 3)
+        self._stem_sensor = d.sensordata[adr : adr + 3]
+        self._stem_end = d.site_xpos[self._stem_end_site]
         self.reset()
 
     # ------------------------------------------------------------------ setup
-
-    def _pack_servo_operands(self) -> None:
-        """The per-step servo and payload kernel's constant operands in one int and one float buffer.
-
-        A numba call costs ~0.06 us per array argument: the physics step passes these 2
-        buffers instead of 14 arrays (layout in :func:`_servo_step_packed`). They are the
-        servo's and the model's constants, packed once; the payload weight slot is written
-        at each reset (:meth:`reset` recomputes the weight).
-        """
-        servo = self._servo
-        n, g = servo.qd_ref.shape[0], self._grasp_dofs.shape[0]
-        self._servo_ints = np.concatenate([
-            servo.qpos_ids, servo.ctrl_ids, self._grasp_dofs, self._grasp_ctrl,
-            [self._jac_root, self._jac_last_dof], self._dof_parentid,
-        ]).astype(np.int64)  # fmt: skip
-        self._servo_floats = np.concatenate([
-            servo.acc_limit, servo._q_lo, servo._q_hi, servo._ff, self._grasp_kp, np.zeros(3),
-            [servo.config.max_following_error],
-        ]).astype(np.float64)  # fmt: skip
-        self._weight_slot = self._servo_floats[4 * n + g : 4 * n + g + 3]
-        self._servo_sizes = (n, g)
-        self._timestep = float(self.model.opt.timestep)
 
     def _stem_spring_addresses(self) -> NDArray[np.int64]:
         """qpos addresses of the stem and cluster joints, whose springs are re-zeroed at reset."""
@@ -311,7 +252,6 @@ class SimRobot(RobotInterface):
         self._torn = False
         self._tear_time = float("nan")
         self._max_tension = 0.0
-        self._certificate.invalidate()
         mujoco.mj_resetData(m, d)
         d.qpos[self._qpos_ids] = self.scene.home_q
         mujoco.mj_forward(m, d)
@@ -323,7 +263,6 @@ class SimRobot(RobotInterface):
         self._warnings = np.asarray(d.warning.number, dtype=np.int64).copy()
         # The held cluster's weight [N, world] (model constants; read again at every reset).
         self._payload_weight = m.body_mass[self._cluster] * np.asarray(m.opt.gravity)
-        self._weight_slot[:] = self._payload_weight
         settle = int(round(self.settle_time / m.opt.timestep))
         mujoco.mj_step1(m, d)
         for _ in range(settle // 2):
@@ -364,15 +303,9 @@ class SimRobot(RobotInterface):
         return self._ticks * self.control_period
 
     def joint_positions(self) -> NDArray[np.float64]:
-        # Live views of the arms' data.qpos / data.qvel entries, bound once (each data.qpos
-        # builds a new view, and slicing one per call costs another): one copy per call.
-        if self._arm_qpos is not None:
-            return self._arm_qpos.copy()
         return self._qpos[self._qpos_ids]  # fancy indexing copies
 
     def joint_velocities(self) -> NDArray[np.float64]:
-        if self._arm_qvel is not None:
-            return self._arm_qvel.copy()
         return self._qvel[self._dof_ids]
 
     def wrist_force(self) -> NDArray[np.float64]:
@@ -384,7 +317,7 @@ class SimRobot(RobotInterface):
     def camera_cloud(self) -> PointCloud | None:
         latest = None
         frames = self._frames
-        now = self._ticks * self.control_period  # self.time without the property call
+        now = self.time
         while frames and frames[0][0] <= now + 1e-12:
             latest = frames.popleft()[1]
         return latest
@@ -392,57 +325,15 @@ class SimRobot(RobotInterface):
     def send_joint_velocities(self, qdot: ArrayLike) -> None:
         self._servo.command(qdot)
 
-    def _unchecked_sender(self):
-        """``send_joint_velocities`` without its checks, for a caller that has checked the command.
-
-        The episode runner checks every command (finite float64, shape (12,)) before sending
-        it; this skips the second check. None when a subclass or the instance itself overrides
-        ``send_joint_velocities`` (a user's safety or fault-injection wrapper must run).
-        """
-        if type(self).send_joint_velocities is not SimRobot.send_joint_velocities or (
-            "send_joint_velocities" in vars(self)
-        ):
-            return None
-        return self._servo._command_unchecked
-
     def step(self) -> None:
         if self._failed:
             raise SimulationError("the simulation diverged earlier; call reset() to start again")
-        force = self._force
-        if not force._plain:
-            for _ in range(self._substeps):
-                self._physics_step()
-                self._check_tear()  # every physics step: the tension may not overshoot for a whole tick
-            self._check_physics()
-            self._ticks += 1
-            force._sample(self.data, self.control_period)
-        else:
-            for _ in range(self._substeps - 1):
-                self._physics_step()
-                self._check_tear()
+        for _ in range(self._substeps):
             self._physics_step()
-            # The last step's tear check, the divergence check and the wrist sensor's sample in
-            # one call (the sensor's rotation stays numpy's BLAS product, whose rounding plain
-            # arithmetic does not reproduce: BLAS fuses multiply-adds; .dot is @'s gemv call).
-            torn = self._torn
-            diverged, tension = _finish_tick(
-                self._warning_counts, self._warnings, self._qvel, force._rotation.dot(force._site_force),
-                force._tool_weight, force._last, force._history, force._count % force._history.shape[0],
-                torn, self._sensordata, self._site_xmat, self._site_xpos, self._stem_force_adr, self._stem_end_site,
-                self._stem_base_array,
-            )  # fmt: skip
-            if not torn:
-                # _check_tear(tension) inlined for the usual case (no tear); it runs to tear.
-                self._max_tension = max(self._max_tension, tension)
-                # Read per tick (one attribute chain): ``scene`` may be replaced after
-                # construction, and _check_tear reads it too (an audit found a cached value
-                # that tore on one sensor path and not on the other).
-                if tension > self.scene.params.stem_break_force:
-                    self._check_tear(tension)
-            if diverged:
-                self._check_physics()  # raises with MuJoCo's warnings
-            force._count += 1
-            self._ticks += 1
+            self._check_tear()  # every physics step: the tension may not overshoot for a whole tick
+        self._check_physics()
+        self._ticks += 1
+        self._force.sample(self.data, self.control_period)
         if self._camera is not None and self._ticks >= self._next_frame_tick:
             self._maybe_capture()
         if self._viewer is not None and self._ticks % self._viewer_every == 0:
@@ -496,17 +387,11 @@ class SimRobot(RobotInterface):
 
     def stem_force(self) -> NDArray[np.float64]:
         """True force the stem applies to the cluster [N, world] (ground truth, not measurable)."""
-        rotation, force = self._stem_force_operands  # site_force_world's product, on views bound once
-        # ndarray.dot: the same BLAS gemv call as the @ operator (equal bit for bit, a test holds
-        # it), without the ufunc machinery (~0.5 us less per call).
-        return rotation.dot(force)
+        return self._stem_rotation @ self._stem_sensor  # site_force_world on views bound once
 
     def stem_tension(self) -> float:
         """True stem tension [N]: magnitude of :meth:`stem_force`, negative if it pushes the cluster away."""
-        d = self.data
-        return _stem_tension(
-            d.sensordata, d.site_xmat, d.site_xpos, self._stem_force_adr, self._stem_end_site, self._stem_base_array,
-        )  # fmt: skip
+        return _signed_tension(self._stem_rotation, self._stem_sensor, self._stem_end, self._stem_base)
 
     def site_pose(self, name: str) -> NDArray[np.float64]:
         """World pose (4x4) of a site, e.g. ``"camera"``, ``"gripper"``, ``"cutter_tip"``."""
@@ -548,66 +433,19 @@ class SimRobot(RobotInterface):
             min_vine_distance_so_far: smallest ``min_vine_distance`` measured since the reset [m].
             frames_lost: camera frames lost to ``faults.frame_loss`` since the reset.
         """
-        # A part overridden on a subclass, on SimRobot itself (mock.patch.object) or on the
-        # instance: ask each part (checked per call: a class can be patched at any time).
-        cls = type(self)
-        if not (
-            cls.stem_tension is _ORIGINAL_METHODS["stem_tension"]
-            and cls.stem_force is _ORIGINAL_METHODS["stem_force"]
-            and cls.velocity_reference is _ORIGINAL_METHODS["velocity_reference"]
-            and cls.contact_counts is _ORIGINAL_METHODS["contact_counts"]
-            and cls.min_vine_distance is _ORIGINAL_METHODS["min_vine_distance"]
-        ) or not _TRUTH_PARTS.isdisjoint(self.__dict__):
-            out: dict[str, float | NDArray[np.float64]] = {
-                "stem_tension": self.stem_tension(),
-                "stem_force": self.stem_force(),
-                "qdot_ref": self.velocity_reference(),
-                "stem_torn": float(self._torn),
-                "stem_tension_max": self._max_tension,
-            }
-            for kind, count in self.contact_counts().items():
-                out[f"contacts_{kind}"] = float(count)
-            out["min_vine_distance"] = self.min_vine_distance()
-            out["min_vine_distance_so_far"] = self._min_vine_distance
-            out["frames_lost"] = float(self._frames_lost)
-            return out
-        # The same values as above (same calls underneath, same key order) without the
-        # method layers: this runs every control tick of an episode.
-        d = self.data
-        ncon_view = self._ncon_view  # data.ncon read as the int itself (a bindings read costs ~1-3 us cold)
-        if ncon_view[0] if ncon_view is not None else d.ncon:
-            ncon = d.ncon
-            contact = d.contact
-            arm_arm, arm_vine, arm_stand, arm_floor = _count_kinds(
-                self._contacts.kind, contact.geom1, contact.geom2, ncon
-            )
-        else:
-            arm_arm = arm_vine = arm_stand = arm_floor = 0
-        ticks = self._ticks
-        if self._vine_distance_tick < 0 or ticks - self._vine_distance_tick >= self.vine_distance_every:
-            # min_vine_distance() inlined: measure now and update the minimum so far (min()'s rule).
-            vine = self._vine_distance = self._contacts.min_vine_distance(d)
-            self._vine_distance_tick = ticks
-            if vine[0] < self._min_vine_distance:
-                self._min_vine_distance = vine[0]
-        rotation, force = self._stem_force_operands
-        return {
-            "stem_tension": _stem_tension(
-                self._sensordata, self._site_xmat, self._site_xpos, self._stem_force_adr, self._stem_end_site,
-                self._stem_base_array,
-            ),  # fmt: skip
-            "stem_force": rotation.dot(force),
-            "qdot_ref": self._servo.qd_ref.copy(),
+        out: dict[str, float | NDArray[np.float64]] = {
+            "stem_tension": self.stem_tension(),
+            "stem_force": self.stem_force(),
+            "qdot_ref": self.velocity_reference(),
             "stem_torn": float(self._torn),
             "stem_tension_max": self._max_tension,
-            "contacts_arm_arm": float(arm_arm),
-            "contacts_arm_vine": float(arm_vine),
-            "contacts_arm_stand": float(arm_stand),
-            "contacts_arm_floor": float(arm_floor),
-            "min_vine_distance": self._vine_distance[0],
-            "min_vine_distance_so_far": self._min_vine_distance,
-            "frames_lost": float(self._frames_lost),
         }
+        for kind, count in self.contact_counts().items():
+            out[f"contacts_{kind}"] = float(count)
+        out["min_vine_distance"] = self.min_vine_distance()
+        out["min_vine_distance_so_far"] = self._min_vine_distance
+        out["frames_lost"] = float(self._frames_lost)
+        return out
 
     def contact_counts(self) -> dict[str, int]:
         """Active robot contacts by kind now: ``arm_arm``, ``arm_vine``, ``arm_stand``, ``arm_floor``."""
@@ -650,64 +488,30 @@ class SimRobot(RobotInterface):
     # ------------------------------------------------------------------ internals
 
     def _physics_step(self) -> None:
+        """One MuJoCo step of the servos and the physics: ``mj_step`` split in its two halves.
+
+        step2 integrates with the forces of the current state; step1 then computes the new
+        state's kinematics, sensors and contacts (MuJoCo's full collision detection) so
+        every reading refers to the same instant.
+        """
         m, d = self.model, self.data
-        servo = self._servo
+        self._servo.step(self._qpos, self._ctrl, self._timestep)
         if self.payload_compensation and self._holding:
             # Like a UR5e's payload setting: hold the cluster's weight in the joint torques.
-            # The weld keeps the cluster's centre of mass fixed on the tool. The Jacobian only
-            # depends on the kinematics, so it is taken first and the servo law and the
-            # payload torque run in one numba call (the servo writes ctrl, the payload adds).
-            # The Jacobian is mj_jac's own arithmetic in the same kernel (_payload_jacobian; a
-            # test holds it to mj_jac bit for bit): one call instead of two.
-            n, g = self._servo_sizes
-            _servo_step_packed(
-                servo.qd_ref, servo.qd_cmd, servo.q_ref, self._qpos, self._ctrl, self._cdof, self._subtree_com,
-                self._cluster_xipos, self._jacp, self._timestep, self._servo_ints, self._servo_floats, n, g,
+            # The weld keeps the cluster's centre of mass fixed on the tool.
+            jacp = self._jacp
+            mujoco.mj_jac(m, d, jacp, None, self._cluster_com, self._grasp_tool)
+            _add_payload_torque(
+                jacp, self._grasp_dofs, self._payload_weight, self._ctrl, self._grasp_ctrl, self._grasp_kp
             )  # fmt: skip
-        else:
-            servo.update(d, m.opt.timestep)
-        # step2 integrates with the forces of the current state; step1 then computes the
-        # new state's kinematics so every reading refers to the same instant.
         mujoco.mj_step2(m, d)
-        certificate = self._certificate
-        # certificate.certified(qpos) inlined (one Python frame less per step): the
-        # contact-filter callback here; in one compiled call the options (read as words of
-        # the model struct: ~4 bindings accesses less per step), the model arrays the
-        # certificate was built from (robot.model may have been edited since) and the motion
-        # bound; when all hold, the call also sets mjDSBL_CONTACT in the live options.
-        flags = (
-            _certify_step(
-                self._qpos, certificate._ints, certificate._floats, certificate._live, certificate._snapshot,
-                certificate._opt_live, certificate._disable_index, _DSBL_CONTACT,
-            )  # fmt: skip
-            if certificate._valid and _get_contactfilter() is None
-            else -1
-        )
-        if flags >= 0:
-            # No contact is possible at the new configuration (proven from the joints' motion
-            # since the certificate's baseline): step1 without the collision detection, which
-            # would find nothing; the same result bit for bit. The flags are restored at once.
-            try:
-                mujoco.mj_step1(m, d)
-            finally:
-                certificate._opt_flags[certificate._disable_index] = flags
-        else:
-            mujoco.mj_step1(m, d)
-            certificate.rebase(d)
+        mujoco.mj_step1(m, d)
 
-    def _check_tear(self, tension: float | None = None) -> None:
-        """Tear the stem when its tension exceeds the break force: release its axial spring.
-
-        Args:
-            tension: the stem tension now [N] when the caller has measured it (else measured here).
-        """
+    def _check_tear(self) -> None:
+        """Tear the stem when its tension exceeds the break force: release its axial spring."""
         if self._torn:
             return
-        if tension is None:
-            tension = _stem_tension(
-                self._sensordata, self._site_xmat, self._site_xpos, self._stem_force_adr, self._stem_end_site,
-                self._stem_base_array,
-            )  # fmt: skip
+        tension = self.stem_tension()
         self._max_tension = max(self._max_tension, tension)
         if tension > self.scene.params.stem_break_force:
             m = self.model
@@ -717,27 +521,9 @@ class SimRobot(RobotInterface):
             self._torn = True
             self._tear_time = self.time
 
-    def _fast_tension(self) -> float:
-        """:meth:`stem_tension` in plain float arithmetic (it runs every physics step)."""
-        d = self.data
-        adr = self._stem_force_adr
-        f0, f1, f2 = d.sensordata[adr : adr + 3].tolist()
-        r = d.site_xmat[self._stem_end_site].tolist()
-        # World force R f; its sign: along the direction from the stem end to the base.
-        fx, fy, fz = (
-            r[0] * f0 + r[1] * f1 + r[2] * f2,
-            r[3] * f0 + r[4] * f1 + r[5] * f2,
-            r[6] * f0 + r[7] * f1 + r[8] * f2,
-        )
-        px, py, pz = d.site_xpos[self._stem_end_site].tolist()
-        bx, by, bz = self._stem_base
-        magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
-        return magnitude if fx * (bx - px) + fy * (by - py) + fz * (bz - pz) >= 0 else -magnitude
-
     def _check_physics(self) -> None:
-        d = self.data
         counts = self._warning_counts
-        if _diverged(counts, self._warnings, d.qvel):
+        if _diverged(counts, self._warnings, self._qvel):
             counts = np.asarray(counts, dtype=np.int64)
             new = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts > self._warnings)]
             self._warnings = counts
@@ -786,95 +572,31 @@ class SimRobot(RobotInterface):
         return {mujoco.mjtWarning(i).name: int(w.number) for i, w in enumerate(self.data.warning)}
 
 
-# SimRobot's own methods as defined here, before anyone patches the class: ground_truth's
-# fast path and episode_ground_truth's in-place extension apply only while these are in place.
-_ORIGINAL_METHODS = {name: SimRobot.__dict__[name] for name in (*_TRUTH_PARTS, "ground_truth")}
-
-
 def uses_own_ground_truth(robot: object) -> bool:
     """True when ``robot`` is a SimRobot whose ``ground_truth`` is this module's own (not
     overridden on a subclass, patched on SimRobot or set on the instance): it returns a new
     dict per call."""
     return (
         isinstance(robot, SimRobot)
-        and type(robot).ground_truth is _ORIGINAL_METHODS["ground_truth"]
+        and type(robot).ground_truth is _OWN_GROUND_TRUTH
         and "ground_truth" not in vars(robot)
     )
 
 
-def _as_slice(ids: NDArray[np.int64]) -> slice | None:
-    """``slice(a, a + n)`` when ``ids`` are the consecutive integers a, ..., a + n - 1, else None."""
-    ids = np.asarray(ids)
-    if ids.size and np.array_equal(ids, np.arange(ids[0], ids[0] + ids.size)):
-        return slice(int(ids[0]), int(ids[0]) + int(ids.size))
-    return None
+_OWN_GROUND_TRUTH = SimRobot.ground_truth
 
 
 @njit(cache=True)
-def _servo_step_with_payload(
-    qd_ref, qd_cmd, acc_limit, dt, q_ref, q_lo, q_hi, qpos, qpos_ids, max_error, ff, ctrl, ctrl_ids,
-    jacp, dofs, weight, grasp_ctrl, kp, cdof, subtree_com, root, point, last_dof, dof_parentid,
-):  # fmt: skip
-    """:func:`_payload_jacobian`, :func:`~harvest_qp.sim.actuation._servo_step` then :func:`_add_payload_torque`."""
-    _payload_jacobian(jacp, cdof, subtree_com, root, point, last_dof, dof_parentid)
-    _servo_step(qd_ref, qd_cmd, acc_limit, dt, q_ref, q_lo, q_hi, qpos, qpos_ids, max_error, ff, ctrl, ctrl_ids)
-    _add_payload_torque(jacp, dofs, weight, ctrl, grasp_ctrl, kp)
-
-
-@njit(cache=True)
-def _servo_step_packed(qd_ref, qd_cmd, q_ref, qpos, ctrl, cdof, subtree_com, point, jacp, dt, ints, floats, n, g):
-    """:func:`_servo_step_with_payload` on operands packed by ``SimRobot._pack_servo_operands``.
-
-    ``ints = [qpos_ids (n), ctrl_ids (n), grasp dofs (g), grasp ctrl ids (g), root body,
-    last dof, dof_parentid (nv)]``; ``floats = [acc_limit (n), q_lo (n), q_hi (n), ff (n),
-    grasp kp (g), payload weight (3), max following error]``.
-    """
-    qpos_ids, ctrl_ids = ints[:n], ints[n : 2 * n]
-    dofs, grasp_ctrl = ints[2 * n : 2 * n + g], ints[2 * n + g : 2 * n + 2 * g]
-    root, last_dof = ints[2 * n + 2 * g], ints[2 * n + 2 * g + 1]
-    dof_parentid = ints[2 * n + 2 * g + 2 :]
-    acc_limit, q_lo, q_hi, ff = floats[:n], floats[n : 2 * n], floats[2 * n : 3 * n], floats[3 * n : 4 * n]
-    kp, weight, max_error = floats[4 * n : 4 * n + g], floats[4 * n + g : 4 * n + g + 3], floats[4 * n + g + 3]
-    _servo_step_with_payload(
-        qd_ref, qd_cmd, acc_limit, dt, q_ref, q_lo, q_hi, qpos, qpos_ids, max_error, ff, ctrl, ctrl_ids,
-        jacp, dofs, weight, grasp_ctrl, kp, cdof, subtree_com, root, point, last_dof, dof_parentid,
-    )  # fmt: skip
-
-
-@njit(cache=True)
-def _payload_jacobian(jacp, cdof, subtree_com, root, point, last_dof, dof_parentid):
-    """``mujoco.mj_jac(m, d, jacp, None, point, body)``: MuJoCo's own arithmetic, operation for operation.
-
-    ``root`` is ``body_rootid[body]``, ``last_dof`` the last dof moving ``body`` (its weld
-    body's ``body_dofadr + body_dofnum - 1``; -1 for a fixed body). Per dof i of the chain,
-    ``jacp[:, i] = cdof[i, 3:] + cdof[i, :3] x (point - subtree_com[root])`` (mj_jac and
-    mji_cross); zero elsewhere. A test holds it to ``mj_jac`` bit for bit.
-    """
-    jacp[:] = 0.0
-    o0 = point[0] - subtree_com[root, 0]
-    o1 = point[1] - subtree_com[root, 1]
-    o2 = point[2] - subtree_com[root, 2]
-    i = last_dof
-    while i >= 0:
-        t0 = cdof[i, 1] * o2 - cdof[i, 2] * o1
-        t1 = cdof[i, 2] * o0 - cdof[i, 0] * o2
-        t2 = cdof[i, 0] * o1 - cdof[i, 1] * o0
-        jacp[0, i] = cdof[i, 3] + t0
-        jacp[1, i] = cdof[i, 4] + t1
-        jacp[2, i] = cdof[i, 5] + t2
-        i = dof_parentid[i]
-
-
-@njit(cache=True)
-def _stem_tension(sensordata, site_xmat, site_xpos, adr, site, base):
-    """:meth:`SimRobot._fast_tension` in numba: the same float operations in the same order."""
-    f0, f1, f2 = sensordata[adr], sensordata[adr + 1], sensordata[adr + 2]
-    fx = site_xmat[site, 0] * f0 + site_xmat[site, 1] * f1 + site_xmat[site, 2] * f2
-    fy = site_xmat[site, 3] * f0 + site_xmat[site, 4] * f1 + site_xmat[site, 5] * f2
-    fz = site_xmat[site, 6] * f0 + site_xmat[site, 7] * f1 + site_xmat[site, 8] * f2
-    px, py, pz = site_xpos[site, 0], site_xpos[site, 1], site_xpos[site, 2]
-    magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
-    return magnitude if fx * (base[0] - px) + fy * (base[1] - py) + fz * (base[2] - pz) >= 0 else -magnitude
+def _signed_tension(rotation, sensor, end, base):
+    """|R f| [N], positive when the world force R f on the cluster points from the stem end towards its base."""
+    tension = 0.0
+    along = 0.0
+    for r in range(3):
+        f = rotation[r, 0] * sensor[0] + rotation[r, 1] * sensor[1] + rotation[r, 2] * sensor[2]
+        tension += f * f
+        along += f * (base[r] - end[r])
+    tension = math.sqrt(tension)
+    return tension if along >= 0.0 else -tension
 
 
 @njit(cache=True)
@@ -885,28 +607,6 @@ def _add_payload_torque(jacp, dofs, weight, ctrl, ctrl_ids, kp):
         for k in range(3):
             tau += -jacp[k, dofs[j]] * weight[k]
         ctrl[ctrl_ids[j]] += tau / kp[j]
-
-
-@njit(cache=True)
-def _finish_tick(
-    counts, previous, qvel, site_force, tool_weight, last, history, slot, torn, sensordata, site_xmat, site_xpos,
-    adr, site, base,
-):  # fmt: skip
-    """The end of a tick: the stem tension, :func:`_diverged` and the wrist sensor's plain sample.
-
-    Returns ``(diverged, tension)``: the tension is :func:`_stem_tension` (0.0 when ``torn``:
-    not measured). When the physics diverged nothing is written; else the sample
-    ``site_force + tool_weight`` (the sensor's world force plus its tool's weight, as in
-    ``WristForceSensor._sample``) goes to ``last`` and ``history[slot]``.
-    """
-    tension = 0.0 if torn else _stem_tension(sensordata, site_xmat, site_xpos, adr, site, base)
-    if _diverged(counts, previous, qvel):
-        return True, tension
-    for c in range(3):
-        f = site_force[c] + tool_weight[c]
-        last[c] = f
-        history[slot, c] = f
-    return False, tension
 
 
 @njit(cache=True)

@@ -94,3 +94,13 @@ class ForcePull:
         Jg = J[:, 6:]
         qd[6:] = np.linalg.lstsq(Jg, np.concatenate([v, 2.0 * w]), rcond=None)[0]
         return Command(qdot=qd, status="ok", task_errors={"force_error": e})
+
+
+def arm_qpos_addresses(model) -> np.ndarray:
+    """qpos addresses of the 12 arm joints, in the interface's joint order."""
+    return np.array([model.joint(name).qposadr[0] for name in desc.joint_names()])
+
+
+def arm_dof_addresses(model) -> np.ndarray:
+    """qvel (dof) addresses of the 12 arm joints, in the interface's joint order."""
+    return np.array([model.joint(name).dofadr[0] for name in desc.joint_names()])

@@ -9,6 +9,7 @@ from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import RobotInterface
 from harvest_qp.robot import ur5e
 from harvest_qp.sim import ActuationConfig, SimRobot, build_vine_scene
+from tests.sim.helpers import arm_dof_addresses, arm_qpos_addresses
 
 
 def test_sim_robot_implements_the_interface(blind_robot):
@@ -80,7 +81,7 @@ def test_acceleration_and_velocity_limits_are_respected():
         robot.step()
         refs.append(robot.velocity_reference())
         vels.append(robot.joint_velocities())
-        torques.append(robot.data.qfrc_actuator[robot._dof_ids].copy())
+        torques.append(robot.data.qfrc_actuator[arm_dof_addresses(robot.model)].copy())
         assert not any(robot.contact_counts().values())
     refs, vels, torques = np.array(refs), np.array(vels), np.array(torques)
     # The reference ramps at exactly the acceleration limit and stops at the speed limit.
@@ -127,8 +128,9 @@ def test_commands_stop_at_the_joint_limits():
     cmd[5] = 3.0  # camera wrist 3 towards the narrowed limit
     robot.send_joint_velocities(cmd)
     robot.advance(1.0)
-    assert hi - robot._servo.config.position_margin - 0.02 < robot.joint_positions()[5]
-    assert robot.joint_positions()[5] <= hi - robot._servo.config.position_margin + 2e-3
+    margin = ActuationConfig().position_margin
+    assert hi - margin - 0.02 < robot.joint_positions()[5]
+    assert robot.joint_positions()[5] <= hi - margin + 2e-3
     assert abs(robot.joint_velocities()[5]) < 0.05
 
 
@@ -177,10 +179,16 @@ def test_servo_update_matches_the_speedj_law_step_by_step(default_scene):
 
     robot = SimRobot(default_scene, camera=None)
     m, d = robot.model, robot.data
-    servo = robot._servo
-    fresh = SpeedjServo(m, servo.actuator_ids, servo.qpos_ids, ActuationConfig())
+    actuators = np.array([m.actuator(name).id for name in default_scene.actuator_names])
+    qpos_ids = arm_qpos_addresses(m)
+    fresh = SpeedjServo(m, actuators, qpos_ids, ActuationConfig())
+    ctrl_ids = m.actuator_ctrladr[actuators]
+    # The servo's constants from the model: joint range less the margin, kv / kp feed-forward.
+    joints = m.actuator_trnid[actuators, 0]
+    lo = m.jnt_range[joints, 0] + fresh.config.position_margin
+    hi = m.jnt_range[joints, 1] - fresh.config.position_margin
+    feed_forward = -m.actuator_biasprm[actuators, 2] / m.actuator_gainprm[actuators, 0]
     rng = np.random.default_rng(3)
-    lo, hi = fresh._q_lo, fresh._q_hi
     q_ref = rng.uniform(lo, hi)
     fresh.reset(q_ref)
     qd_ref = np.zeros(12)
@@ -192,45 +200,21 @@ def test_servo_update_matches_the_speedj_law_step_by_step(default_scene):
             # Some joints next to a limit, some far from the reference.
             q_ref[:3] = np.where(rng.random(3) < 0.5, lo[:3] + 1e-4, hi[:3] - 1e-4)
             fresh.q_ref[:] = q_ref
-        d.qpos[servo.qpos_ids] = q_ref + rng.normal(0.0, 0.06, 12)
+        d.qpos[qpos_ids] = q_ref + rng.normal(0.0, 0.06, 12)
         # Oracle: the law in numpy.
         step = fresh.acc_limit * dt
         qd = qd_ref + np.clip(fresh.qd_cmd - qd_ref, -step, step)
         target = q_ref + qd * dt
         clipped = np.clip(target, lo, hi)
         qd[clipped != target] = 0.0
-        q = d.qpos[servo.qpos_ids]
+        q = d.qpos[qpos_ids]
         expected_ref = np.clip(clipped, q - e, q + e)
-        expected_ctrl = expected_ref + fresh._ff * qd
+        expected_ctrl = expected_ref + feed_forward * qd
         limits_hit += int(np.sum(clipped != target))
         clamped += int(np.sum(expected_ref != clipped))
         fresh.update(d, dt)
         np.testing.assert_array_equal(fresh.qd_ref, qd)
         np.testing.assert_array_equal(fresh.q_ref, expected_ref)
-        np.testing.assert_array_equal(d.ctrl[servo.ctrl_ids], expected_ctrl)
+        np.testing.assert_array_equal(d.ctrl[ctrl_ids], expected_ctrl)
         qd_ref, q_ref = qd, expected_ref
     assert limits_hit > 10 and clamped > 10
-
-
-def test_unchecked_command_equals_the_checked_one_bit_for_bit(blind_robot):
-    """Bug caught: the runner's fast command path (``_command_unchecked``, in place) clipping
-    differently from :meth:`SpeedjServo.command` (np.clip), or keeping the caller's array.
-
-    Oracle: ``np.clip`` through the checked ``command``, on random commands around and beyond
-    the speed limit, the limit itself, -0.0 and tiny values; then the caller's array is
-    changed and the servo's command must not follow.
-    """
-    servo = blind_robot._servo
-    vmax = servo.config.max_velocity
-    rng = np.random.default_rng(4)
-    cases = [rng.normal(0.0, vmax, 12) for _ in range(200)]
-    cases += [np.full(12, vmax), np.full(12, -vmax), np.full(12, -0.0), np.full(12, 5e-324), np.linspace(-9, 9, 12)]
-    send = blind_robot._unchecked_sender()
-    for qdot in cases:
-        servo.command(qdot)
-        want = servo.qd_cmd.copy()
-        send(qdot)
-        assert want.tobytes() == servo.qd_cmd.tobytes()
-        kept = servo.qd_cmd.copy()
-        qdot += 1.0  # the caller reuses its array
-        assert kept.tobytes() == servo.qd_cmd.tobytes()

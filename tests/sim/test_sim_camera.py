@@ -144,12 +144,10 @@ def test_visual_only_geoms_are_not_seen(test_scene, engine):
     cam = RayCastCamera(vmodel, cfg, geom_labels=vlabels, exclude_body=vmodel.body("tool").id)
     assert cam.engine == ("numba" if engine == "auto" else "mujoco")
     # The visual geoms are in view: casting against them would change the image.
-    hit_visual = RayCastCamera(
-        vmodel, dataclasses.replace(cfg, raycast_engine="mujoco"), geom_labels=vlabels,
-        exclude_body=vmodel.body("tool").id,
-    )  # fmt: skip
-    hit_visual._geomgroup = None
-    _, seen = hit_visual.cast(vdata, POSE)
+    n = cam.n_pixels
+    seen, lengths = np.zeros(n, np.int32), np.zeros(n)
+    rays = np.ascontiguousarray(cfg.pixel_rays() @ POSE[:3, :3].T).ravel()
+    mujoco.mj_multiRay(vmodel, vdata, POSE[:3, 3], rays, None, 1, vmodel.body("tool").id, seen, lengths, None, n, 10.0)
     assert np.isin(seen, [vmodel.geom("visual_mesh").id, vmodel.geom("visual_box").id]).sum() > 100
     a, b = plain.capture(data, POSE, 0.0), cam.capture(vdata, POSE, 0.0)
     np.testing.assert_array_equal(a.pixels, b.pixels)
@@ -228,71 +226,117 @@ def _views(robot):
     ]
 
 
-def test_numba_caster_agrees_with_mj_multiray(vine_robot):
-    cfg = vine_robot.camera_config
-    common = {"geom_labels": vine_robot.scene.geom_labels, "exclude_body": vine_robot.scene.ids["cam_tool"]}
-    fast = RayCastCamera(vine_robot.model, dataclasses.replace(cfg, raycast_engine="numba"), **common)
-    ref = RayCastCamera(vine_robot.model, dataclasses.replace(cfg, raycast_engine="mujoco"), **common)
-    assert fast.engine == "numba" and ref.engine == "mujoco"
-    for pose in _views(vine_robot):
-        da, ga = (x.copy() for x in fast.cast(vine_robot.data, pose))
-        db, gb = (x.copy() for x in ref.cast(vine_robot.data, pose))
-        # Same pixels with a depth in range (beyond it the two cutoffs differ and are unused).
-        valid = (db >= 0) & (db * fast._ray_z <= cfg.max_depth)
-        np.testing.assert_array_equal(valid, (da >= 0) & (da * fast._ray_z <= cfg.max_depth))
-        assert np.max(np.abs(da - db)[valid], initial=0.0) < 1e-9
-        # Geom ids only differ where two geoms are hit at the same distance (touching capsules).
-        labels = vine_robot.scene.geom_labels
-        np.testing.assert_array_equal(labels[ga[valid]], labels[gb[valid]])
-        assert np.mean(ga[valid] == gb[valid]) > 0.98
+# Two finite tilted planes whose edges are in view (seen from behind in some views), an
+# infinite one (size 0) as the floor, and a ball, a capsule, a cylinder and a box partly in front of them.
+PLANES_XML = """
+<mujoco>
+  <worldbody>
+    <geom name="floor" type="plane" pos="0 0 -0.4" size="0 0 0.01"/>
+    <geom name="board" type="plane" pos="1.0 0 0" euler="0 -80 10" size="0.25 0.15 0.01"/>
+    <geom name="tile" type="plane" pos="0.8 -0.3 0.1" euler="20 -60 0" size="0.08 0.2 0.01"/>
+    <geom name="ball" type="sphere" pos="0.7 0.05 0.02" size="0.05"/>
+    <geom name="bar" type="capsule" fromto="0.6 -0.2 -0.1 0.75 0.2 0.05" size="0.02"/>
+    <geom name="can" type="cylinder" pos="0.75 0.15 -0.1" euler="30 10 0" size="0.04 0.06"/>
+    <geom name="crate" type="box" pos="0.85 -0.15 -0.15" euler="10 20 30" size="0.05 0.04 0.03"/>
+  </worldbody>
+</mujoco>
+"""
 
 
-def test_numba_caster_culling_agrees_with_mj_multiray_on_random_views():
-    """Random views in and around the canopy, a third of them looking down at the floor.
-
-    The numba caster culls each geom to per-row pixel spans (bounding-sphere cones; for
-    the floor plane, the cone of rays reaching it within range) and skips pixels already
-    hit closer than a geom's nearest point. A span that is too tight (a missing padding,
-    a wrong root of the span's quadratic) or a wrong skip bound drops hits that
-    ``mj_multiRay``, which tests every ray against every geom, still finds: the valid
-    pixels or their depths differ. Camera positions inside a geom's bounding sphere are
-    left out (inside a geom the two casters disagree by design: exit vs no hit).
-    """
-    robot = SimRobot(camera=CameraConfig(downsample=6, stem_range=5.0))
+def _random_views(robot: SimRobot, count: int, rng) -> list[np.ndarray]:
+    """Views in and around the canopy, a third of them looking down at the floor; none from
+    inside a geom's bounding sphere (inside a geom the two casters differ by design: exit vs no hit)."""
     m, d = robot.model, robot.data
-    common = {"geom_labels": robot.scene.geom_labels, "exclude_body": robot.scene.ids["cam_tool"]}
-    fast = RayCastCamera(m, dataclasses.replace(robot.camera_config, raycast_engine="numba"), **common)
-    ref = RayCastCamera(m, dataclasses.replace(robot.camera_config, raycast_engine="mujoco"), **common)
-    rng = np.random.default_rng(7)
     centre = robot.scene.stem_base
     bounded = m.geom_rbound > 0
-    views, floor_pixels, close_pixels = 0, 0, 0
-    while views < 40:
+    leaves = [g for g in range(m.ngeom) if m.geom(g).name.startswith("leaf")]
+    views = []
+    while len(views) < count:
         eye = centre + rng.normal(0.0, 0.35, 3)
         eye[2] = max(eye[2], 0.05)
         if np.any(np.linalg.norm(d.geom_xpos[bounded] - eye, axis=1) < m.geom_rbound[bounded] + 0.01):
             continue
         target = centre + rng.normal(0.0, 0.2, 3)
-        if views % 3 == 0:
+        if len(views) % 3 == 0:
             target[2] = 0.0  # the floor
-        down = rng.normal(0.0, 0.3, 3) + (0.0, 0.0, -1.0)
-        pose = look_at(eye, target, down)
-        da, ga = (x.copy() for x in fast.cast(d, pose))
-        db, gb = (x.copy() for x in ref.cast(d, pose))
-        valid = (db >= 0) & (db * fast._ray_z <= robot.camera_config.max_depth)
-        np.testing.assert_array_equal(valid, (da >= 0) & (da * fast._ray_z <= robot.camera_config.max_depth))
+        elif len(views) % 3 == 1:
+            target = d.geom_xpos[leaves[rng.integers(len(leaves))]]  # a leaf (the ellipsoid quadric)
+        views.append(look_at(eye, target, rng.normal(0.0, 0.3, 3) + (0.0, 0.0, -1.0)))
+    return views
+
+
+def _planes_views(rng) -> list[np.ndarray]:
+    views = []
+    for k in range(30):
+        eye = rng.normal(0.0, 0.25, 3)
+        if k % 3 == 2:
+            eye[0] = 1.6 + rng.uniform(0.0, 0.4)  # behind the board and the tile
+        target = np.array([0.9, -0.1, 0.0]) + rng.normal(0.0, 0.2, 3)
+        views.append(look_at(eye, target, rng.normal(0.0, 0.3, 3) + (0.0, 0.0, 1.0)))
+    return views
+
+
+@pytest.mark.parametrize("case", ["lab_frames", "random_views", "planes"])
+def test_numba_caster_agrees_with_mj_multiray(vine_robot, case):
+    """The ``"numba"`` ray caster against its reference ``mj_multiRay`` (every ray against every geom).
+
+    Bug caught: a per-row span (bounding-sphere cone, the ellipsoid or infinite-cylinder
+    quadric, a plane's range cone) too tight, a wrong skip bound that drops the nearest
+    hit, a plane rectangle bound on the wrong coordinate, a root of the wrong sign. Same
+    valid pixels, ray lengths within 1e-9 m, the same labels, and the same geom ids except
+    where two geoms are hit at the same distance (touching capsules). Cases: the paper's
+    camera (283x160) on the lab's views of the stem, random views around the canopy and
+    the floor (downsample 6), and finite and infinite planes seen from both sides with a
+    sphere, a capsule, a cylinder and a box.
+    Planted and caught: ``_root`` returning the far root first.
+    """
+    rng = np.random.default_rng(7)
+    if case == "planes":
+        model = mujoco.MjModel.from_xml_string(PLANES_XML)
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        cfg = CameraConfig(downsample=6, max_depth=3.0)
+        common, labels, views = {}, np.arange(model.ngeom), _planes_views(rng)
+    else:
+        model, data = vine_robot.model, vine_robot.data
+        cfg = vine_robot.camera_config if case == "lab_frames" else CameraConfig(downsample=6, stem_range=5.0)
+        labels = vine_robot.scene.geom_labels
+        common = {"geom_labels": labels, "exclude_body": vine_robot.scene.ids["cam_tool"]}
+        views = _views(vine_robot) if case == "lab_frames" else _random_views(vine_robot, 40, rng)
+    fast = RayCastCamera(model, dataclasses.replace(cfg, raycast_engine="numba"), **common)
+    ref = RayCastCamera(model, dataclasses.replace(cfg, raycast_engine="mujoco"), **common)
+    assert fast.engine == "numba" and ref.engine == "mujoco"
+    ray_z = cfg.pixel_rays()[:, 2]
+    hits = np.zeros(model.ngeom, int)
+    same_id = total = 0
+    for pose in views:
+        da, ga = (x.copy() for x in fast.cast(data, pose))
+        db, gb = (x.copy() for x in ref.cast(data, pose))
+        # Same pixels with a depth in range (beyond it the two cutoffs differ and are unused).
+        valid = (db >= 0) & (db * ray_z <= cfg.max_depth)
+        np.testing.assert_array_equal(valid, (da >= 0) & (da * ray_z <= cfg.max_depth))
         assert np.max(np.abs(da - db)[valid], initial=0.0) < 1e-9
-        np.testing.assert_array_equal(robot.scene.geom_labels[ga[valid]], robot.scene.geom_labels[gb[valid]])
-        floor_pixels += int(np.sum(gb[valid] == m.geom("floor").id))
-        close_pixels += int(np.sum(valid & (db < 0.3)))
-        views += 1
-    # The views did exercise the floor's span and close-up occlusion.
-    assert floor_pixels > 1000 and close_pixels > 1000
+        np.testing.assert_array_equal(labels[ga[valid]], labels[gb[valid]])
+        same_id += int(np.sum(ga[valid] == gb[valid]))
+        total += int(valid.sum())
+        np.add.at(hits, gb[valid], 1)
+    assert same_id > 0.98 * total
+    # The views did exercise the planes' spans and the quadrics (leaves, capsules).
+    seen = {int(kind): int(hits[model.geom_type == kind].sum()) for kind in range(int(mujoco.mjtGeom.mjGEOM_BOX) + 1)}
+    assert seen[int(mujoco.mjtGeom.mjGEOM_CAPSULE)] > 100
+    assert case == "lab_frames" or seen[int(mujoco.mjtGeom.mjGEOM_PLANE)] > 1000
+    solids = (seen[int(mujoco.mjtGeom.mjGEOM_CYLINDER)], seen[int(mujoco.mjtGeom.mjGEOM_BOX)])
+    assert case != "planes" or min(solids) > 100
+    assert case == "planes" or seen[int(mujoco.mjtGeom.mjGEOM_ELLIPSOID)] > 1000
 
 
 def test_labels_and_colours_in_the_vine_scene(vine_robot):
     views = _views(vine_robot)
-    cloud = vine_robot._camera.capture(vine_robot.data, views[2], 0.0)
+    camera = RayCastCamera(
+        vine_robot.model, vine_robot.camera_config, geom_labels=vine_robot.scene.geom_labels,
+        exclude_body=vine_robot.scene.ids["cam_tool"],
+    )  # fmt: skip
+    cloud = camera.capture(vine_robot.data, views[2], 0.0)
     counts = np.bincount(cloud.labels, minlength=3)
     assert counts[STEM] > 20 and counts[OBSTACLE] > 1000 and counts[ROBOT] > 100
     # Stem points are red and lie on the stem, robot points on the robot's capsules.

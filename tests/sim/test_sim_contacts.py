@@ -15,7 +15,8 @@ import pytest
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.runner import run_episode
 from harvest_qp.sim import CameraConfig, SensorFaults, SimRobot, VineSceneParams
-from tests.sim.helpers import ForcePull, PinocchioArm
+from harvest_qp.sim.contacts import ContactMonitor
+from tests.sim.helpers import ForcePull, PinocchioArm, arm_qpos_addresses
 
 
 def _drive_cutter_to(robot: SimRobot, target: np.ndarray, ticks: int, speed: float = 0.25):
@@ -110,7 +111,7 @@ def test_contact_counts_by_kind_match_a_hand_classification():
     totals = dict.fromkeys(("arm_arm", "arm_vine", "arm_stand", "arm_floor"), 0)
     vine_names = {m.geom(int(g)).name for g in robot.scene.vine_geoms}
     for _ in range(300):
-        d.qpos[robot._qpos_ids] = robot.scene.home_q + rng.normal(0, 0.6, 12)
+        d.qpos[arm_qpos_addresses(m)] = robot.scene.home_q + rng.normal(0, 0.6, 12)
         mujoco.mj_forward(m, d)
         expected = dict.fromkeys(totals, 0)
         for c in d.contact[: d.ncon]:
@@ -135,21 +136,31 @@ def test_contact_counts_by_kind_match_a_hand_classification():
 
 
 def test_min_vine_distance_equals_brute_force_over_every_pair():
-    """The pruned search returns the smallest ``mj_geomDistance`` over all arm x vine pairs.
+    """The capsule-bounded search returns the smallest ``mj_geomDistance`` over all arm x vine pairs.
 
     Bug caught: a bounding volume that is not conservative (an ellipsoid leaf's enclosing
-    capsule too thin) or a pruning that stops early. 150 random states near the vine.
+    capsule too thin), a pruning that stops early, or the wrong pair reported. 150 random
+    states near the vine; the robot's own ``min_vine_distance`` on the ticks of a motion.
+    Planted and caught: the ellipsoid capsule's radius taken from its smallest semi-axis.
     """
     robot = SimRobot(VineSceneParams.sample(3), camera=None)
     m, d = robot.model, robot.data
     arm = _arm_geoms(robot, "cam_") + _arm_geoms(robot, "grasp_")
+    monitor = ContactMonitor(m, arm_geoms=arm, stand_geoms=[], vine_geoms=robot.scene.vine_geoms, floor_geoms=[])
     rng = np.random.default_rng(11)
     for _ in range(150):
-        d.qpos[robot._qpos_ids] = robot.scene.home_q + rng.normal(0, 0.25, 12)
+        d.qpos[arm_qpos_addresses(m)] = robot.scene.home_q + rng.normal(0, 0.25, 12)
         mujoco.mj_forward(m, d)
-        got = robot._contacts.min_vine_distance(d)[0]
+        got, ga, gv = monitor.min_vine_distance(d)
         brute = _min_true_distance(robot, arm, robot.scene.vine_geoms)
         assert got == pytest.approx(brute, abs=1e-9)
+        assert mujoco.mj_geomDistance(m, d, ga, gv, 1.0, None) == pytest.approx(brute, abs=1e-9)
+    robot.reset()
+    robot.send_joint_velocities(np.r_[0.3, -0.2, 0.2, 0.0, 0.0, 0.0, np.zeros(6)])
+    for _ in range(3):
+        robot.advance(0.05)
+        brute = _min_true_distance(robot, arm, robot.scene.vine_geoms)
+        assert robot.min_vine_distance() == pytest.approx(brute, abs=1e-9)
 
 
 def test_stem_tears_beyond_its_break_force():

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import math
+import re
+
 import numpy as np
 import pytest
 
+import harvest_qp.runner as runner
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.interface import PointCloud
 from harvest_qp.runner import Command, Observation, run_episode, write_npz
@@ -405,6 +409,187 @@ def test_the_controllers_command_is_the_dataclasss():
     expected = Command(qdot=qdot, status="ok", values=values, collision_pairs=pairs, done=True)
     assert type(got) is Command and not hasattr(Command, "__post_init__")
     assert list(vars(got)) == [f.name for f in dataclasses.fields(Command)] == list(vars(expected))
-    assert all(getattr(got, name) is getattr(expected, name) for name in ("qdot", "status", "values", "collision_pairs"))
+    names = ("qdot", "status", "values", "collision_pairs")
+    assert all(getattr(got, name) is getattr(expected, name) for name in names)
     assert got.task_errors == {} and got.done is True
     assert _runner._command(qdot, "ok", values, pairs, False).task_errors is not got.task_errors
+
+
+class _Mixed:
+    """Commands with every kind of value the runner accepts: floats, np.float64, ints, arrays, pairs."""
+
+    def reset(self, robot) -> None:
+        self.k = 0
+
+    def step(self, obs) -> Command:
+        self.k += 1
+        t = float(obs.time)
+        qdot = np.zeros(12)
+        qdot[0] = 0.2 * math.sin(10 * t)
+        values = {
+            "scalar": t,
+            "np_scalar": np.float64(2 * t),
+            "vec": np.array([t, -t, 1.0]),
+        }
+        if self.k % 5 == 0:
+            values["int_value"] = self.k  # not a float: this command takes the full check
+        pairs = [("a", "b", 0.05 + t)] + ([("a", "c", 0.04)] if self.k % 3 == 0 else [])
+        if self.k % 4 == 0:
+            pairs.append(["c", "d", 0.01])  # a list, not a tuple: takes the full check
+        if self.k % 7 == 0:
+            pairs = (pair for pair in pairs)  # a generator: read once, by the full check
+        return Command(qdot=qdot, values=values, collision_pairs=pairs, task_errors={"e": t})
+
+
+def test_fast_command_check_logs_exactly_what_the_full_check_logs(monkeypatch):
+    """Bug caught: a fast path that drops, reshapes or re-rounds a value, a pair or qdot.
+
+    Oracle: the same episode with every command through :func:`runner._as_command`.
+    """
+    calls = []
+    monkeypatch.setattr(runner, "_as_command", lambda out, full=runner._as_command: calls.append(1) or full(out))
+    fast = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
+    assert 0 < len(calls) < 15  # most of the 25 commands took the fast path, some the full check
+    monkeypatch.setattr(runner, "_as_command_fast", runner._as_command)  # the full check for every command
+    full = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
+    assert fast.ok and full.ok
+    assert sorted(fast.log) == sorted(full.log)
+    for key in full.log:
+        assert fast.log[key].dtype == full.log[key].dtype, key
+        np.testing.assert_array_equal(fast.log[key], full.log[key], err_msg=key)
+    assert fast.log["value/vec"].shape == (25, 3) and list(fast.log["collision/pair_names"]) == ["a|b", "a|c", "c|d"]
+
+
+@pytest.mark.parametrize(
+    ("qdot", "words"),
+    [(np.r_[np.zeros(11), np.inf], "finite"), (np.r_[np.zeros(11), np.nan], "finite"),
+     (np.full(12, 1e308), None), (np.zeros(12, np.float32), None)],
+)  # fmt: skip
+def test_fast_command_check_rejects_what_the_full_check_rejects(qdot, words):
+    """Bug caught: a finiteness test that lets inf/nan through, or rejects huge finite values.
+
+    1e308 * 12 overflows the sum the fast check uses: that command must still pass (clipped
+    by the servo); float32 takes the full check.
+    """
+    out = Command(qdot=qdot)
+    if words is None:
+        cmd = runner._as_command_fast(out)
+        np.testing.assert_array_equal(cmd.qdot, runner._as_command(out).qdot)
+    else:
+        with pytest.raises(runner.InvalidInputError, match=words):
+            runner._as_command_fast(out)
+
+
+def test_pair_arrays_match_a_per_event_loop():
+    """Bug caught: events placed in the wrong column, ticks mixed up, or float32 rounding changed.
+
+    Oracle: the plain loop the runner used before (one event at a time into its tick's row).
+    """
+    rng = np.random.default_rng(4)
+    log = runner._Log(50, None, False, False)
+    names = ["p", "q", "r", "s"]
+    events = []
+    for k in range(50):
+        pairs = [(names[i], names[j], float(rng.random())) for i, j in rng.integers(0, 4, (rng.integers(0, 5), 2))]
+        log.pairs(k, pairs)
+        events.extend((k, f"{a}|{b}", d) for a, b, d in pairs)
+    got = log.pair_arrays(50)
+    order = list(dict.fromkeys(name for _, name, _ in events))
+    assert list(got["collision/pair_names"]) == order
+    width = max(sum(1 for e in events if e[0] == k) for k in range(50))
+    index = np.full((50, width), -1, np.int32)
+    distance = np.full((50, width), np.nan, np.float32)
+    fill = [0] * 50
+    for k, name, d in events:
+        index[k, fill[k]] = order.index(name)
+        distance[k, fill[k]] = d
+        fill[k] += 1
+    np.testing.assert_array_equal(got["collision/active_pair"], index)
+    np.testing.assert_array_equal(got["collision/active_distance"], distance)
+
+
+def test_runner_uses_an_overridden_send_joint_velocities():
+    """Bug caught: the runner bypassing a subclass's own send_joint_velocities."""
+
+    class Counting(SimRobot):
+        sent = 0
+
+        def send_joint_velocities(self, qdot) -> None:
+            Counting.sent += 1
+            super().send_joint_velocities(qdot)
+
+    robot = Counting(camera=None)
+    run_episode(robot, _Mixed(), duration=0.01, stop_at_end=False)
+    assert Counting.sent == 5
+
+
+def test_runner_calls_an_instance_override_and_a_proxys_own_sender():
+    """Bug caught: the runner bypassing ``robot.send_joint_velocities = wrapper`` set on the
+    instance, or a proxy's own sender (a user's safety or fault-injection wrapper silently
+    skipped; found by an audit)."""
+    from harvest_qp.interface import RobotInterface
+
+    robot = SimRobot(camera=None)
+    calls = []
+    robot.send_joint_velocities = lambda qdot: calls.append(np.array(qdot))
+    run_episode(robot, _Mixed(), duration=0.01, stop_at_end=False)
+    assert len(calls) == 5
+
+    class Proxy(RobotInterface):
+        def __init__(self, inner):
+            self.__dict__["inner"], self.__dict__["sent"] = inner, 0
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def send_joint_velocities(self, qdot):
+            self.__dict__["sent"] += 1
+            self.inner.send_joint_velocities(qdot)
+
+    for name in RobotInterface.__abstractmethods__ - {"send_joint_velocities"}:
+        attr = getattr(SimRobot, name)
+        if isinstance(attr, property):
+            setattr(Proxy, name, property(lambda self, n=name: getattr(self.inner, n)))
+        else:
+            setattr(Proxy, name, lambda self, *a, n=name, **k: getattr(self.inner, n)(*a, **k))
+    Proxy.__abstractmethods__ = frozenset()
+    proxy = Proxy(SimRobot(camera=None))
+    run_episode(proxy, _Mixed(), duration=0.01, stop_at_end=False)
+    assert proxy.sent == 5
+
+
+@pytest.mark.parametrize(
+    ("first", "later", "words"),
+    [(np.zeros(3), np.zeros(2), "(3,) to (2,)"), (0.5, np.zeros(2), "() to (2,)"), (np.zeros(3), 0.5, "(3,) to ()")],
+)
+def test_a_value_that_changes_shape_is_refused(first, later, words):
+    """Bug caught: the per-key log writing a differently shaped value (a broadcast scalar into a
+    vector row, or a vector into a scalar column) instead of refusing it, in either fast path."""
+
+    class Changing:
+        def reset(self, robot) -> None:
+            self.k = 0
+
+        def step(self, obs) -> Command:
+            self.k += 1
+            return Command(qdot=np.zeros(12), values={"v": first if self.k < 3 else later})
+
+    # An invalid command ends the episode with its status and the arms stopped; run_episode
+    # itself does not raise (it did before an audit of the fast paths).
+    result = run_episode(SimRobot(camera=None), Changing(), duration=0.02)
+    assert result.status == "invalid_command" and result.n_ticks == 3
+    assert re.search(r"value 'v' changed shape from " + re.escape(words), result.error)
+
+
+def test_a_task_error_that_is_not_a_number_is_an_invalid_command():
+    """Bug caught: numpy's ValueError from float("abc") escaping run_episode (an audit)."""
+
+    class Wordy:
+        def reset(self, robot) -> None:
+            pass
+
+        def step(self, obs) -> Command:
+            return Command(qdot=np.zeros(12), task_errors={"e": "abc"})
+
+    result = run_episode(SimRobot(camera=None), Wordy(), duration=0.02)
+    assert result.status == "invalid_command" and "task error 'e' must be a number" in result.error
