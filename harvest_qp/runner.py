@@ -826,15 +826,7 @@ def run_episode(
     if cloud_max_points is not None and (bad_count or cloud_max_points < 1):
         raise InvalidInputError(f"cloud_max_points must be an integer >= 1 or None, got {cloud_max_points!r}")
     log = _Log(n_ticks, truth0, log_timing, log_clouds, cloud_max_points)
-    # Every command is checked here (finite float64, shape (12,)): a robot that offers it
-    # gets it through its sender without a second check.
-    # Only the robot's own method: a proxy that forwards attributes to a SimRobot (through
-    # __getattr__) would hand out the inner robot's sender and bypass its own
-    # send_joint_velocities (an audit found a wrapper skipped that way).
-    unchecked = getattr(robot, "_unchecked_sender", None)
-    if getattr(unchecked, "__self__", None) is not robot:
-        unchecked = None
-    send = (unchecked() if callable(unchecked) else None) or robot.send_joint_velocities
+    send = robot.send_joint_velocities
     truth_log = log.truth
     # The log's per-tick arrays and methods, looked up once (the same objects every tick).
     log_t, log_q, log_qdot, log_force = log.t, log.q, log.qdot, log.force

@@ -7,7 +7,6 @@
   against numpy blocks).
 
 Tested against the paper's double loop over every (ray, obstacle) in ``tests/perception``.
-:func:`unveiling_twist` is the reference law's sum (``harvest_qp.references.unveiling``).
 """
 
 from __future__ import annotations
@@ -165,65 +164,3 @@ def bundle_pairs(
         away[1, m] = g1 * inverse
         away[2, m] = g2 * inverse
     return out_ray[:n_out].copy(), out_obstacle[:n_out].copy(), out_s[:n_out].copy(), out_distance[:n_out].copy(), away
-
-
-@njit(cache=True)
-def unveiling_twist(gain, case, segment_parameter, stem_index, away, rays, ray_squared, ray_length, min_pivot, k_c,
-                    tiny, twist):
-    """The bounded unveiling law's sums (``eq:omega_pivot``, ``eq:omega_i``, ``eq:v_c2``) for the pairs of
-    ``ray_obstacle_pairs``, in one pass; returns how many pairs have a nonzero weight.
-
-    The arithmetic of ``harvest_qp.references.unveiling``'s numpy path, in its order (no
-    reassociation, no dot product, so the same bits on every CPU): per pair the weight
-    gain * keep / max(1 - s, tiny), keep = interior branch and (1 - s) |p_cs_j| >= ``min_pivot``
-    (tested only when ``min_pivot`` > 0; ``ray_length`` is numpy's norm); per stem point the weighted
-    away directions summed in pair order from 0 (``np.bincount``); omega_j = (-(p_cs_j x sum_j)) /
-    |p_cs_j|^2 (``ray_squared`` is numpy's einsum); then the sums over the stem points of p_cs_j x
-    omega_j and of omega_j, in row order from +0.0 as numpy's ``sum(axis=0)`` adds them, times
-    ``k_c``, written to ``twist`` (6,) [linear; angular].
-
-    ``away`` is ``(3, P)`` (the kernel's own layout), ``rays`` ``(n_S, 3)`` p_cs_j [m].
-    """
-    n_stem = rays.shape[0]
-    summed = np.zeros((n_stem, 3))
-    n_nonzero = 0
-    l0 = l1 = l2 = o0 = o1 = o2 = 0.0  # numpy's sum(axis=0) starts from +0.0 (so -0.0 rows sum to +0.0)
-    for m in range(gain.shape[0]):
-        remaining = 1.0 - segment_parameter[m]
-        keep = case[m] == 1
-        j = stem_index[m]
-        if min_pivot > 0.0:
-            keep = keep and remaining * ray_length[j] >= min_pivot
-        weight = gain[m] * (1.0 if keep else 0.0) / max(remaining, tiny)
-        if weight != 0.0:
-            n_nonzero += 1
-        summed[j, 0] += weight * away[0, m]
-        summed[j, 1] += weight * away[1, m]
-        summed[j, 2] += weight * away[2, m]
-    if n_stem == 0:
-        for c in range(6):
-            twist[c] = 0.0
-        return n_nonzero
-    for j in range(n_stem):
-        a0, a1, a2 = rays[j, 0], rays[j, 1], rays[j, 2]
-        b0, b1, b2 = summed[j, 0], summed[j, 1], summed[j, 2]
-        d = ray_squared[j]
-        w0 = -(a1 * b2 - a2 * b1) / d
-        w1 = -(a2 * b0 - a0 * b2) / d
-        w2 = -(a0 * b1 - a1 * b0) / d
-        v0 = a1 * w2 - a2 * w1
-        v1 = a2 * w0 - a0 * w2
-        v2 = a0 * w1 - a1 * w0
-        l0 += v0
-        l1 += v1
-        l2 += v2
-        o0 += w0
-        o1 += w1
-        o2 += w2
-    twist[0] = k_c * l0
-    twist[1] = k_c * l1
-    twist[2] = k_c * l2
-    twist[3] = k_c * o0
-    twist[4] = k_c * o1
-    twist[5] = k_c * o2
-    return n_nonzero
