@@ -1,7 +1,7 @@
 """Real-time factor of the paper episode (``harvest-qp run tasks/paper.yaml``) on one core.
 
-Runs the paper's closed loop (:class:`harvest_qp.loop.HarvestController` on the simulated
-dual UR5e in the default vine scene, built exactly as :func:`harvest_qp.loop.episode.run_paper_episode`
+Runs the paper's closed loop (:class:`harvest_qp.harvest.HarvestController` on the simulated
+dual UR5e in the default vine scene, built exactly as :func:`harvest_qp.sim.paper_episode.run_paper_episode`
 builds it, without figures) at the paper's 283x160 (848x480 downsampled by 3) and at the
 full 848x480, after an untimed warm-up episode past the switch that loads the numba kernels. The process is
 pinned to one CPU core and BLAS/numba to one thread.
@@ -43,7 +43,7 @@ Usage::
                                        [--resolutions 283x160,848x480] [--clock cpu|wall] [--repeats 3]
 
 The headline real-time factor comes from a separate run without any timer: the episode exactly
-as ``harvest-qp run`` runs it (:func:`harvest_qp.loop.episode.run_paper_episode`, figures off),
+as ``harvest-qp run`` runs it (:func:`harvest_qp.sim.paper_episode.run_paper_episode`, figures off),
 whose ``realtime_factor`` it reports: the median of ``--repeats`` such runs (default 3; the
 machine's speed can swing within minutes, so one run says little); the timed run that gives the
 breakdown is slower by its own timers (a wrapper and two clock reads around each timed call) and reports its own factor.
@@ -78,16 +78,16 @@ _REPO = Path(__file__).resolve().parents[1]
 if str(_REPO) not in sys.path:
     sys.path.insert(0, str(_REPO))
 
-from harvest_qp.loop.controller import HarvestController  # noqa: E402
-from harvest_qp.loop.episode import (  # noqa: E402
+from harvest_qp.config.settings import load_settings  # noqa: E402
+from harvest_qp.harvest.harvest_controller import HarvestController  # noqa: E402
+from harvest_qp.robot.paths import tasks_dir  # noqa: E402
+from harvest_qp.runtime.runner import run_episode  # noqa: E402
+from harvest_qp.sim.paper_episode import (  # noqa: E402
     build_robot,
     environment_capsules_for,
     episode_ground_truth,
     run_paper_episode,
 )
-from harvest_qp.loop.settings import load_settings  # noqa: E402
-from harvest_qp.robot.paths import tasks_dir  # noqa: E402
-from harvest_qp.runner import run_episode  # noqa: E402
 
 SECTIONS = (
     "camera", "physics", "perception", "map_update", "references", "map_feed", "qp", "ground_truth", "logged_values",
@@ -137,7 +137,7 @@ class _Timers:
 
 def _controller_clock(controller, clock) -> None:
     """Make the controller's own timers (perception per frame, references per tick) use ``clock``."""
-    import harvest_qp.loop.controller as module
+    import harvest_qp.harvest.harvest_controller as module
 
     class _Time:
         perf_counter = staticmethod(clock)
@@ -232,7 +232,7 @@ def plain_episode(settings: dict, duration: float) -> dict:
     """
     import tempfile
 
-    import harvest_qp.loop.episode as episode_module
+    import harvest_qp.sim.paper_episode as episode_module
 
     cpu: list[float] = []
     inner = episode_module.run_episode

@@ -26,7 +26,7 @@ Lab frames (``--lab``): the same stages on frames of the MuJoCo lab's ray-cast c
 (default scene, 0.35 m from the stem) at 283x160 and 848x480.
 
 Accuracy (``--accuracy``): p_sb, l and p_gd against the lab's ground truth over lab views
-0.3-0.45 m from the stem (:class:`harvest_qp.perception.synthetic.LabViews`), the figures of
+0.3-0.45 m from the stem (:class:`harvest_qp.sim.lab_views.LabViews`), the figures of
 the notes; ``--seeds`` sets how many sampled scenes (12 views each).
 
 BLAS is limited to one thread (set before numpy loads), as in the other benchmarks: on a
@@ -145,8 +145,9 @@ def pipeline_stages(frame: Frame, repeats: int) -> dict[str, float]:
 
 def make_lab_frame(width: int, height: int) -> Frame:
     """A frame of the MuJoCo lab (default scene) 0.35 m from the stem, at ``width`` x ``height``."""
-    from harvest_qp.perception.synthetic import LabViews, look_at
+    from harvest_qp.perception.synthetic import look_at
     from harvest_qp.sim import CameraConfig
+    from harvest_qp.sim.lab_views import LabViews
 
     views = LabViews(None, camera=CameraConfig(downsample=848 // width))
     target = views.stem_middle
@@ -161,7 +162,8 @@ def make_lab_frame(width: int, height: int) -> Frame:
 
 def accuracy(n_seeds: int) -> dict[str, float]:
     """p_sb, l and p_gd against the lab's ground truth (the figures of the notes)."""
-    from harvest_qp.perception.synthetic import LabViews, view_poses
+    from harvest_qp.perception.synthetic import view_poses
+    from harvest_qp.sim.lab_views import LabViews
 
     rows = []
     for seed in [None, *range(1, n_seeds + 1)]:

@@ -144,11 +144,11 @@ class EpisodeProblems:
     """
 
     def __init__(self, duration: float = 20.0, every: int = 10, settings: Path | None = None) -> None:
-        from harvest_qp.loop.controller import HarvestController
-        from harvest_qp.loop.episode import build_robot, environment_capsules_for
-        from harvest_qp.loop.settings import load_settings
+        from harvest_qp.config.settings import load_settings
+        from harvest_qp.harvest.harvest_controller import HarvestController
         from harvest_qp.robot.paths import tasks_dir
-        from harvest_qp.runner import run_episode
+        from harvest_qp.runtime.runner import run_episode
+        from harvest_qp.sim.paper_episode import build_robot, environment_capsules_for
 
         settings = load_settings(settings or tasks_dir() / "paper.yaml")
         robot = build_robot(settings, 0)

@@ -1,6 +1,6 @@
 """Real-time factor of the simulated closed loop: 500 Hz control with a QP step, 30 Hz camera.
 
-For each camera setting, :func:`harvest_qp.runner.run_episode` drives a
+For each camera setting, :func:`harvest_qp.runtime.runner.run_episode` drives a
 :class:`harvest_qp.sim.SimRobot` in the paper's default vine scene with a controller that
 builds and solves one QP per 2 ms tick, and the real-time factor is simulated time over
 wall-clock time. The process is pinned to one CPU core (and BLAS to one thread).
@@ -52,11 +52,11 @@ _REPO = Path(__file__).resolve().parents[1]
 if str(_REPO) not in sys.path:  # run from a checkout without installing the package
     sys.path.insert(0, str(_REPO))
 
-from harvest_qp.episodes import QPEpisodeController  # noqa: E402
-from harvest_qp.interface import RobotInterface  # noqa: E402
 from harvest_qp.robot import description as desc  # noqa: E402
 from harvest_qp.robot.paths import urdf_path  # noqa: E402
-from harvest_qp.runner import Command, Observation, run_episode  # noqa: E402
+from harvest_qp.runtime.interface import RobotInterface  # noqa: E402
+from harvest_qp.runtime.runner import Command, Observation, run_episode  # noqa: E402
+from harvest_qp.runtime.task_episode import QPEpisodeController  # noqa: E402
 from harvest_qp.sim import CameraConfig, SimRobot  # noqa: E402
 
 

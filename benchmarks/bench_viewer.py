@@ -36,9 +36,9 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import zmq  # noqa: E402
 
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
 from harvest_qp.robot.description import HOME_Q  # noqa: E402
-from harvest_qp.runner import Observation  # noqa: E402
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
+from harvest_qp.runtime.runner import Observation  # noqa: E402
 from harvest_qp.viewer import LiveViewer, MeshcatViewer, ViewerFrame  # noqa: E402
 from harvest_qp.viewer.replay import free_port  # noqa: E402
 from harvest_qp.viewer.server import Connection  # noqa: E402

@@ -8,7 +8,7 @@ state at three moments (the approach, the switch to the bimanual phase, the end)
   text panel) and screenshots it in headless Chromium through its DevTools port, as the
   browser tests do (``tests/viewer/_browser.py``; ``chromium --screenshot`` can hang);
 * renders the scene at the switch with MuJoCo's OpenGL renderer
-  (:class:`harvest_qp.robot.render.SceneRenderer`): the UR5e meshes, and the collision
+  (:class:`harvest_qp.sim.render.SceneRenderer`): the UR5e meshes, and the collision
   capsules the controller and the lab use (the capsule toggle).
 
 Writes ``viewer_approach.png``, ``viewer_switch.png``, ``viewer_end.png``,
@@ -39,10 +39,10 @@ from PIL import Image  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's harvest_qp and the browser helper of its tests
 
-from harvest_qp.loop.controller import Phase  # noqa: E402
-from harvest_qp.loop.episode import run_paper_episode  # noqa: E402
-from harvest_qp.loop.settings import load_settings  # noqa: E402
-from harvest_qp.robot.render import SceneRenderer  # noqa: E402
+from harvest_qp.config.settings import load_settings  # noqa: E402
+from harvest_qp.harvest.harvest_controller import Phase  # noqa: E402
+from harvest_qp.sim.paper_episode import run_paper_episode  # noqa: E402
+from harvest_qp.sim.render import SceneRenderer  # noqa: E402
 from harvest_qp.viewer import MeshcatViewer, ViewerFrame  # noqa: E402
 from harvest_qp.viewer.replay import free_port  # noqa: E402
 from tests.viewer._browser import screenshot  # noqa: E402

@@ -26,9 +26,10 @@ matplotlib.use("Agg")  # headless: write a PNG, never open a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
 from harvest_qp.perception import process_cloud  # noqa: E402
-from harvest_qp.perception.synthetic import LabViews, look_at  # noqa: E402
+from harvest_qp.perception.synthetic import look_at  # noqa: E402
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
+from harvest_qp.sim.lab_views import LabViews  # noqa: E402
 
 
 def camera_pose(target: np.ndarray, distance: float, *, azimuth: float, elevation: float) -> np.ndarray:

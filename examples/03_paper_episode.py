@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from harvest_qp.loop.episode import run_paper_episode
-from harvest_qp.loop.settings import load_settings
+from harvest_qp.config.settings import load_settings
 from harvest_qp.robot.paths import tasks_dir
+from harvest_qp.sim.paper_episode import run_paper_episode
 
 
 def run(
@@ -40,7 +40,7 @@ def run(
     port: int = 7000,
     figures: bool = False,
 ):
-    """Run one episode; returns the :class:`~harvest_qp.loop.episode.EpisodeReport`."""
+    """Run one episode; returns the :class:`~harvest_qp.sim.paper_episode.EpisodeReport`."""
     # 1. Settings: tasks/paper.yaml (the paper's values) plus "section.key=value" overrides,
     #    all checked: a typo or an out-of-range value raises ConfigError naming the key.
     settings = load_settings(tasks_dir() / "paper.yaml", overrides or [])

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from harvest_qp.loop.episode import run_paper_episode
-from harvest_qp.loop.settings import load_settings
+from harvest_qp.config.settings import load_settings
 from harvest_qp.robot.paths import tasks_dir
+from harvest_qp.sim.paper_episode import run_paper_episode
 from harvest_qp.sweep import parse_seeds, run_sweep
 
 

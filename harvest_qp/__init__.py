@@ -4,9 +4,7 @@ Data flow: perception -> the paper's controllers (reference twists) -> QP tasks 
 limits -> :class:`Solver` -> robot (simulation or real), with the viewer observing.
 """
 
-from harvest_qp.baseline import PseudoInverseMapper
 from harvest_qp.configuration import Configuration
-from harvest_qp.controller import ControlStep, TaskController
 from harvest_qp.exceptions import (
     ConfigError,
     DimensionError,
@@ -19,7 +17,9 @@ from harvest_qp.exceptions import (
     SolverNotAvailableError,
     UnknownFrameError,
 )
+from harvest_qp.pinv import PseudoInverseMapper
 from harvest_qp.solver import QPProblem, Solution, Solver, solve_ik
+from harvest_qp.task_controller import ControlStep, TaskController
 
 __version__ = "0.1.0"
 

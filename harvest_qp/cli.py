@@ -18,12 +18,12 @@ import numpy as np
 
 from harvest_qp.config import load_controller_config
 from harvest_qp.configuration import Configuration
-from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import ConfigError, HarvestQPError
 from harvest_qp.limits import CollisionAvoidance
 from harvest_qp.real.cli import add_calibrate_parser, add_run_options, calibrate_main, check_sim_run, run_ur
 from harvest_qp.robot.paths import tasks_dir
 from harvest_qp.sweep.cli import add_sweep_parser, sweep_main
+from harvest_qp.task_controller import TaskController
 from harvest_qp.tasks import FramePoseTask
 
 
@@ -85,8 +85,8 @@ def run_sim_demo(
     reaches the viewpoint of the config's ``viewpoint`` entry around the stem.
     """
     from harvest_qp.config import build_controller_config, read_config_file
-    from harvest_qp.episodes import QPEpisodeController, environment_capsules, stem_viewpoint
-    from harvest_qp.runner import run_episode
+    from harvest_qp.runtime.runner import run_episode
+    from harvest_qp.runtime.task_episode import QPEpisodeController, environment_capsules, stem_viewpoint
     from harvest_qp.sim import CameraConfig, SimRobot, VineSceneParams
 
     data = read_config_file(config_path)  # checked, defaults filled, extends followed
@@ -153,9 +153,9 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
     ``progress``: draw a line with the simulated time, the phase and the real-time factor on standard
     error (default: when standard error is a terminal).
     """
-    from harvest_qp.loop.episode import run_paper_episode
-    from harvest_qp.loop.settings import load_settings
-    from harvest_qp.progress import ProgressController, wants_progress
+    from harvest_qp.config.settings import load_settings
+    from harvest_qp.runtime.progress import ProgressController, wants_progress
+    from harvest_qp.sim.paper_episode import run_paper_episode
 
     settings = load_settings(config, overrides or [])
     if duration is not None and not (np.isfinite(duration) and duration > 0):
@@ -226,8 +226,7 @@ def check_config(path: Path, overrides: list[str] | None = None) -> str:
     Raises:
         ConfigError: one line naming the file, the key path, the bad value and what was expected.
     """
-    from harvest_qp.config import build_limits, build_tasks, controller_config_from_checked
-    from harvest_qp.schema import EpisodeConfig, load_config
+    from harvest_qp.config import EpisodeConfig, build_limits, build_tasks, controller_config_from_checked, load_config
 
     model = load_config(path, overrides or [])
     configuration = Configuration.dual_ur5e()
@@ -249,7 +248,7 @@ def write_schema(out: Path | None, markdown: Path | None = None) -> int:
     """``harvest-qp schema``: the JSON Schema to ``out`` (or stdout), the config reference to ``markdown``."""
     import json
 
-    from harvest_qp.schema import config_reference_markdown, json_schema
+    from harvest_qp.config import config_reference_markdown, json_schema
 
     text = json.dumps(json_schema(), indent=2) + "\n"
     if out is None:

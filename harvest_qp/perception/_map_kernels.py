@@ -21,7 +21,7 @@ BLOCK = 1 << BLOCK_SHIFT  # cells per block edge
 BLOCK_CELLS = BLOCK**3
 _MASK = BLOCK - 1
 
-# Point labels (same values as harvest_qp.interface).
+# Point labels (same values as harvest_qp.runtime.interface).
 STEM = 0
 OBSTACLE = 1
 ROBOT = 2

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import OBSTACLE, STEM, PointCloud
+from harvest_qp.runtime.interface import OBSTACLE, STEM, PointCloud
 
 __all__ = ["LabelledFrame", "obstacle_sphere_centres", "outside_held_cluster"]
 

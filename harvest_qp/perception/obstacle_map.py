@@ -1,7 +1,7 @@
 """A persistent obstacle map built from the camera's labelled clouds, fed to the QP's collision rows.
 
 :class:`ObstacleMap` is an occupancy grid in the world frame updated from every camera frame
-(:class:`~harvest_qp.interface.PointCloud`) with OctoMap's probabilistic rules (Hornung et
+(:class:`~harvest_qp.runtime.interface.PointCloud`) with OctoMap's probabilistic rules (Hornung et
 al. 2013): each obstacle point is a *hit* on its cell, each cell a ray crosses from the
 camera to a measured point is a *miss*, log-odds are summed and clamped, and a cell is
 occupied while its log-odds is above 0. So a leaf that moved away, or a noise point, is
@@ -11,8 +11,8 @@ constraints only know the robot and what is seen).
 
 What is inserted (the rules of the harvester, not of OctoMap):
 
-* only points labelled :data:`~harvest_qp.interface.OBSTACLE`; the robot's own points
-  (:data:`~harvest_qp.interface.ROBOT`) never, the stem (:data:`~harvest_qp.interface.STEM`)
+* only points labelled :data:`~harvest_qp.runtime.interface.OBSTACLE`; the robot's own points
+  (:data:`~harvest_qp.runtime.interface.ROBOT`) never, the stem (:data:`~harvest_qp.runtime.interface.STEM`)
   never: an occupied cell a stem point falls in is forgotten unless an obstacle point hit
   it in the same frame, so a stem seen as an obstacle beyond the camera's stem range leaves the map
   once it is recognised as the stem;
@@ -48,8 +48,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import PointCloud
 from harvest_qp.perception import _map_kernels as K
+from harvest_qp.runtime.interface import PointCloud
 from harvest_qp.validation import as_positive_scalar
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""The field side: two UR5e (``ur-rtde``) and a RealSense D415 behind :class:`~harvest_qp.interface.RobotInterface`.
+"""The field side: two UR5e (``ur-rtde``) and a RealSense D415 behind :class:`~harvest_qp.runtime.RobotInterface`.
 
 * :mod:`harvest_qp.real.ur_rtde_robot` -- :class:`DualUR5eRobot`, the dual arm through ur-rtde;
 * :mod:`harvest_qp.real.watchdog` -- the checks run before every command;

@@ -1,7 +1,7 @@
 """``harvest-qp run CONFIG --robot ur ...``: the paper episode on the real cell, and its dry run.
 
-The same :class:`~harvest_qp.loop.HarvestController` and the same runner
-(:func:`harvest_qp.runner.run_episode`) as in the lab drive :class:`DualUR5eRobot`; the log
+The same :class:`~harvest_qp.harvest.HarvestController` and the same runner
+(:func:`harvest_qp.runtime.runner.run_episode`) as in the lab drive :class:`DualUR5eRobot`; the log
 (``episode.npz``), the metrics that need no ground truth (``metrics.json``) and the figures are
 written as in the lab. The robot is closed (``speedStop`` + ``stopScript`` on both arms) on every
 exit path, and SIGTERM is handled as Ctrl-C.
@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from harvest_qp.exceptions import ConfigError, EpisodeError
-from harvest_qp.interface import ROBOT, STEM
 from harvest_qp.real.calibration import Calibration, load_calibration
 from harvest_qp.real.cell import CellConfig, load_cell
 from harvest_qp.real.errors import CalibrationError
+from harvest_qp.runtime.interface import ROBOT, STEM
 
 __all__ = ["run_real_episode", "real_metrics", "dry_run_report", "open_real_robot", "run_real"]
 
@@ -36,8 +36,8 @@ def _check_settings(settings: dict) -> None:
 
 def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime_factor: float) -> dict[str, Any]:
     """The episode's metrics that need no ground truth (the lab's names where they exist)."""
-    from harvest_qp.loop.controller import Phase
-    from harvest_qp.loop.metrics import min_capsule_distance
+    from harvest_qp.harvest.harvest_controller import Phase
+    from harvest_qp.harvest.metrics import min_capsule_distance
 
     t = log["t"]
     n = len(t)
@@ -121,8 +121,8 @@ def run_real_episode(settings: dict, robot, *, mapper: str | None = None, durati
                      metadata: dict | None = None) -> dict[str, Any]:
     """Run the paper episode on ``robot`` (any RobotInterface without ground truth); write the
     log, ``metrics.json`` and the figures to ``out_dir``; return the metrics."""
-    from harvest_qp.loop.controller import HarvestController, Phase
-    from harvest_qp.runner import run_episode, write_npz
+    from harvest_qp.harvest.harvest_controller import HarvestController, Phase
+    from harvest_qp.runtime.runner import run_episode, write_npz
 
     _check_settings(settings)
     mapper = mapper or settings["mapper"]["kind"]
@@ -145,7 +145,7 @@ def run_real_episode(settings: dict, robot, *, mapper: str | None = None, durati
     metrics["out_dir"] = str(out_dir)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     if figures:
-        from harvest_qp.loop.figures import write_figures
+        from harvest_qp.harvest.figures import write_figures
 
         write_figures(log, controller, settings, out_dir, metrics)
     return metrics
@@ -223,7 +223,7 @@ def run_real(config: Path, *, camera_arm: str, grasp_arm: str, camera: str | Non
              mapper: str | None = None, figures: bool = True, rtde: Any = None, camera_source: Any = None,
              clock: Callable[[], float] | None = None) -> dict[str, Any]:
     """What the command line runs for ``--robot ur``: the dry run's report or the episode's metrics."""
-    from harvest_qp.loop.settings import load_settings
+    from harvest_qp.config.settings import load_settings
 
     settings = load_settings(config, overrides or [])
     _check_settings(settings)

@@ -32,10 +32,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.real.cell import CameraCellConfig
 from harvest_qp.real.errors import CameraError, missing_package
 from harvest_qp.real.stem_detector import StemDetector, load_detector
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM, PointCloud
 
 __all__ = ["RealSenseSource", "open_pipeline", "decimation_indices", "seam_filled", "RobotSelfFilter"]
 

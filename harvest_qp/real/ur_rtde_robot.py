@@ -1,4 +1,4 @@
-"""Two UR5e through ``ur-rtde`` as one :class:`~harvest_qp.interface.RobotInterface`.
+"""Two UR5e through ``ur-rtde`` as one :class:`~harvest_qp.runtime.interface.RobotInterface`.
 
 Every control cycle (``control_period``, the paper's 2 ms) :meth:`DualUR5eRobot.step` runs the
 watchdog (:mod:`harvest_qp.real.watchdog`) on the cycle time and the held command, sends it to
@@ -13,7 +13,7 @@ episode runner records as the episode's end (``robot_error``) before calling :me
 arms and disconnects; the command line calls it on every exit path (normal end, abort,
 exception, Ctrl-C, lost connection).
 
-Conventions (:mod:`harvest_qp.interface`): joints camera arm first, each arm base to wrist 3 as
+Conventions (:mod:`harvest_qp.runtime.interface`): joints camera arm first, each arm base to wrist 3 as
 ``getActualQ`` gives them [rad, rad/s]; the robot clock is the camera arm's RTDE timestamp since
 the connection [s]; the wrist force is in the world frame (the arms' base poses and the flange
 poses come from the robot description, :func:`harvest_qp.robot.description.mount_transform` and
@@ -35,11 +35,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import N_JOINTS, PointCloud, RobotInterface
 from harvest_qp.real.cell import CellConfig
 from harvest_qp.real.errors import CameraError, RobotConnectionError, WatchdogError, missing_package
 from harvest_qp.real.watchdog import Watchdog
 from harvest_qp.robot.description import CAMERA_ARM, GRASP_ARM, joint_names, mount_transform
+from harvest_qp.runtime.interface import N_JOINTS, PointCloud, RobotInterface
 
 __all__ = ["DualUR5eRobot", "CloudSource", "tool_wrench", "RTDE_PORT", "GRAVITY"]
 

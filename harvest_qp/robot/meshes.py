@@ -16,7 +16,7 @@ meshes as geoms of class ``robot_visual`` in geom group :data:`VISUAL_GROUP` (2,
 default) with ``contype = conaffinity = 0`` (no contact) and ``density = 0`` (no mass; every
 body has an explicit ``<inertial>`` anyway); the collision capsules are in group 3 (hidden
 by default; key ``3`` in MuJoCo's viewer, ``show_capsules`` in
-:class:`harvest_qp.robot.render.SceneRenderer`). The lab (:func:`harvest_qp.sim.build_vine_scene`)
+:class:`harvest_qp.sim.render.SceneRenderer`). The lab (:func:`harvest_qp.sim.build_vine_scene`)
 removes them with :func:`strip_visual_meshes` before compiling, so its model, its depth
 camera, its contacts and its metrics are those of the capsule robot, geom for geom.
 """

@@ -3,7 +3,7 @@
 Typical use::
 
     from harvest_qp.sim import SimRobot, VineSceneParams
-    from harvest_qp.runner import run_episode
+    from harvest_qp.runtime.runner import run_episode
 
     robot = SimRobot(VineSceneParams.sample(seed=3), seed=3)  # or SimRobot() for the paper's setup
     result = run_episode(robot, controller, duration=10.0, log_path="episode.npz")

@@ -5,7 +5,7 @@ D415 streams 848x480 at 30 FPS and the point cloud is downsampled by 3, so the d
 image is ``ceil(480/3) x ceil(848/3) = 160 x 283`` pixels with a vertical field of view
 of 40 deg (65.6 deg horizontally, the D415's depth FOV of about 65 x 40 deg).
 
-Two backends produce the same :class:`~harvest_qp.interface.PointCloud`:
+Two backends produce the same :class:`~harvest_qp.runtime.interface.PointCloud`:
 
 * ``"raycast"`` (default): a ray from the optical centre through every pixel centre gives
   the distance and the geom hit per pixel: depth and segmentation in one pass, no OpenGL
@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError, ModelError
-from harvest_qp.interface import OBSTACLE, STEM, PointCloud
+from harvest_qp.runtime.interface import OBSTACLE, STEM, PointCloud
 from harvest_qp.sim import _raycast
 from harvest_qp.validation import check_field_types
 

@@ -1,4 +1,4 @@
-"""The simulated dual-UR5e lab: :class:`SimRobot` implements :class:`~harvest_qp.interface.RobotInterface`.
+"""The simulated dual-UR5e lab: :class:`SimRobot` implements :class:`~harvest_qp.runtime.interface.RobotInterface`.
 
 One control period (2 ms by default) applies the held joint-velocity command through the
 ``speedj``-like servos (:mod:`harvest_qp.sim.actuation`), integrates the physics, samples
@@ -26,8 +26,8 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
-from harvest_qp.interface import N_JOINTS, ROBOT, PointCloud, RobotInterface
 from harvest_qp.robot import description as desc
+from harvest_qp.runtime.interface import N_JOINTS, ROBOT, PointCloud, RobotInterface
 from harvest_qp.sim.actuation import ActuationConfig, SpeedjServo
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, DepthCamera, make_camera
 from harvest_qp.sim.contacts import CONTACT_KINDS, ContactMonitor

@@ -52,10 +52,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError, ModelError
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.robot import description as desc
 from harvest_qp.robot import paths
 from harvest_qp.robot.meshes import strip_visual_meshes
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.sim.actuation import ActuationConfig, add_joint_actuators
 from harvest_qp.sim.vine import (
     _LEAF_THICKNESS,

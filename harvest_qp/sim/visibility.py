@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
-from harvest_qp.interface import ROBOT, STEM
+from harvest_qp.runtime.interface import ROBOT, STEM
 from harvest_qp.sim.camera import DEFAULT_CAMERA, CameraConfig, RayCastCamera
 from harvest_qp.sim.robot import SimRobot
 from harvest_qp.sim.scene import APPROACH_RADIUS, VineSceneParams

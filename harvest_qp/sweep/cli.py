@@ -50,7 +50,7 @@ def config_fingerprint(config: Path, overrides: tuple[str, ...] = ()) -> dict[st
     Raises:
         ConfigError: the config is not a valid episode configuration (before any episode runs).
     """
-    from harvest_qp.loop.settings import load_settings
+    from harvest_qp.config.settings import load_settings
 
     settings = load_settings(config, list(overrides))
     canonical = json.dumps(settings, sort_keys=True, separators=(",", ":"), default=str)

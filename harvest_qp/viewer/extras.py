@@ -1,6 +1,6 @@
 """What the viewer draws of the paper episode besides the robot and the cloud.
 
-:class:`~harvest_qp.loop.controller.HarvestController` returns a ``Command`` whose ``values``
+:class:`~harvest_qp.harvest.harvest_controller.HarvestController` returns a ``Command`` whose ``values``
 (logged as ``value/*``) hold the phase, theta, p_r, p_sb, p_gd, V_c and V_g; this turns them
 into :class:`~harvest_qp.viewer.ViewerFrame` fields for :class:`~harvest_qp.viewer.ViewedController`.
 Used by ``harvest-qp run --viewer meshcat`` and ``examples/03_paper_episode.py``.
@@ -30,11 +30,11 @@ def paper_episode_extras(
     Args:
         roi_radius: r, the ROI sphere's radius drawn around p_r [m] (``reaching.radius``).
         cell_resolution: the obstacle map's cell edge [m] (``obstacle_map.resolution``).
-        controller: the :class:`~harvest_qp.loop.controller.HarvestController`; once it has
+        controller: the :class:`~harvest_qp.harvest.harvest_controller.HarvestController`; once it has
             switched, what perception found at the switch (``switch_snapshot``: both stem
             segments, the Fibonacci samples kept, i.e. free space F, and removed) is drawn too.
     """
-    from harvest_qp.loop.controller import Phase  # the viewer observes the loop, never the reverse
+    from harvest_qp.harvest.harvest_controller import Phase  # the viewer observes the loop, never the reverse
     from harvest_qp.viewer.closest import ClosestPairLocator
 
     radius = float(roi_radius)

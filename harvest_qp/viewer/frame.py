@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import N_JOINTS, PointCloud
+from harvest_qp.runtime.interface import N_JOINTS, PointCloud
 
 __all__ = ["ViewerFrame", "LOG_KEYS", "frames_from_log", "frame_from_observation"]
 
@@ -137,7 +137,7 @@ class ViewerFrame:
 
 
 def frame_from_observation(obs: Any, extras: Mapping[str, Any] | None = None) -> ViewerFrame:
-    """A :class:`ViewerFrame` from a runner :class:`~harvest_qp.runner.Observation` plus optional fields.
+    """A :class:`ViewerFrame` from a runner :class:`~harvest_qp.runtime.runner.Observation` plus optional fields.
 
     ``extras`` holds any :class:`ViewerFrame` field (``phase``, ``p_r``, ``v_c``, ...); unknown
     keys raise :class:`InvalidInputError`.

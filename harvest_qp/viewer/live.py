@@ -77,7 +77,7 @@ class LiveViewer:
         """Record the latest observation (non-blocking; called from the control loop).
 
         Args:
-            obs: a runner :class:`~harvest_qp.runner.Observation` (time, q, force, cloud), or a
+            obs: a runner :class:`~harvest_qp.runtime.runner.Observation` (time, q, force, cloud), or a
                 :class:`ViewerFrame`.
             extras: optional :class:`ViewerFrame` fields for this tick (``phase``, ``p_r``,
                 ``v_c``, ...). Arrays are not copied: pass arrays the caller will not modify.

@@ -29,8 +29,8 @@ from meshcat import geometry as mg
 from numpy.typing import NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.robot import description as desc
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.viewer.frame import ViewerFrame
 from harvest_qp.viewer.geometry import VineGeom, read_stl, robot_link_meshes, vine_body_poses, vine_geoms
 from harvest_qp.viewer.server import Connection, ViewerServer

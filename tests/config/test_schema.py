@@ -15,12 +15,12 @@ import pytest
 import yaml
 
 from harvest_qp.cli import main
+from harvest_qp.config import config_reference_markdown, json_schema, load_config, resolve_file
+from harvest_qp.config.episode_schema import EpisodeConfig
+from harvest_qp.config.settings import DEFAULTS, load_settings
+from harvest_qp.config.task_schema import TaskConfig
 from harvest_qp.exceptions import ConfigError, HarvestQPError
-from harvest_qp.loop.settings import DEFAULTS, load_settings
 from harvest_qp.robot.paths import tasks_dir
-from harvest_qp.schema import config_reference_markdown, json_schema, load_config, resolve_file
-from harvest_qp.schema.episode import EpisodeConfig
-from harvest_qp.schema.tasks import TaskConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = sorted(tasks_dir().glob("*.yaml")) + sorted((ROOT / "examples").glob("*.yaml"))
@@ -82,7 +82,7 @@ def test_pydantic_and_the_exported_json_schema_reject_the_same_bad_files(data, v
 
 
 def load_config_from(data, tmp=None):
-    from harvest_qp.schema import validate_data
+    from harvest_qp.config import validate_data
 
     return validate_data(data, source="inline")
 
@@ -295,8 +295,8 @@ def test_defaults_repeated_from_code_match_the_code():
     Catches: the schema and the function drifting apart (the same file would then mean two things)."""
     import inspect
 
-    from harvest_qp.episodes import stem_viewpoint
-    from harvest_qp.schema.tasks import Viewpoint
+    from harvest_qp.config.task_schema import Viewpoint
+    from harvest_qp.runtime.task_episode import stem_viewpoint
 
     signature = inspect.signature(stem_viewpoint).parameters
     assert Viewpoint().model_dump() == {k: signature[k].default for k in ("distance", "azimuth", "elevation")}

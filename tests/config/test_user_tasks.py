@@ -11,8 +11,8 @@ import pytest
 from harvest_qp import Configuration
 from harvest_qp.cli import main
 from harvest_qp.config import load_controller_config
+from harvest_qp.config.settings import check_settings
 from harvest_qp.exceptions import ConfigError
-from harvest_qp.loop.settings import check_settings
 
 _count = itertools.count()
 
@@ -145,7 +145,7 @@ def test_extra_tasks_join_the_paper_controllers_qp_at_their_level(tmp_path, monk
     at the level and weight given; a bad entry names `qp.extra_tasks[i]`.
 
     Catches: the hook missing from HarvestController, or user tasks only in QP-only configs."""
-    from harvest_qp.loop.controller import HarvestController
+    from harvest_qp.harvest.harvest_controller import HarvestController
 
     module = _module(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))  # an installed package, as far as Python is concerned

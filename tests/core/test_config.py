@@ -12,8 +12,8 @@ from harvest_qp.tasks import FramePoseTask
 
 
 def test_shipped_configs_load(configuration):
-    # paper*.yaml are episode settings trees (harvest_qp.loop.settings, tested in tests/loop, tests/config).
-    from harvest_qp.schema import config_kind, resolve_file
+    # paper*.yaml are episode settings trees (harvest_qp.config.settings, tested in tests/loop, tests/config).
+    from harvest_qp.config import config_kind, resolve_file
 
     paths = sorted(p for p in tasks_dir().glob("*.yaml") if config_kind(resolve_file(p).data) == "tasks")
     assert {p.name for p in paths} == {"reach_targets.yaml", "sim_reach_stem.yaml"}

@@ -18,9 +18,9 @@ import pinocchio as pin
 import pytest
 
 from harvest_qp.exceptions import InvalidInputError, ModelError
-from harvest_qp.interface import ROBOT
 from harvest_qp.robot import description as desc
 from harvest_qp.robot import generate, meshes, paths
+from harvest_qp.runtime.interface import ROBOT
 from harvest_qp.sim import VineSceneParams, build_vine_scene
 from harvest_qp.viewer.geometry import read_stl, robot_link_meshes
 
@@ -164,8 +164,8 @@ def render_check() -> dict[str, int]:
     Needs ``MUJOCO_GL`` (egl or osmesa) set before mujoco is imported; run by
     :func:`test_renders_show_meshes_and_the_capsule_toggle` here or in a child process.
     """
-    from harvest_qp.robot.render import SceneRenderer
     from harvest_qp.sim import SimRobot
+    from harvest_qp.sim.render import SceneRenderer
 
     robot = SimRobot(camera=None)
     renderer = SceneRenderer.for_spec(robot.scene.spec, width=240, height=160)

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.perception.cloud_split import LabelledFrame, obstacle_sphere_centres, outside_held_cluster
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM, PointCloud
 
 
 def _cloud(points, labels, camera=(0.6, 0.0, 0.4), t=0.1) -> PointCloud:
@@ -132,7 +132,7 @@ def test_the_laws_every_kth_rows_give_the_laws_own_thinning(n_obstacles):
     instead of all of W - S; the law must reach the same V_cu target as when it thins W - S itself
     (``max_obstacle_points`` 1000 here: strides 1 and 4). Oracle: the law's public ``observe`` on
     the whole W - S. Catches: a stride other than the law's, rows counted over the whole cloud."""
-    from harvest_qp.loop.settings import check_settings
+    from harvest_qp.config.settings import check_settings
     from harvest_qp.references import Unveiling
 
     u = check_settings({})["unveiling"]

@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from harvest_qp.loop.controller import HarvestController
-from harvest_qp.loop.episode import build_robot, environment_capsules_for
-from harvest_qp.loop.settings import load_settings
+from harvest_qp.config.settings import load_settings
+from harvest_qp.harvest.harvest_controller import HarvestController
 from harvest_qp.robot.paths import tasks_dir
-from harvest_qp.runner import run_episode
+from harvest_qp.runtime.runner import run_episode
+from harvest_qp.sim.paper_episode import build_robot, environment_capsules_for
 
 
 class _AddsInPlace:

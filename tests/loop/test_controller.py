@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from harvest_qp.loop.controller import HarvestController, Phase
-from harvest_qp.loop.settings import DEFAULTS, check_settings
+from harvest_qp.config.settings import DEFAULTS, check_settings
+from harvest_qp.harvest.harvest_controller import HarvestController, Phase
 from harvest_qp.robot.description import HOME_Q
-from harvest_qp.runner import Observation
+from harvest_qp.runtime.runner import Observation
 
 
 class _Robot:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 from harvest_qp import EpisodeError, HarvestQPError
-from harvest_qp.loop.episode import run_paper_episode
-from harvest_qp.loop.settings import load_settings
+from harvest_qp.config.settings import load_settings
 from harvest_qp.robot.paths import tasks_dir
+from harvest_qp.sim.paper_episode import run_paper_episode
 
 
 class _FailsOnFirstStep:

@@ -15,13 +15,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+from harvest_qp.config.settings import check_settings, load_settings
 from harvest_qp.configuration import Configuration
-from harvest_qp.loop.controller import HarvestController
-from harvest_qp.loop.episode import build_robot, environment_capsules_for, episode_ground_truth
-from harvest_qp.loop.phases import Phase
-from harvest_qp.loop.settings import check_settings, load_settings
+from harvest_qp.harvest.harvest_controller import HarvestController
+from harvest_qp.harvest.phases import Phase
 from harvest_qp.robot.paths import tasks_dir
-from harvest_qp.runner import _PairColumns, run_episode
+from harvest_qp.runtime.runner import _PairColumns, run_episode
+from harvest_qp.sim.paper_episode import build_robot, environment_capsules_for, episode_ground_truth
 
 
 def _same(a, b) -> bool:

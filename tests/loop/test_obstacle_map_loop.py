@@ -203,9 +203,9 @@ def test_stem_and_held_cluster_are_never_map_rows(episodes, robot):
 
 def test_map_and_cloud_spheres_together_are_rejected():
     """Both feed the same collision limit's obstacle spheres: a ConfigError naming both keys."""
+    from harvest_qp.config.settings import check_settings
     from harvest_qp.exceptions import ConfigError
-    from harvest_qp.loop.controller import HarvestController
-    from harvest_qp.loop.settings import check_settings
+    from harvest_qp.harvest.harvest_controller import HarvestController
 
     with pytest.raises(ConfigError, match="obstacle_map.enabled and obstacles.enabled"):
         HarvestController(check_settings({"obstacles": {"enabled": True}}))
@@ -223,8 +223,8 @@ def test_controller_exclusions_keep_the_held_cluster_and_the_stem_out_of_the_map
     in the wrong frame or along the wrong axis, a capsule too small for the cluster, a stem
     capsule pointing down the cluster instead of up to the branch.
     """
-    from harvest_qp.loop.controller import HarvestController
-    from harvest_qp.loop.settings import check_settings
+    from harvest_qp.config.settings import check_settings
+    from harvest_qp.harvest.harvest_controller import HarvestController
     from harvest_qp.perception.obstacle_map import ObstacleMap
     from harvest_qp.sim import CameraConfig, make_camera
     from tests.perception.test_obstacle_map import lab_views

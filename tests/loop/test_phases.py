@@ -1,4 +1,4 @@
-"""The phase machine (harvest_qp/loop/phases.py) on hand-made sequences, without a robot.
+"""The phase machine (harvest_qp/harvest/phases.py) on hand-made sequences, without a robot.
 
 Oracles: the thresholds of ``subsec:biman_coord`` / ``sec:exper`` applied by hand to the inputs
 (times, camera poses, forces) each test builds.
@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from harvest_qp.loop.phases import Phase, PhaseMachine, PhaseRules
-from harvest_qp.loop.settings import check_settings
+from harvest_qp.config.settings import check_settings
+from harvest_qp.harvest.phases import Phase, PhaseMachine, PhaseRules
 
 DT = 0.002
 

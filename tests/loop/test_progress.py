@@ -6,7 +6,7 @@ import io
 from types import SimpleNamespace
 
 from harvest_qp.cli import main
-from harvest_qp.progress import ProgressController, wants_progress
+from harvest_qp.runtime.progress import ProgressController, wants_progress
 from tests.loop.conftest import PAPER, SCENE_ARGS
 
 

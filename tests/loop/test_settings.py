@@ -6,8 +6,8 @@ import pytest
 import yaml
 
 from harvest_qp.cli import main
+from harvest_qp.config.settings import DEFAULTS, load_settings
 from harvest_qp.exceptions import ConfigError
-from harvest_qp.loop.settings import DEFAULTS, load_settings
 from harvest_qp.robot.paths import tasks_dir
 
 PAPER = tasks_dir() / "paper.yaml"

@@ -15,13 +15,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from harvest_qp.config.settings import check_settings
 from harvest_qp.configuration import Configuration
-from harvest_qp.interface import OBSTACLE, PointCloud
-from harvest_qp.loop.settings import check_settings
 from harvest_qp.perception import compute_free_space
 from harvest_qp.perception.grasp_target import SWING_CAPSULES, SwingCheck, choose_grasp_target
 from harvest_qp.perception.obstacle_map import ObstacleMap
 from harvest_qp.robot import description
+from harvest_qp.runtime.interface import OBSTACLE, PointCloud
 
 STEM_LENGTH = 0.08  # [m]
 

@@ -42,7 +42,7 @@ def test_command_check_by_sum_then_by_entry():
     refused at every pair of positions, finite values whose sum overflows or cancels are
     accepted (oracle: np.isfinite on each entry). Catches: a fast check that passes a non-finite
     command (e.g. one testing only the first and last speeds, or none)."""
-    from harvest_qp.runner import Command, _as_command_fast
+    from harvest_qp.runtime.runner import Command, _as_command_fast
 
     rng = np.random.default_rng(3)
     for i in range(12):

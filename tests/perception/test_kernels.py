@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harvest_qp.interface import OBSTACLE, STEM, PointCloud
 from harvest_qp.perception import _map_kernels as K
 from harvest_qp.perception.obstacle_map import ExclusionRegion, ObstacleMap
 from harvest_qp.perception.unveiling import ray_obstacle_pairs
+from harvest_qp.runtime.interface import OBSTACLE, STEM, PointCloud
 
 SMALL = ((-0.2, -0.4, 0.6), (1.0, 0.4, 1.4))
 

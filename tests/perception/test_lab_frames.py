@@ -4,7 +4,7 @@ Frames come from the lab's ray-cast camera (283x160, the paper's D415 set-up) pl
 from the stem on the robot's side, over several scene seeds (`VineSceneParams.sample`) and
 random view directions; the ground truth is the settled stem's capsules (base p_sb, axis,
 the length between the branch and where it enters the gripper or cluster) and every other
-geom's surface (:class:`harvest_qp.perception.synthetic.LabViews`).  The frames are rendered
+geom's surface (:class:`harvest_qp.sim.lab_views.LabViews`).  The frames are rendered
 once per module (~1-2 s).
 """
 
@@ -18,7 +18,8 @@ import pytest
 
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base, process_cloud
 from harvest_qp.perception.stem import StemModel
-from harvest_qp.perception.synthetic import LabFrame, LabViews, fibonacci_unit, view_poses
+from harvest_qp.perception.synthetic import fibonacci_unit, view_poses
+from harvest_qp.sim.lab_views import LabFrame, LabViews
 
 # The default scene and sampled scenes, with views of their own (rng 1000 + seed).  The
 # thresholds were tuned on seeds 1-20 (other views); the hidden-base rule was revised once

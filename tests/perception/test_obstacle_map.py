@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.perception.map_feed import MapCollisionFeed
 from harvest_qp.perception.obstacle_map import DEFAULT_CLEAR_RAYS, ExclusionRegion, ObstacleMap
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM, PointCloud
 
 RES = 0.01
 # A small grid for the synthetic scenes (fast to allocate).
@@ -819,8 +819,8 @@ def _lab_approach(scene, with_map: bool, duration: float = 3.6) -> tuple[float, 
     import mujoco
 
     from harvest_qp import Configuration, TaskController
-    from harvest_qp.episodes import environment_capsules
     from harvest_qp.limits import CollisionAvoidance
+    from harvest_qp.runtime.task_episode import environment_capsules
     from harvest_qp.sim import SimRobot
     from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 

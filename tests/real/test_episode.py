@@ -9,13 +9,13 @@ import signal
 import numpy as np
 import pytest
 
+from harvest_qp.config.settings import load_settings
 from harvest_qp.exceptions import HarvestQPError
-from harvest_qp.loop.controller import HarvestController
-from harvest_qp.loop.episode import build_robot
-from harvest_qp.loop.settings import load_settings
+from harvest_qp.harvest.harvest_controller import HarvestController
 from harvest_qp.real.cli import run_ur
 from harvest_qp.real.episode import run_real
 from harvest_qp.robot.paths import tasks_dir
+from harvest_qp.sim.paper_episode import build_robot
 from tests.loop import traces
 from tests.loop.conftest import SCENE_ARGS
 from tests.real.conftest import CAMERA_HOST, GRASP_HOST

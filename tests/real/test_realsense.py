@@ -8,10 +8,10 @@ import numpy as np
 import pyrealsense2 as rs
 import pytest
 
-from harvest_qp.interface import ROBOT, STEM
 from harvest_qp.real.cell import CameraCellConfig
 from harvest_qp.real.realsense import RealSenseSource, decimation_indices
 from harvest_qp.real.stem_detector import RedThreshold, hsv, load_detector
+from harvest_qp.runtime.interface import ROBOT, STEM
 from harvest_qp.sim.camera import CameraConfig, make_camera
 
 W, H, K = 848, 480, 3

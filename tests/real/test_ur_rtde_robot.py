@@ -13,9 +13,9 @@ import pytest
 import rtde_control
 import rtde_receive
 
-from harvest_qp.interface import RobotInterface
 from harvest_qp.real.errors import RobotConnectionError
 from harvest_qp.real.ur_rtde_robot import GRAVITY, DualUR5eRobot, tool_wrench
+from harvest_qp.runtime.interface import RobotInterface
 from tests.real.conftest import CAMERA_HOST, GRASP_HOST, ramp
 
 REAL = {"control": rtde_control.RTDEControlInterface, "receive": rtde_receive.RTDEReceiveInterface}

@@ -131,7 +131,7 @@ class LabCamera:
     def __init__(self, params=None, *, downsample: int = 3) -> None:
         import mujoco
 
-        from harvest_qp.interface import STEM
+        from harvest_qp.runtime.interface import STEM
         from harvest_qp.sim.camera import CameraConfig, make_camera
         from harvest_qp.sim.scene import build_vine_scene
 

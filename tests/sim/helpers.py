@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from harvest_qp.interface import RobotInterface
 from harvest_qp.robot import description as desc
 from harvest_qp.robot.paths import urdf_path
-from harvest_qp.runner import Command, Observation
+from harvest_qp.runtime.interface import RobotInterface
+from harvest_qp.runtime.runner import Command, Observation
 
 
 def look_at(position, target, down=(0.0, 0.0, -1.0)) -> np.ndarray:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import RobotInterface
 from harvest_qp.robot import ur5e
+from harvest_qp.runtime.interface import RobotInterface
 from harvest_qp.sim import ActuationConfig, SimRobot, build_vine_scene
 from tests.sim.helpers import arm_dof_addresses, arm_qpos_addresses
 

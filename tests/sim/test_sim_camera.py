@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.sim import CameraConfig, SimRobot
 from harvest_qp.sim.camera import RayCastCamera
 from tests.sim.helpers import look_at

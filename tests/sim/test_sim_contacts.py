@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.runner import run_episode
+from harvest_qp.runtime.runner import run_episode
 from harvest_qp.sim import CameraConfig, SensorFaults, SimRobot, VineSceneParams
 from harvest_qp.sim.contacts import ContactMonitor
 from tests.sim.helpers import ForcePull, PinocchioArm, arm_qpos_addresses

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.runner import run_episode
+from harvest_qp.runtime.runner import run_episode
 from harvest_qp.sim import ForceSensorConfig, SimRobot, VineSceneParams
 from tests.sim.helpers import ForcePull, PinocchioArm
 

@@ -140,7 +140,7 @@ def test_ground_truth_equals_its_parts_and_honours_overrides(default_scene):
 
     Oracle: the robot's public per-quantity methods on the same state.
     """
-    from harvest_qp.loop.episode import episode_ground_truth
+    from harvest_qp.sim.paper_episode import episode_ground_truth
 
     robot = SimRobot(default_scene, camera=None)
     pull = np.r_[np.zeros(6), 0.2, -0.2, 0.2, 0.0, 0.0, 0.0]

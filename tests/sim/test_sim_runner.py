@@ -8,10 +8,10 @@ import re
 import numpy as np
 import pytest
 
-import harvest_qp.runner as runner
+import harvest_qp.runtime.runner as runner
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import PointCloud
-from harvest_qp.runner import Command, Observation, run_episode, write_npz
+from harvest_qp.runtime.interface import PointCloud
+from harvest_qp.runtime.runner import Command, Observation, run_episode, write_npz
 from harvest_qp.sim import CameraConfig, ForceSensorConfig, SimRobot, SimulationError, VineSceneParams
 from tests.sim.helpers import JointPD
 
@@ -239,7 +239,7 @@ def test_command_done_ends_the_episode():
 # ---------------------------------------------------------------- the library's own log protocol
 
 from harvest_qp import runner as _runner  # noqa: E402
-from harvest_qp.runner import _PairColumns, _ValueLayout, _ValueRow  # noqa: E402
+from harvest_qp.runtime.runner import _PairColumns, _ValueLayout, _ValueRow  # noqa: E402
 
 _LAYOUT_A = _ValueLayout((("late", ()), ("never", (2,)), ("s", ()), ("v", (3,)), ("m", (2, 2))))
 _LAYOUT_B = _ValueLayout((("s", ()), ("w", (2,))))
@@ -527,7 +527,7 @@ def test_runner_calls_an_instance_override_and_a_proxys_own_sender():
     """Bug caught: the runner bypassing ``robot.send_joint_velocities = wrapper`` set on the
     instance, or a proxy's own sender (a user's safety or fault-injection wrapper silently
     skipped; found by an audit)."""
-    from harvest_qp.interface import RobotInterface
+    from harvest_qp.runtime.interface import RobotInterface
 
     robot = SimRobot(camera=None)
     calls = []

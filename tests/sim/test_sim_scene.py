@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.robot import description as desc
 from harvest_qp.robot import paths
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM
 from harvest_qp.sim import PARAM_RANGES, SimRobot, VineSceneParams, build_vine_scene
 
 

@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from harvest_qp.interface import ROBOT, STEM
+from harvest_qp.runtime.interface import ROBOT, STEM
 from harvest_qp.sim import CameraConfig, SimRobot, VineSceneParams, build_vine_scene
 from harvest_qp.sim.camera import RayCastCamera
 from harvest_qp.sim.scene import APPROACH_RADIUS, HIDDEN_APPROACH_MIN

@@ -380,8 +380,8 @@ def test_cli_sweep_set_reaches_every_episode_and_the_fingerprint(tmp_path):
     the experiment's fingerprint is that of the overridden settings, and a bad key fails before any episode."""
     import argparse
 
+    from harvest_qp.config.settings import load_settings
     from harvest_qp.exceptions import ConfigError
-    from harvest_qp.loop.settings import load_settings
     from harvest_qp.sweep.cli import add_sweep_parser, config_fingerprint, run_command_episode, sweep_main
 
     parser = argparse.ArgumentParser(prog="harvest-qp")

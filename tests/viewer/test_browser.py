@@ -21,9 +21,9 @@ import pytest
 from scipy import ndimage
 
 from harvest_qp import Configuration
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM, PointCloud
 from harvest_qp.robot import description as desc
-from harvest_qp.runner import Observation
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM, PointCloud
+from harvest_qp.runtime.runner import Observation
 from harvest_qp.sim import VineSceneParams, build_vine_scene
 from harvest_qp.viewer import LiveViewer, export_episode_html
 from harvest_qp.viewer.replay import free_port

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from harvest_qp.loop.controller import Phase
+from harvest_qp.harvest.harvest_controller import Phase
 from harvest_qp.viewer import ViewerFrame, paper_episode_extras
 
 

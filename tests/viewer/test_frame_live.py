@@ -10,7 +10,7 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.robot.description import HOME_Q
-from harvest_qp.runner import Command, Observation, run_episode
+from harvest_qp.runtime.runner import Command, Observation, run_episode
 from harvest_qp.sim import CameraConfig, SimRobot, VineSceneParams
 from harvest_qp.viewer import (
     LiveViewer,
@@ -233,7 +233,7 @@ def test_control_path_does_not_import_the_viewer():
     from pathlib import Path
 
     code = (
-        "import sys, harvest_qp, harvest_qp.runner, harvest_qp.controller, harvest_qp.sim, harvest_qp.cli\n"
+        "import sys, harvest_qp, harvest_qp.runtime.runner, harvest_qp.task_controller, harvest_qp.sim, harvest_qp.cli\n"
         "bad = sorted(m for m in sys.modules if m.startswith(('harvest_qp.viewer', 'meshcat')))\n"
         "assert not bad, bad\n"
     )

@@ -21,7 +21,7 @@ from harvest_qp.viewer.geometry import (
 )
 
 PI = np.pi
-#: Universal Robots' joint origins (ur_description 2.4.5, /work/shared/ur5e_meshes/README.md),
+#: Universal Robots' joint origins (ur_description 2.4.5),
 #: from base_link_inertia: (xyz, rpy) of shoulder_pan ... wrist_3, all about local z.
 UR_JOINTS = [
     ((0, 0, 0.1625), (0, 0, 0)),

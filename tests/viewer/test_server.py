@@ -177,7 +177,7 @@ def test_live_viewer_draws_in_a_child_process_and_cleans_up():
     Catches: frames never reaching the child (nothing drawn), a child or server left behind,
     an exception from a dead child raised into the loop.
     """
-    from harvest_qp.runner import Observation
+    from harvest_qp.runtime.runner import Observation
     from harvest_qp.viewer import LiveViewer
 
     port = free_port()

@@ -8,8 +8,8 @@ import umsgpack
 
 from harvest_qp import Configuration
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import OBSTACLE, STEM
 from harvest_qp.robot.description import HOME_Q
+from harvest_qp.runtime.interface import OBSTACLE, STEM
 from harvest_qp.viewer import MeshcatViewer, ViewerFrame
 from harvest_qp.viewer.replay import free_port
 from harvest_qp.viewer.viewer import ROOT, _pack_transform

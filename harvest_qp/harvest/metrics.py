@@ -25,9 +25,9 @@ import numpy as np
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import EpisodeError
+from harvest_qp.harvest.environment import environment_capsules_for
+from harvest_qp.harvest.phases import Phase
 from harvest_qp.limits import CollisionAvoidance
-from harvest_qp.loop.environment import environment_capsules_for
-from harvest_qp.loop.phases import Phase
 
 __all__ = ["compute_metrics", "SUCCESS_KEYS"]
 

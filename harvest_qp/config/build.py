@@ -12,11 +12,11 @@ A configuration file looks like ``tasks/reach_targets.yaml``::
       - {type: joint_velocity, max_velocity: 1.5}
       - {type: collision, safety_distance: 0.01, influence_distance: 0.10}
 
-Every key is checked against the schema :class:`harvest_qp.schema.TaskConfig` (pydantic):
+Every key is checked against the schema :class:`harvest_qp.config.TaskConfig` (pydantic):
 an unknown task type, option or a bad value raises :class:`~harvest_qp.exceptions.ConfigError`
 with one line naming the file, the key path, the bad value and what was expected. A task may
 also be a user's own :class:`~harvest_qp.tasks.Task` subclass, ``type: my_package.tasks:GazeTask``
-with ``params:`` checked against its signature (see :mod:`harvest_qp.schema.tasks`).
+with ``params:`` checked against its signature (see :mod:`harvest_qp.config.task_schema`).
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def build_user_task(entry: dict, configuration: Configuration, where: str) -> Ta
     The constructor gets the checked ``params`` (and ``configuration=`` when it takes one);
     ``level``, ``weight`` and ``gain``, when given, go through the Task's checked setters.
     """
-    from harvest_qp.schema.tasks import resolve_task_class, validate_user_params
+    from harvest_qp.config.task_schema import resolve_task_class, validate_user_params
 
     task_class = resolve_task_class(entry["type"])
     try:
@@ -161,7 +161,8 @@ def build_tasks(entries: Sequence[dict], configuration: Configuration, *, where:
     return [_built(_build_task, dict(e), configuration, f"{where}[{i}]") for i, e in enumerate(entries)]
 
 
-def _build_limit(entry: dict, configuration: Configuration, where: str, environment=()) -> Limit:
+def build_limit(entry: dict, configuration: Configuration, where: str, environment=()) -> Limit:
+    """One limit from a validated limit entry (``{type: joint_velocity, ...}``); ``where`` names it in errors."""
     kind = entry.get("type")
     if kind == "joint_position":
         return JointPositionLimit(configuration, **_options(entry, {"gain", "max_acceleration"}, where))
@@ -193,11 +194,11 @@ def build_controller_config(
     data: dict, configuration: Configuration, *, environment: Sequence[CapsuleGeometry] = (),
     source: str = "task configuration", base_dir: str | Path | None = None,
 ) -> ControllerConfig:
-    """Tasks and limits from a configuration mapping (checked against :class:`harvest_qp.schema.TaskConfig`).
+    """Tasks and limits from a configuration mapping (checked against :class:`harvest_qp.config.TaskConfig`).
 
     ``environment``: world-fixed capsules (e.g. the scene's branch) for the collision limit.
     """
-    from harvest_qp.schema import validate_data
+    from harvest_qp.config.loading import validate_data
 
     checked = validate_data(data, kind="tasks", source=source, base_dir=base_dir).model_dump()
     return controller_config_from_checked(checked, configuration, environment)
@@ -209,7 +210,7 @@ def build_limits(
 ) -> list[Limit]:
     """Limits from validated limit entries (``limits`` of a task config, ``qp.limits`` of an episode)."""
     def build(entry, config, at):
-        return _build_limit(entry, config, at, environment)
+        return build_limit(entry, config, at, environment)
 
     return [_built(build, dict(e), configuration, f"{where}[{i}]") for i, e in enumerate(entries)]
 
@@ -227,7 +228,7 @@ def controller_config_from_checked(
 
 def read_config_file(path: str | Path) -> dict:
     """A QP task configuration file: read safely (``yaml.safe_load``), ``extends`` followed, checked, defaulted."""
-    from harvest_qp.schema import load_config
+    from harvest_qp.config.loading import load_config
 
     return load_config(path, kind="tasks").model_dump()
 

@@ -12,8 +12,8 @@ __all__ = ["json_schema", "config_reference_markdown"]
 
 def json_schema() -> dict[str, Any]:
     """One JSON Schema (draft 2020-12) accepting either kind of file: an episode or a QP task config."""
-    from harvest_qp.schema.episode import EpisodeConfig
-    from harvest_qp.schema.tasks import TaskConfig
+    from harvest_qp.config.episode_schema import EpisodeConfig
+    from harvest_qp.config.task_schema import TaskConfig
 
     refs, schema = models_json_schema([(EpisodeConfig, "validation"), (TaskConfig, "validation")],
                                       title="harvest_qp configuration")
@@ -122,7 +122,7 @@ def config_reference_markdown() -> str:
     out = [
         "# Configuration reference",
         "",
-        "Generated from the schema (`harvest_qp.schema`) by `harvest-qp schema --markdown docs/config.md`; "
+        "Generated from the schema (`harvest_qp.config`) by `harvest-qp schema --markdown docs/config.md`; "
         "a test fails when this file is stale. Editors complete and check `tasks/*.yaml` through "
         "`tasks/schema.json` (the `# yaml-language-server: $schema=schema.json` line on top of each file).",
         "",

@@ -10,7 +10,7 @@ __all__ = ["environment_capsules_for"]
 def environment_capsules_for(robot, names) -> list:
     """The capsules of the scene bodies ``names`` of the simulated ``robot`` (model and data);
     a missing body is a :class:`~harvest_qp.exceptions.ConfigError` naming ``qp.environment``."""
-    from harvest_qp.episodes import environment_capsules
+    from harvest_qp.runtime.task_episode import environment_capsules
 
     try:
         return environment_capsules(robot.model, robot.data, names)

@@ -12,7 +12,7 @@ Needs an OpenGL context: set ``MUJOCO_GL=egl`` (headless Mesa) or ``osmesa`` bef
 ``mujoco`` is first imported.
 
     import os; os.environ.setdefault("MUJOCO_GL", "egl")
-    from harvest_qp.robot.render import SceneRenderer
+    from harvest_qp.sim.render import SceneRenderer
     from harvest_qp.sim import SimRobot
 
     robot = SimRobot()

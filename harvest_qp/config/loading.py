@@ -17,9 +17,9 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from harvest_qp.config.episode_schema import EpisodeConfig
+from harvest_qp.config.task_schema import BUILT_IN_LIMITS, BUILT_IN_TASKS, TaskConfig
 from harvest_qp.exceptions import ConfigError
-from harvest_qp.schema.episode import EpisodeConfig
-from harvest_qp.schema.tasks import BUILT_IN_LIMITS, BUILT_IN_TASKS, TaskConfig
 
 __all__ = [
     "Kind", "ResolvedConfig", "read_yaml", "resolve_file", "apply_override", "config_kind", "validate_data",

@@ -1,4 +1,4 @@
-"""Episode runner: a fixed-rate control loop around any :class:`~harvest_qp.interface.RobotInterface`.
+"""Episode runner: a fixed-rate control loop around any :class:`~harvest_qp.runtime.interface.RobotInterface`.
 
 Every control period (2 ms on the paper's UR5e) the runner reads the robot, hands an
 :class:`Observation` to the controller, sends the returned joint velocities and steps the
@@ -63,7 +63,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
-from harvest_qp.interface import N_JOINTS, STEM, PointCloud, RobotInterface
+from harvest_qp.runtime.interface import N_JOINTS, STEM, PointCloud, RobotInterface
 
 __all__ = [
     "Observation",
@@ -127,7 +127,7 @@ class Command:
             in this tick's QP.
         done: end the episode after this tick (e.g. a controller that has stopped).
 
-    The library's own :class:`~harvest_qp.loop.HarvestController` hands ``values`` and
+    The library's own :class:`~harvest_qp.harvest.HarvestController` hands ``values`` and
     ``collision_pairs`` as read-only views (a row and columns the runner logs in one copy); a
     wrapper that adds its own builds a new command, e.g.
     ``dataclasses.replace(command, values={**command.values, "x": 1.0})``.
@@ -268,7 +268,7 @@ _FLOAT64 = np.dtype(np.float64)
 class _ValueLayout:
     """Names and shapes of a fixed set of per-tick values stored in one flat float64 row.
 
-    The library's own controller (:class:`harvest_qp.loop.HarvestController`) declares its
+    The library's own controller (:class:`harvest_qp.harvest.HarvestController`) declares its
     logged values once as a layout and hands them each tick as a :class:`_ValueRow`: the runner
     checks the row's dtype and length and copies it into its log in one assignment, instead
     of checking and copying ~18 named arrays and floats one by one (~20 us per 2 ms tick in

@@ -1,6 +1,6 @@
 """The robot interface the controllers talk to: the simulation implements it, a UR5e driver can too.
 
-Controllers and the episode runner (:mod:`harvest_qp.runner`) only use
+Controllers and the episode runner (:mod:`harvest_qp.runtime.runner`) only use
 :class:`RobotInterface`, so the same controller runs on
 :class:`harvest_qp.sim.SimRobot` and on a real dual-UR5e driver.
 

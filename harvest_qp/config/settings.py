@@ -3,7 +3,7 @@
 Every value of Section ``sec:exper`` has a key, written as in the paper (gains ``k_*``);
 every key has a default, so a file only needs what it changes, and every key can be
 overridden from the command line (``--set grasping.f_d=2.5``). The keys, their units and
-defaults live in ONE place, the schema :class:`harvest_qp.schema.EpisodeConfig` (pydantic);
+defaults live in ONE place, the schema :class:`harvest_qp.config.EpisodeConfig` (pydantic);
 this module turns a file into the plain nested ``dict`` the controller reads. Unknown keys,
 wrong types and out-of-range values raise :class:`~harvest_qp.exceptions.ConfigError` with
 one line naming the file, the key, the expected value and what was found.
@@ -15,9 +15,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from harvest_qp.config.episode_schema import EpisodeConfig
+from harvest_qp.config.loading import apply_override, load_config, validate_data
 from harvest_qp.exceptions import ConfigError
-from harvest_qp.schema import EpisodeConfig, load_config, validate_data
-from harvest_qp.schema.loading import apply_override
 
 __all__ = ["DEFAULTS", "load_settings", "apply_override", "check_settings"]
 

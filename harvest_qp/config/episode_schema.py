@@ -13,7 +13,7 @@ from typing import Any, Literal
 from pydantic import Field, TypeAdapter, field_validator
 from pydantic_core import PydanticCustomError
 
-from harvest_qp.schema._types import (
+from harvest_qp.config._types import (
     Fraction,
     Level,
     NonNegative,
@@ -30,7 +30,7 @@ from harvest_qp.schema._types import (
     expect,
     suggest,
 )
-from harvest_qp.schema.tasks import LimitEntry, TaskEntry
+from harvest_qp.config.task_schema import LimitEntry, TaskEntry
 
 __all__ = ["EpisodeConfig"]
 

@@ -40,8 +40,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit, JointPositionLimit, JointVelocityLimit
-from harvest_qp.schema._types import (
+from harvest_qp.config._types import (
     HardLevel,
     NonNegative,
     Positive,
@@ -55,6 +54,7 @@ from harvest_qp.schema._types import (
     expect,
     suggest,
 )
+from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit, JointPositionLimit, JointVelocityLimit
 from harvest_qp.tasks import DampingTask, FramePoseTask, FrameTwistTask, PostureTask, RelativeFrameTask, Task
 
 __all__ = [

@@ -6,8 +6,8 @@ V_g, feed-forward) -> QP tasks -> :class:`~harvest_qp.TaskController` -> joint v
 :mod:`.phases` decides approach -> bimanual -> pre-cut / abort.
 """
 
-from harvest_qp.loop.controller import HarvestController
-from harvest_qp.loop.phases import Phase, PhaseMachine, PhaseRules
-from harvest_qp.loop.settings import DEFAULTS, load_settings
+from harvest_qp.config.settings import DEFAULTS, load_settings
+from harvest_qp.harvest.harvest_controller import HarvestController
+from harvest_qp.harvest.phases import Phase, PhaseMachine, PhaseRules
 
 __all__ = ["HarvestController", "Phase", "PhaseMachine", "PhaseRules", "DEFAULTS", "load_settings"]

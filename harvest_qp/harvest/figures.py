@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from harvest_qp.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
+from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
 
 __all__ = ["write_figures", "label_image"]
 

@@ -52,7 +52,7 @@ class Phase(IntEnum):
 @dataclass(frozen=True)
 class PhaseRules:
     """The thresholds of the phase machine (units in brackets; the settings' keys in parentheses, whose
-    schema, :class:`harvest_qp.schema.EpisodeConfig`, holds the defaults)."""
+    schema, :class:`harvest_qp.config.EpisodeConfig`, holds the defaults)."""
 
     radius: float  # r [m] (reaching.radius)
     f_d: float  # desired force along n_c [N] (grasping.f_d)
@@ -74,7 +74,7 @@ class PhaseRules:
 
     @classmethod
     def from_settings(cls, s: dict[str, Any]) -> PhaseRules:
-        """From the checked settings tree (:func:`harvest_qp.loop.settings.check_settings`)."""
+        """From the checked settings tree (:func:`harvest_qp.config.settings.check_settings`)."""
         sw, safety, p = s["switch"], s["safety"], s["precut"]
         f_d = float(s["grasping"]["f_d"])
         return cls(

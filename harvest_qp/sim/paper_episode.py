@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import Any
 
 from harvest_qp.exceptions import ConfigError, InvalidInputError
-from harvest_qp.interface import ROBOT
-from harvest_qp.loop.controller import HarvestController
-from harvest_qp.loop.environment import environment_capsules_for
-from harvest_qp.loop.metrics import compute_metrics
-from harvest_qp.loop.phases import Phase
-from harvest_qp.runner import EpisodeResult, run_episode
+from harvest_qp.harvest.environment import environment_capsules_for
+from harvest_qp.harvest.harvest_controller import HarvestController
+from harvest_qp.harvest.metrics import compute_metrics
+from harvest_qp.harvest.phases import Phase
+from harvest_qp.runtime.interface import ROBOT
+from harvest_qp.runtime.runner import EpisodeResult, run_episode
 
 __all__ = ["build_robot", "run_paper_episode", "EpisodeReport", "episode_ground_truth", "environment_capsules_for"]
 
@@ -116,7 +116,7 @@ def run_paper_episode(
     """Run one episode of the paper's experiment and write metrics.json, the log and the figures.
 
     Args:
-        settings: checked settings (:func:`harvest_qp.loop.settings.load_settings`).
+        settings: checked settings (:func:`harvest_qp.config.settings.load_settings`).
         seed: 0 = the default scene; N > 0 = ``VineSceneParams.sample(N)`` (and the sensor
             noise seed).
         mapper: ``"qp"`` or ``"pinv"`` (default: the settings' ``mapper.kind``).
@@ -151,13 +151,13 @@ def run_paper_episode(
     metrics = compute_metrics(result.log, robot, controller, settings, mapper=mapper, seed=seed,
                               realtime_factor=result.sim_time / wall if wall > 0 else float("inf"))
     log = dict(result.log)
-    from harvest_qp.runner import write_npz
+    from harvest_qp.runtime.runner import write_npz
 
     log_path = write_npz(out_dir / "episode.npz", log)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     paths: list[Path] = []
     if figures:
-        from harvest_qp.loop.figures import write_figures
+        from harvest_qp.harvest.figures import write_figures
 
         paths = write_figures(log, controller, settings, out_dir, metrics)
     return EpisodeReport(metrics, out_dir, log_path, paths, result, controller)

@@ -2,7 +2,7 @@
 
 :class:`QPEpisodeController` turns a :class:`~harvest_qp.TaskController` into the
 ``reset(robot)`` / ``step(observation) -> Command`` object that
-:func:`harvest_qp.runner.run_episode` drives, and helpers build demo targets.
+:func:`harvest_qp.runtime.runner.run_episode` drives, and helpers build demo targets.
 """
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from collections.abc import Callable, Sequence
 import mujoco
 import numpy as np
 
-from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.interface import RobotInterface
 from harvest_qp.limits import CapsuleGeometry
-from harvest_qp.runner import Command, Observation
+from harvest_qp.runtime.interface import RobotInterface
+from harvest_qp.runtime.runner import Command, Observation
+from harvest_qp.task_controller import TaskController
 from harvest_qp.tasks import FramePoseTask
 
 ReferenceUpdate = Callable[[Observation, TaskController], None]

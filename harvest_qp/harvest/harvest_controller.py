@@ -9,10 +9,10 @@ Data flow, every control tick (2 ms)::
 
 :class:`HarvestController` only reads what a real dual UR5e gives (joint positions and
 velocities, the wrist force, the camera's labelled cloud and the clock, all from the
-:class:`~harvest_qp.runner.Observation`); it never sees the simulator's ground truth and
+:class:`~harvest_qp.runtime.runner.Observation`); it never sees the simulator's ground truth and
 keeps no robot handle, so the same object can drive two real arms.
 
-Phases (``subsec:biman_coord``, :mod:`harvest_qp.loop.phases`): ``approach`` (camera arm
+Phases (``subsec:biman_coord``, :mod:`harvest_qp.harvest.phases`): ``approach`` (camera arm
 reaches and unveils; the grasping arm holds the crop still) -> ``bimanual`` (V_g of
 ``eq:superimp_g`` on the grasping arm, V_c' of ``eq:final_vc`` on the camera arm) -> ``precut``
 (force, projected position error and alignment within tolerance for ``precut.hold_time``;
@@ -40,7 +40,7 @@ Where this differs from the paper (lab measurements):
   the README's earlier table). After it: success and 0 contacts on the default scene and
   seeds 1-10 (seeds 6-10 unnamed checks).
 * The switch rule uses the camera's mean speeds over ``switch.window`` (0.5 s)
-  (:mod:`harvest_qp.loop.phases`).
+  (:mod:`harvest_qp.harvest.phases`).
 """
 
 from __future__ import annotations
@@ -52,18 +52,16 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from harvest_qp.baseline import PseudoInverseMapper
-from harvest_qp.config import _build_limit
+from harvest_qp.config import build_limit
 from harvest_qp.configuration import Configuration
-from harvest_qp.controller import TaskController
 from harvest_qp.exceptions import ConfigError, HarvestQPError, InvalidInputError
-from harvest_qp.interface import PointCloud, RobotInterface
+from harvest_qp.harvest.phases import Phase, PhaseMachine, PhaseRules
 from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit
-from harvest_qp.loop.phases import Phase, PhaseMachine, PhaseRules
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
 from harvest_qp.perception.cloud_split import LabelledFrame as _Frame  # _State.frame
 from harvest_qp.perception.cloud_split import obstacle_sphere_centres, outside_held_cluster
 from harvest_qp.perception.grasp_target import SWING_CAPSULES, SwingCheck, choose_grasp_target
+from harvest_qp.pinv import PseudoInverseMapper
 from harvest_qp.references import (
     GraspFeedForward,
     HoldPose,
@@ -74,7 +72,9 @@ from harvest_qp.references import (
     predicted_stem_points,
     roll_reference,
 )
-from harvest_qp.runner import Command, Observation, _command, _PairColumns, _ValueLayout, _ValueRow
+from harvest_qp.runtime.interface import PointCloud, RobotInterface
+from harvest_qp.runtime.runner import Command, Observation, _command, _PairColumns, _ValueLayout, _ValueRow
+from harvest_qp.task_controller import TaskController
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 
 __all__ = ["Phase", "HarvestController", "FrameSnapshot", "SwitchSnapshot"]
@@ -109,7 +109,7 @@ class SwitchSnapshot:
 @dataclass
 class _State:
     """What the controller knows of the scene and its own last command (the phase and its
-    timers are :class:`~harvest_qp.loop.phases.PhaseMachine`'s)."""
+    timers are :class:`~harvest_qp.harvest.phases.PhaseMachine`'s)."""
 
     phase: Phase = Phase.APPROACH  # PhaseMachine.phase as of the last tick (read by the perception)
     p_sb: np.ndarray | None = None
@@ -156,7 +156,7 @@ class HarvestController:
     """The paper's bimanual controller behind the runner's ``reset``/``step`` protocol.
 
     Args:
-        settings: the checked settings tree of :func:`harvest_qp.loop.settings.load_settings`.
+        settings: the checked settings tree of :func:`harvest_qp.config.settings.load_settings`.
         environment: static capsules of the scene known to the controller (``qp.environment``).
         mapper: ``"qp"`` (the QP of this library) or ``"pinv"`` (the paper's
             ``eq:controlled_system`` on the same references); default from the settings.
@@ -192,7 +192,7 @@ class HarvestController:
             if not isinstance(entry, dict) or "type" not in entry:
                 raise ConfigError(f"{where}: each entry must be a mapping with a 'type' key, got {entry!r}")
             try:
-                limits.append(_build_limit(entry, self.configuration, where, environment))
+                limits.append(build_limit(entry, self.configuration, where, environment))
             except ConfigError:
                 raise
             except (HarvestQPError, TypeError, ValueError, KeyError) as err:
@@ -221,7 +221,7 @@ class HarvestController:
         #: How the last p_gd was chosen (``_target_within_swing``'s tier), for metrics.json.
         self.target_choice: str | None = None
         self.state = _State()
-        #: The phase and its timers (:mod:`harvest_qp.loop.phases`).
+        #: The phase and its timers (:mod:`harvest_qp.harvest.phases`).
         self.phases = PhaseMachine(PhaseRules.from_settings(settings))
         self.dt = 0.002
         self.snapshots: dict[str, FrameSnapshot] = {}
