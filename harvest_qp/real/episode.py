@@ -45,7 +45,7 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
         lines = str(log.get("error", "")).strip().splitlines()
         raise EpisodeError(f"the episode ended with status {str(log.get('episode_status'))!r} before the controller "
                            f"logged its values: {lines[0] if lines else 'no error message'}")
-    st = controller.state
+    st, phases = controller.state, controller.phases
     f_d = float(settings["grasping"]["f_d"])
 
     def finite(x: float) -> float | None:
@@ -55,8 +55,8 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
     start = int(frame_stem[0]) if len(frame_stem) else 0
     end = int(np.median(frame_stem[frame_time >= frame_time[-1] - 0.5])) if len(frame_stem) else 0
     at_switch = None
-    if st.t_switch is not None and len(frame_time):
-        before = np.flatnonzero(frame_time <= st.t_switch + 1e-9)
+    if phases.t_switch is not None and len(frame_time):
+        before = np.flatnonzero(frame_time <= phases.t_switch + 1e-9)
         at_switch = int(frame_stem[before[-1]]) if len(before) else None
     force_nc = log["value/force_nc"]
     last = t >= t[-1] - 1.0 + 1e-9
@@ -80,8 +80,8 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
         "stop_reason": error.strip().splitlines()[0] if error.strip() else None,
         "duration": float(n * float(log["control_period"])),
         "phase_reached": "abort" if reached == Phase.ABORT else reached.name.lower(),
-        "t_bimanual_start": finite(st.t_switch) if st.t_switch is not None else None,
-        "t_precut": finite(st.t_precut) if st.t_precut is not None else None,
+        "t_bimanual_start": finite(phases.t_switch) if phases.t_switch is not None else None,
+        "t_precut": finite(phases.t_precut) if phases.t_precut is not None else None,
         "final_distance_to_estimated_roi_center": finite(last("value/roi_distance")),
         "final_theta_estimated_roi_deg": finite(math.degrees(last("value/theta"))),
         "visible_stem_points_start": start,
@@ -94,21 +94,21 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
         "f_d": f_d,
         "min_collision_distance": finite(min_capsule_distance(log["q"], [])),  # robot-robot and stand only
         "peak_joint_speed": float(np.abs(log["qdot"]).max()),
-        "qp_failures": int(st.qp_failures),
-        "qp_backup_solves": int(st.backup_solves),
-        "abort_reason": st.abort_reason,
+        "qp_failures": int(phases.qp_failures),
+        "qp_backup_solves": int(phases.backup_solves),
+        "abort_reason": phases.abort_reason,
         "estimated_stem_length": finite(st.stem_length),
         "camera_frames": int(len(frame_time)),
         "realtime_factor": float(realtime_factor),
     }
     checks = {
-        "precut_reached": st.t_precut is not None,
+        "precut_reached": phases.t_precut is not None,
         "unveiled": end >= 3 * max(start, 1),
         "force_settled": math.isfinite(force_mean) and abs(force_mean - f_d) <= 0.1 * f_d,
         "force_below_2fd": math.isfinite(force_max) and force_max <= 2.0 * f_d,
         "aligned": math.isfinite(alignment) and alignment < 5.0,
         "position_error_small": math.isfinite(position_error) and position_error < 0.005,
-        "no_abort": st.abort_reason is None,
+        "no_abort": phases.abort_reason is None,
         "no_robot_stop": metrics["episode_status"] == "completed",
     }
     metrics["criteria"] = {k: bool(v) for k, v in checks.items()}

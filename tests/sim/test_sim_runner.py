@@ -238,7 +238,7 @@ def test_command_done_ends_the_episode():
 
 # ---------------------------------------------------------------- the library's own log protocol
 
-from harvest_qp import runner as _runner  # noqa: E402
+from harvest_qp.runtime import runner as _runner  # noqa: E402
 from harvest_qp.runtime.runner import _PairColumns, _ValueLayout, _ValueRow  # noqa: E402
 
 _LAYOUT_A = _ValueLayout((("late", ()), ("never", (2,)), ("s", ()), ("v", (3,)), ("m", (2, 2))))
