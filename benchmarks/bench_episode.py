@@ -151,7 +151,7 @@ def _controller_clock(controller, clock) -> None:
 def time_episode(settings: dict, duration: float, *, clock=time.thread_time) -> dict:
     """One episode with timers (on ``clock``) around its parts; returns the breakdown."""
     robot = build_robot(settings, 0)
-    controller = HarvestController(settings, environment=environment_capsules_for(robot, settings["qp"]["environment"]))
+    controller = HarvestController(settings, environment=environment_capsules_for(robot, settings.qp.environment))
     _controller_clock(controller, clock)
     timers = _Timers(clock)
     # Simulation: robot.step = physics + (every 1/30 s) the camera frame.

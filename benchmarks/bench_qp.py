@@ -153,7 +153,7 @@ class EpisodeProblems:
         settings = load_settings(settings or tasks_dir() / "paper.yaml")
         robot = build_robot(settings, 0)
         controller = HarvestController(
-            settings, environment=environment_capsules_for(robot, settings["qp"]["environment"])
+            settings, environment=environment_capsules_for(robot, settings.qp.environment)
         )
         qp = controller.qp
         self.controller = controller

@@ -54,8 +54,8 @@ def run(
         from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController, paper_episode_extras
 
         live = LiveViewer(vine=robot.model, port=port)  # prints the URL to open
-        return ViewedController(controller, live, extras=paper_episode_extras(settings["reaching"]["radius"],
-                                                                  cell_resolution=settings["obstacle_map"]["resolution"],
+        return ViewedController(controller, live, extras=paper_episode_extras(settings.reaching.radius,
+                                                                  cell_resolution=settings.obstacle_map.resolution,
                                                                   controller=controller),
                                 pacer=RealTimePacer() if realtime else None)  # fmt: skip
 

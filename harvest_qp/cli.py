@@ -169,7 +169,7 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
         # The progress line and the viewer only observe: they wrap the controller.
         nonlocal shown
         if progress if progress is not None else wants_progress():
-            length = duration if duration is not None else settings["episode"]["duration"]
+            length = duration if duration is not None else settings.episode.duration
             controller = shown = ProgressController(controller, duration=length)
         return with_viewer(robot, controller) if viewer == "meshcat" else controller
 
@@ -179,8 +179,8 @@ def run_paper(config: Path, *, seed: int = 0, out: Path | None = None, mapper: s
         from harvest_qp.viewer import LiveViewer, RealTimePacer, ViewedController, paper_episode_extras
 
         live = LiveViewer(vine=robot.model, host=host, port=port)  # prints the URL
-        extras = paper_episode_extras(settings["reaching"]["radius"],
-                                      cell_resolution=settings["obstacle_map"]["resolution"], controller=controller)
+        extras = paper_episode_extras(settings.reaching.radius,
+                                      cell_resolution=settings.obstacle_map.resolution, controller=controller)
         return ViewedController(controller, live, extras=extras, pacer=RealTimePacer() if realtime else None)
 
     try:

@@ -1,12 +1,12 @@
-"""The paper's experiment as a checked settings tree (``tasks/paper.yaml``).
+"""The paper's experiment as typed, checked settings (``tasks/paper.yaml``).
 
 Every value of Section ``sec:exper`` has a key, written as in the paper (gains ``k_*``);
 every key has a default, so a file only needs what it changes, and every key can be
 overridden from the command line (``--set grasping.f_d=2.5``). The keys, their units and
 defaults live in ONE place, the schema :class:`harvest_qp.config.EpisodeConfig` (pydantic);
-this module turns a file into the plain nested ``dict`` the controller reads. Unknown keys,
-wrong types and out-of-range values raise :class:`~harvest_qp.exceptions.ConfigError` with
-one line naming the file, the key, the expected value and what was found.
+the controller reads its attributes (``settings.grasping.f_d``). Unknown keys, wrong types and
+out-of-range values raise :class:`~harvest_qp.exceptions.ConfigError` with one line naming the
+file, the key, the expected value and what was found.
 """
 
 from __future__ import annotations
@@ -21,21 +21,29 @@ from harvest_qp.exceptions import ConfigError
 
 __all__ = ["DEFAULTS", "load_settings", "apply_override", "check_settings"]
 
-#: Every key's default, as the controller reads it (from the schema: do not edit here).
-DEFAULTS: dict[str, Any] = EpisodeConfig().model_dump(exclude={"extends"})
+#: Every key's default (the schema's; do not edit here).
+DEFAULTS: EpisodeConfig = EpisodeConfig()
 
 
-def check_settings(data: Mapping[str, Any], source: str = "settings") -> dict[str, Any]:
-    """Check ``data`` against the schema and return it with every default filled in."""
+def check_settings(data: EpisodeConfig | Mapping[str, Any], source: str = "settings") -> EpisodeConfig:
+    """``data`` as checked settings: an :class:`EpisodeConfig` as it is, a mapping checked against the
+    schema with every default filled in.
+
+    Raises:
+        ConfigError: not a mapping, an unknown key, a bad value (one line naming the key).
+    """
+    if isinstance(data, EpisodeConfig):
+        return data
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{source}: the file must hold a mapping of sections; got {type(data).__name__}")
-    return validate_data(data, kind="episode", source=source).model_dump(exclude={"extends"})
+        raise ConfigError(f"{source}: the settings must be an EpisodeConfig or a mapping of sections; "
+                          f"got {type(data).__name__}")
+    return validate_data(data, kind="episode", source=source)
 
 
-def load_settings(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> dict[str, Any]:
+def load_settings(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> EpisodeConfig:
     """Read a paper-episode settings file (YAML, ``extends`` followed), apply ``section.key=value`` overrides, check it.
 
     Raises:
         ConfigError: missing or unreadable file, invalid YAML, unknown key, bad value, ``extends`` cycle.
     """
-    return load_config(path, overrides, kind="episode").model_dump(exclude={"extends"})
+    return load_config(path, overrides, kind="episode")

@@ -23,6 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from harvest_qp.config import EpisodeConfig  # noqa: E402
 from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
 
 __all__ = ["write_figures", "label_image"]
@@ -67,13 +68,13 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def write_figures(log: dict, controller, settings: dict, out_dir: Path, metrics: dict) -> list[Path]:
+def write_figures(log: dict, controller, settings: EpisodeConfig, out_dir: Path, metrics: dict) -> list[Path]:
     """Write the figures listed in the module docstring; return their paths."""
     out_dir = Path(out_dir)
     t = log["t"]
     ts = controller.phases.t_switch
-    f_d = settings["grasping"]["f_d"]
-    r = settings["reaching"]["radius"]
+    f_d = settings.grasping.f_d
+    r = settings.reaching.radius
     paths = []
 
     fig, ax = plt.subplots(figsize=(5, 3.2))

@@ -47,12 +47,13 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from harvest_qp.config import build_limit
+from harvest_qp.config import EpisodeConfig, build_limit, check_settings
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import ConfigError, HarvestQPError, InvalidInputError
 from harvest_qp.harvest.phases import Phase, PhaseMachine, PhaseRules
@@ -156,41 +157,40 @@ class HarvestController:
     """The paper's bimanual controller behind the runner's ``reset``/``step`` protocol.
 
     Args:
-        settings: the checked settings tree of :func:`harvest_qp.config.settings.load_settings`.
+        settings: the episode's settings (:func:`harvest_qp.config.load_settings`), or a mapping of them
+            (checked, every default filled in).
         environment: static capsules of the scene known to the controller (``qp.environment``).
         mapper: ``"qp"`` (the QP of this library) or ``"pinv"`` (the paper's
             ``eq:controlled_system`` on the same references); default from the settings.
     """
 
-    def __init__(self, settings: dict, *, environment=(), mapper: str | None = None) -> None:
-        self.settings = settings
-        s = settings
-        self.mapper_kind = mapper or s["mapper"]["kind"]
+    def __init__(self, settings: EpisodeConfig | Mapping[str, Any], *, environment=(), mapper: str | None = None
+                 ) -> None:
+        self.settings = s = check_settings(settings)
+        self.mapper_kind = mapper or s.mapper.kind
         if self.mapper_kind not in ("qp", "pinv"):
             raise ConfigError(f"mapper must be 'qp' or 'pinv'; got {self.mapper_kind!r}")
         self.configuration = Configuration.dual_ur5e()
-        qp = s["qp"]
+        qp = s.qp
         self.camera_task = FrameTwistTask(
-            "camera", weight=qp["camera_task"]["weight"], weight_frame="local", level=qp["camera_task"]["level"]
+            "camera", weight=qp.camera_task.weight, weight_frame="local", level=qp.camera_task.level
         )
         self.gripper_task = FrameTwistTask(
-            "gripper", weight=qp["gripper_task"]["weight"], level=qp["gripper_task"]["level"]
+            "gripper", weight=qp.gripper_task.weight, level=qp.gripper_task.level
         )
-        roll_weight = qp["roll_task"]["weight"] if s["roll"]["enabled"] else 0.0
+        roll_weight = qp.roll_task.weight if s.roll.enabled else 0.0
         self.roll_task = FrameTwistTask(
-            "camera", weight=[0, 0, 0, 0, 0, roll_weight], weight_frame="local", level=qp["roll_task"]["level"]
+            "camera", weight=[0, 0, 0, 0, 0, roll_weight], weight_frame="local", level=qp.roll_task.level
         )
-        self.posture_task = PostureTask(self.configuration.q, weight=qp["posture"]["weight"],
-                                        level=qp["posture"]["level"])
+        self.posture_task = PostureTask(self.configuration.q, weight=qp.posture.weight,
+                                        level=qp.posture.level)
         tasks = [self.camera_task, self.gripper_task, self.roll_task, self.posture_task,
-                 DampingTask(self.configuration.nv, weight=qp["damping"]["weight"], level=qp["damping"]["level"])]
+                 DampingTask(self.configuration.nv, weight=qp.damping.weight, level=qp.damping.level)]
         from harvest_qp.config import build_tasks  # qp.extra_tasks: user tasks at their own level (issue 8)
-        tasks += build_tasks(qp.get("extra_tasks", ()), self.configuration, where="qp.extra_tasks")
+        tasks += build_tasks([t.model_dump() for t in qp.extra_tasks], self.configuration, where="qp.extra_tasks")
         limits = []
-        for i, entry in enumerate(qp["limits"]):
+        for i, entry in enumerate(e.model_dump() for e in qp.limits):
             where = f"qp.limits[{i}]"
-            if not isinstance(entry, dict) or "type" not in entry:
-                raise ConfigError(f"{where}: each entry must be a mapping with a 'type' key, got {entry!r}")
             try:
                 limits.append(build_limit(entry, self.configuration, where, environment))
             except ConfigError:
@@ -203,15 +203,15 @@ class HarvestController:
             else 10.0 * np.ones(12)
         )
         self.collision = next((lim for lim in limits if isinstance(lim, CollisionAvoidance)), None)
-        self.qp = TaskController(self.configuration, tasks, limits, dt=0.002, solver=qp["solver"],
+        self.qp = TaskController(self.configuration, tasks, limits, dt=0.002, solver=qp.solver,
                                  max_acceleration=self.max_acceleration)
-        backup = qp.get("backup_solver")
+        backup = qp.backup_solver
         self.qp_backup = (
             TaskController(self.configuration, tasks, self.qp.limits, dt=0.002, solver=backup,
                            max_acceleration=self.max_acceleration)
             if backup else None
         )
-        self.pinv = PseudoInverseMapper(self.configuration, damping=s["mapper"]["pinv_damping"])
+        self.pinv = PseudoInverseMapper(self.configuration, damping=s.mapper.pinv_damping)
         self._camera_id = self.configuration.frame_id("camera")
         self._gripper_id = self.configuration.frame_id("gripper")
         self._build_references()
@@ -246,18 +246,18 @@ class HarvestController:
         from harvest_qp.perception.map_feed import MapCapsule, MapCollisionFeed
         from harvest_qp.perception.obstacle_map import ObstacleMap
 
-        m = self.settings["obstacle_map"]
+        m = self.settings.obstacle_map
         self.obstacle_map = None
         self.map_feed = None
         self._swing_capsules = []
-        if not m["enabled"] or self.collision is None or self.mapper_kind != "qp":
+        if not m.enabled or self.collision is None or self.mapper_kind != "qp":
             return
-        if self.settings["obstacles"]["enabled"]:
+        if self.settings.obstacles.enabled:
             raise ConfigError("obstacle_map.enabled and obstacles.enabled both feed the collision limit; "
                               "expected at most one of them true")
         from harvest_qp.robot import description
 
-        prefixes = ("cam_",) if m["arms"] == "camera" else ("cam_", "grasp_")
+        prefixes = ("cam_",) if m.arms == "camera" else ("cam_", "grasp_")
         capsules = [
             MapCapsule(b.name, b.link, b.capsule.p0, b.capsule.p1, b.capsule.radius)
             for b in description.collision_bodies() if b.arm and b.name.startswith(prefixes)
@@ -269,10 +269,10 @@ class HarvestController:
             for b in description.collision_bodies() if b.arm and b.name in SWING_CAPSULES
         ]
         try:
-            self.obstacle_map = ObstacleMap(resolution=m["resolution"], clear_rays=m["clear_rays"])
+            self.obstacle_map = ObstacleMap(resolution=m.resolution, clear_rays=m.clear_rays)
             self.map_feed = MapCollisionFeed(
-                self.collision, self.obstacle_map, self.configuration, per_capsule=m["per_capsule"],
-                min_separation=m["min_separation"], margin=m["margin"], max_cells=m["max_cells"], capsules=capsules,
+                self.collision, self.obstacle_map, self.configuration, per_capsule=m.per_capsule,
+                min_separation=m.min_separation, margin=m.margin, max_cells=m.max_cells, capsules=capsules,
             )
             # The grasping arm's map rows only stop it ("no further approach"), never push
             # it: the map lies 5-15 mm short of the surface, so a gripper that starts near
@@ -288,30 +288,29 @@ class HarvestController:
         latest p_sb (:func:`~harvest_qp.perception.obstacle_map.held_crop_exclusions`)."""
         from harvest_qp.perception.obstacle_map import held_crop_exclusions
 
-        m = self.settings["obstacle_map"]
+        m = self.settings.obstacle_map
         return held_crop_exclusions(
-            T_g, self.state.p_sb, grasp_offset=self.settings["perception"]["grasp_offset"],
-            cluster_start=m["cluster_start"], cluster_length=m["cluster_length"], cluster_radius=m["cluster_radius"],
-            stem_length=m["stem_length"], stem_radius=m["stem_radius"],
+            T_g, self.state.p_sb, grasp_offset=self.settings.perception.grasp_offset,
+            cluster_start=m.cluster_start, cluster_length=m.cluster_length, cluster_radius=m.cluster_radius,
+            stem_length=m.stem_length, stem_radius=m.stem_radius,
         )
 
     def _build_references(self) -> None:
         s = self.settings
-        r, u, g = s["reaching"], s["unveiling"], s["grasping"]
+        r, u, g = s.reaching, s.unveiling, s.grasping
         # V_cr reaches its sphere only asymptotically from outside (measured 1.01-1.05 r after
         # 15-30 s); aiming at target_radius_factor x r makes the camera end inside the ROI.
         self.reaching = ReachingCentering(
-            radius=r["target_radius_factor"] * r["radius"], k_cp=r["k_cp"], k_co=r["k_co"],
-            roi_time_constant=r["roi_time_constant"],
+            radius=r.target_radius_factor * r.radius, k_cp=r.k_cp, k_co=r.k_co,
+            roi_time_constant=r.roi_time_constant,
         )
         self.unveiling = Unveiling(
-            k_c=u["k_c"], d_a=u["d_a"], d_o=u["d_o"], time_constant=u["time_constant"], max_linear=u["max_linear"],
-            max_angular=u["max_angular"], min_pivot=u["min_pivot"], min_stem_points=self.settings["perception"][
-                "min_stem_points"],
+            k_c=u.k_c, d_a=u.d_a, d_o=u.d_o, time_constant=u.time_constant, max_linear=u.max_linear,
+            max_angular=u.max_angular, min_pivot=u.min_pivot, min_stem_points=self.settings.perception.min_stem_points,
         )
         self.stretching = StemStretching(
-            k_pg=g["k_pg"], k_og=g["k_og"], k_fp=g["k_fp"], k_fi=g["k_fi"], f_d=g["f_d"], max_speed=g["max_speed"],
-            integration_threshold=g["integration_threshold"],
+            k_pg=g.k_pg, k_og=g.k_og, k_fp=g.k_fp, k_fi=g.k_fi, f_d=g.f_d, max_speed=g.max_speed,
+            integration_threshold=g.integration_threshold,
         )
         self.feed_forward = GraspFeedForward()
 
@@ -327,7 +326,7 @@ class HarvestController:
         self.posture_task.set_target(q0)
         self.configuration.update(q0)
         gripper = self.configuration.frame_pose("gripper").homogeneous
-        self.state = _State(hold=HoldPose(gripper, k_hold=self.settings["grasping"]["k_hold"]))
+        self.state = _State(hold=HoldPose(gripper, k_hold=self.settings.grasping.k_hold))
         self.phases.reset()
         self.reaching.reset(self.configuration.frame_position("gripper"))
         self.unveiling.reset()
@@ -353,11 +352,11 @@ class HarvestController:
         snap = FrameSnapshot(cloud.timestamp, cloud.pixels, cloud.labels, cloud.image_size, cloud.depth)
         self.snapshots.setdefault("start", snap)
         self.snapshots["end"] = snap
-        if s["unveiling"]["enabled"]:
+        if s.unveiling.enabled:
             # Only the predicted mode reads the predicted stem (the law ignores it once
             # min_stem_points stem points are seen): not computed on the other frames.
             law = self.unveiling
-            predicted_mode = s["unveiling"]["predicted_stem"] and frame.n_stem < law.min_stem_points
+            predicted_mode = s.unveiling.predicted_stem and frame.n_stem < law.min_stem_points
             # The paper mode reads only every k-th non-stem row (law.obstacle_stride): only those are
             # gathered (and checked by the law: a non-finite point it reads raises, naming them).
             thin = frame.n_stem > 0 and not predicted_mode
@@ -365,14 +364,14 @@ class HarvestController:
             law.observe(frame.camera_position, frame.stem, obstacles,
                         predicted_stem_points=self._predicted_stem(T_g) if predicted_mode else None,
                         roi_centre=self.reaching.roi_centre, timestamp=frame.time)
-        if self.collision is not None and s["obstacles"]["enabled"]:
+        if self.collision is not None and s.obstacles.enabled:
             self._update_obstacle_spheres(frame.obstacles, T_g)
         if st.phase != Phase.APPROACH:
             return
-        p = s["perception"]
-        if frame.n_stem >= p["min_stem_points"]:
+        p = s.perception
+        if frame.n_stem >= p.min_stem_points:
             fit = fit_stem(frame.stem, T_g[:3, 3])
-            if fit.valid and np.linalg.norm(fit.base - T_g[:3, 3]) <= p["max_base_distance"]:
+            if fit.valid and np.linalg.norm(fit.base - T_g[:3, 3]) <= p.max_base_distance:
                 frame.fit = fit
                 st.p_sb = fit.base.copy()
                 st.stem_length = fit.length
@@ -385,10 +384,10 @@ class HarvestController:
         :func:`~harvest_qp.perception.cloud_split.obstacle_sphere_centres`). Measured without
         it (default scene, lab contacts on): the gripper swinging the crop towards p_gd touched
         a leaf at 12 s, the wrist read 6 N of contact force and the episode aborted."""
-        o = self.settings["obstacles"]
-        centres = obstacle_sphere_centres(points, T_g, max_distance=o["max_distance"], voxel=o["voxel"],
-                                          cluster_length=o["cluster_length"], cluster_radius=o["cluster_radius"])
-        self.collision.set_obstacle_spheres(centres, o["radius"])
+        o = self.settings.obstacles
+        centres = obstacle_sphere_centres(points, T_g, max_distance=o.max_distance, voxel=o.voxel,
+                                          cluster_length=o.cluster_length, cluster_radius=o.cluster_radius)
+        self.collision.set_obstacle_spheres(centres, o.radius)
 
     def _grasp_obstacle_candidates(self, frame: _Frame) -> np.ndarray:
         """W - S without the robot's own points and the held crop (both move with the gripper).
@@ -398,27 +397,27 @@ class HarvestController:
         crop's and gripper's own points, so no p_gd existed there and the episode never
         switched. The crop cannot be an obstacle to where it is taken.
         """
-        if not self.settings["grasping"]["exclude_held_crop"]:
+        if not self.settings.grasping.exclude_held_crop:
             return frame.non_stem
-        o = self.settings["obstacles"]
+        o = self.settings.obstacles
         points = frame.obstacles
-        return points[outside_held_cluster(points, self._switch_gripper_pose, cluster_length=o["cluster_length"],
-                                           cluster_radius=o["cluster_radius"])]
+        return points[outside_held_cluster(points, self._switch_gripper_pose, cluster_length=o.cluster_length,
+                                           cluster_radius=o.cluster_radius)]
 
     def _target_within_swing(self, free, stem_base: np.ndarray, *, T_g: np.ndarray) -> np.ndarray | None:
         """p_gd within ``grasping.max_swing_deg`` of the stem now, map-aware with
         ``grasping.swing_clearance`` (:func:`~harvest_qp.perception.grasp_target.choose_grasp_target`)."""
-        g = self.settings["grasping"]
+        g = self.settings.grasping
         swing = None
-        if g["swing_clearance"] is not None and self.obstacle_map is not None and self._swing_capsules:
+        if g.swing_clearance is not None and self.obstacle_map is not None and self._swing_capsules:
             capsules = []
             for frame, a, b, radius in self._swing_capsules:
                 pose = self.configuration.frame_pose(frame)
                 capsules.append((pose.act(a), pose.act(b), radius))
             swing = SwingCheck(self.obstacle_map, self.configuration.frame_position("gripper"), capsules,
-                               clearance=g["swing_clearance"], stretch=g["swing_stretch"])
-        top_of_crop = T_g[:3, 3] - self.settings["perception"]["grasp_offset"] * T_g[:3, 1]
-        target = choose_grasp_target(free, stem_base, top_of_crop, max_swing_deg=g["max_swing_deg"], swing=swing)
+                               clearance=g.swing_clearance, stretch=g.swing_stretch)
+        top_of_crop = T_g[:3, 3] - self.settings.perception.grasp_offset * T_g[:3, 1]
+        target = choose_grasp_target(free, stem_base, top_of_crop, max_swing_deg=g.max_swing_deg, swing=swing)
         self.target_choice = target.choice
         if target.swing_clearance is not None:
             self.last_swing_clearance = target.swing_clearance
@@ -434,20 +433,20 @@ class HarvestController:
         st = self.state
         if st.phase == Phase.APPROACH or st.p_sb is None:
             return predicted_stem_points(T_g)
-        top_of_crop = T_g[:3, 3] - self.settings["perception"]["grasp_offset"] * T_g[:3, 1]
+        top_of_crop = T_g[:3, 3] - self.settings.perception.grasp_offset * T_g[:3, 1]
         return top_of_crop + np.linspace(0.0, 1.0, 12)[:, None] * (st.p_sb - top_of_crop)
 
     def _try_switch(self, t: float, obs: Observation, T_g: np.ndarray) -> bool:
         """Recompute p_sb and p_gd on the latest frame; True (sensor tared, laws retargeted) if both exist."""
-        st, g = self.state, self.settings["grasping"]
+        st, g = self.state, self.settings.grasping
         frame = st.frame
         if frame is None or frame.fit is None:
             return False
         fit = frame.fit
         length = fit.length
-        r_o = length if g["r_o"] == "l" else float(g["r_o"])
+        r_o = length if g.r_o == "l" else float(g.r_o)
         obstacles = obstacles_near_stem_base(self._grasp_obstacle_candidates(frame), fit.base, r_o)
-        free = compute_free_space(obstacles, fit.base, length, frame.camera_position, n_samples=g["n_samples"])
+        free = compute_free_space(obstacles, fit.base, length, frame.camera_position, n_samples=g.n_samples)
         if not free.valid or free.target is None:
             return False
         target = self._target_within_swing(free, fit.base, T_g=T_g)
@@ -516,12 +515,12 @@ class HarvestController:
         (``eq:superimp_g``) on the wrist force (tared at the switch; zero on the switch tick).
         """
         s, st, dt = self.settings, self.state, self.dt
-        r = s["reaching"]
+        r = s.reaching
         reaching, stretching = self.reaching, self.stretching
         V_c = reaching.update(T_c, dt)
-        V_c += keep_out_velocity(T_c[:3, 3], reaching.roi_centre, min_distance=r["min_distance_factor"] * r["radius"],
-                                 gain=r["k_keep_out"])
-        if s["unveiling"]["enabled"]:
+        V_c += keep_out_velocity(T_c[:3, 3], reaching.roi_centre, min_distance=r.min_distance_factor * r.radius,
+                                 gain=r.k_keep_out)
+        if s.unveiling.enabled:
             V_c += self.unveiling.update(dt)
         force_nc = math.nan
         if self.phases.phase == Phase.APPROACH:
@@ -531,11 +530,11 @@ class HarvestController:
             force = obs.force if t > self.phases.t_switch else np.zeros(3)
             V_g = stretching.update(T_g, force, dt)
             force_nc = stretching.force_along_nc
-            if s["grasping"]["feed_forward"]:
+            if s.grasping.feed_forward:
                 V_c += self.feed_forward(stretching.v_gt, T_c[:3, 3], st.p_sb)
             self.phases.stretch(t, dt, force_nc, stretching.position_error, stretching.alignment)
             direction = stretching.n_c
-        roll, roll_error = roll_reference(T_c, direction, k_roll=s["roll"]["k_roll"])
+        roll, roll_error = roll_reference(T_c, direction, k_roll=s.roll.k_roll)
         return _References(V_c, V_g, roll, roll_error, force_nc, reaching.distance)
 
     def _joint_speeds(self, t: float, q: np.ndarray, references: _References) -> tuple[np.ndarray, str, float | None]:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from harvest_qp.config import EpisodeConfig
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import EpisodeError
 from harvest_qp.harvest.environment import environment_capsules_for
@@ -62,11 +63,11 @@ def min_capsule_distance(q_log: np.ndarray, environment, every: int = 10) -> flo
     return best
 
 
-def compute_metrics(log: dict, robot, controller, settings: dict, *, mapper: str, seed: int,
+def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, mapper: str, seed: int,
                     realtime_factor: float) -> dict[str, Any]:
     """The metrics of one episode (see the module docstring)."""
-    g = settings["grasping"]
-    f_d, radius = float(g["f_d"]), float(settings["reaching"]["radius"])
+    g = settings.grasping
+    f_d, radius = float(g.f_d), float(settings.reaching.radius)
     t = log["t"]
     n = len(t)
     if n == 0 or "value/phase" not in log:

@@ -75,18 +75,18 @@ class PhaseRules:
     @classmethod
     def from_settings(cls, s: dict[str, Any]) -> PhaseRules:
         """From the checked settings tree (:func:`harvest_qp.config.settings.check_settings`)."""
-        sw, safety, p = s["switch"], s["safety"], s["precut"]
-        f_d = float(s["grasping"]["f_d"])
+        sw, safety, p = s.switch, s.safety, s.precut
+        f_d = float(s.grasping.f_d)
         return cls(
-            radius=s["reaching"]["radius"], f_d=f_d, switch_window=sw["window"],
-            switch_distance_factor=sw["distance_factor"], switch_max_linear=sw["max_linear_speed"],
-            switch_max_angular=sw["max_angular_speed"], no_stem_timeout=safety["no_stem_timeout"],
-            stem_lost_timeout=safety["stem_lost_timeout"],
-            force_limit=2.0 * f_d if safety["force_limit"] is None else float(safety["force_limit"]),
-            max_qp_failures=safety["max_qp_failures"], force_tolerance=p["force_tolerance"],
-            position_tolerance=p["position_tolerance"], alignment_tolerance_deg=p["alignment_tolerance_deg"],
-            hold_time=p["hold_time"], force_time_constant=p["force_time_constant"],
-            end_after_precut=s["episode"]["end_after_precut"], stop_after_abort=s["episode"]["stop_after_abort"],
+            radius=s.reaching.radius, f_d=f_d, switch_window=sw.window,
+            switch_distance_factor=sw.distance_factor, switch_max_linear=sw.max_linear_speed,
+            switch_max_angular=sw.max_angular_speed, no_stem_timeout=safety.no_stem_timeout,
+            stem_lost_timeout=safety.stem_lost_timeout,
+            force_limit=2.0 * f_d if safety.force_limit is None else float(safety.force_limit),
+            max_qp_failures=safety.max_qp_failures, force_tolerance=p.force_tolerance,
+            position_tolerance=p.position_tolerance, alignment_tolerance_deg=p.alignment_tolerance_deg,
+            hold_time=p.hold_time, force_time_constant=p.force_time_constant,
+            end_after_precut=s.episode.end_after_precut, stop_after_abort=s.episode.stop_after_abort,
         )
 
 

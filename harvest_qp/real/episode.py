@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from harvest_qp.config import EpisodeConfig
 from harvest_qp.exceptions import ConfigError, EpisodeError
 from harvest_qp.real.calibration import Calibration, load_calibration
 from harvest_qp.real.cell import CellConfig, load_cell
@@ -28,13 +29,14 @@ from harvest_qp.runtime.interface import ROBOT, STEM
 __all__ = ["run_real_episode", "real_metrics", "dry_run_report", "open_real_robot", "run_real"]
 
 
-def _check_settings(settings: dict) -> None:
-    if settings["qp"]["environment"]:
-        raise ConfigError(f"qp.environment names lab geoms {settings['qp']['environment']}; the real cell has no "
+def _check_settings(settings: EpisodeConfig) -> None:
+    if settings.qp.environment:
+        raise ConfigError(f"qp.environment names lab geoms {settings.qp.environment}; the real cell has no "
                           "scene model: set qp.environment to []")
 
 
-def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime_factor: float) -> dict[str, Any]:
+def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
+                 realtime_factor: float) -> dict[str, Any]:
     """The episode's metrics that need no ground truth (the lab's names where they exist)."""
     from harvest_qp.harvest.harvest_controller import Phase
     from harvest_qp.harvest.metrics import min_capsule_distance
@@ -46,7 +48,7 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
         raise EpisodeError(f"the episode ended with status {str(log.get('episode_status'))!r} before the controller "
                            f"logged its values: {lines[0] if lines else 'no error message'}")
     st, phases = controller.state, controller.phases
-    f_d = float(settings["grasping"]["f_d"])
+    f_d = float(settings.grasping.f_d)
 
     def finite(x: float) -> float | None:
         return float(x) if x is not None and math.isfinite(float(x)) else None
@@ -116,7 +118,7 @@ def real_metrics(log: dict, controller, settings: dict, *, mapper: str, realtime
     return metrics
 
 
-def run_real_episode(settings: dict, robot, *, mapper: str | None = None, duration: float | None = None,
+def run_real_episode(settings: EpisodeConfig, robot, *, mapper: str | None = None, duration: float | None = None,
                      out_dir: str | Path = "runs/real", config_name: str = "paper", figures: bool = True,
                      metadata: dict | None = None) -> dict[str, Any]:
     """Run the paper episode on ``robot`` (any RobotInterface without ground truth); write the
@@ -125,15 +127,15 @@ def run_real_episode(settings: dict, robot, *, mapper: str | None = None, durati
     from harvest_qp.runtime.runner import run_episode, write_npz
 
     _check_settings(settings)
-    mapper = mapper or settings["mapper"]["kind"]
-    duration = float(duration if duration is not None else settings["episode"]["duration"])
+    mapper = mapper or settings.mapper.kind
+    duration = float(duration if duration is not None else settings.episode.duration)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     controller = HarvestController(settings, environment=(), mapper=mapper)
     wall0 = time.perf_counter()
     result = run_episode(
         robot, controller, duration=duration, log_timing=True,
-        log_clouds=settings["episode"]["log_cloud_every"], cloud_max_points=settings["episode"]["log_cloud_points"],
+        log_clouds=settings.episode.log_cloud_every, cloud_max_points=settings.episode.log_cloud_points,
         metadata={"config": config_name, "mapper": mapper, "robot": "ur",
                   "phase_names": ",".join(p.name.lower() for p in Phase), **(metadata or {})},
     )
@@ -187,7 +189,7 @@ def dry_run_report(robot, calibration: Calibration | None, calibration_path: Pat
     return report
 
 
-def open_real_robot(settings: dict, cell: CellConfig, calibration: Calibration | None, *, camera_arm: str,
+def open_real_robot(settings: EpisodeConfig, cell: CellConfig, calibration: Calibration | None, *, camera_arm: str,
                     grasp_arm: str, camera: str | None = "realsense", serial: str | None = None,
                     rtde: Any = None, camera_source: Any = None, clock: Callable[[], float] | None = None):
     """Connect both arms (and start the camera); the caller must ``close()`` the robot."""
@@ -198,8 +200,8 @@ def open_real_robot(settings: dict, cell: CellConfig, calibration: Calibration |
         from harvest_qp.real.realsense import RealSenseSource, open_pipeline
 
         pipeline, scale = open_pipeline(cell.camera, serial)
-        source = RealSenseSource(pipeline, depth_scale=scale, downsample=int(settings["camera"]["downsample"]),
-                                 stem_range=float(settings["camera"]["stem_range"]), cell=cell.camera)
+        source = RealSenseSource(pipeline, depth_scale=scale, downsample=int(settings.camera.downsample),
+                                 stem_range=float(settings.camera.stem_range), cell=cell.camera)
     kwargs = {"clock": clock} if clock is not None else {}
     try:
         return DualUR5eRobot(camera_arm, grasp_arm, cell=cell,

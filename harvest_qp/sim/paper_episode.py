@@ -15,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from harvest_qp.config import EpisodeConfig
 from harvest_qp.exceptions import ConfigError, InvalidInputError
 from harvest_qp.harvest.environment import environment_capsules_for
 from harvest_qp.harvest.harvest_controller import HarvestController
@@ -38,17 +39,17 @@ class EpisodeReport:
     controller: HarvestController
 
 
-def scene_params(settings: dict, seed: int):
+def scene_params(settings: EpisodeConfig, seed: int):
     """The vine scene of an episode: the default scene for seed 0, a sampled one otherwise."""
     from harvest_qp.sim import VineSceneParams
 
-    overrides = dict(settings["scene"]["params"])
+    overrides = dict(settings.scene.params)
     names = {f.name for f in dataclasses.fields(VineSceneParams)}
     unknown = sorted(set(overrides) - names)
     if unknown:
         raise ConfigError(f"scene.params: unknown key(s) {unknown}; expected VineSceneParams fields: {sorted(names)}")
     try:
-        if seed > 0 and settings["scene"]["randomize"]:
+        if seed > 0 and settings.scene.randomize:
             return VineSceneParams.sample(seed, **overrides)
         overrides.setdefault("seed", seed)
         return VineSceneParams(**overrides)
@@ -56,17 +57,17 @@ def scene_params(settings: dict, seed: int):
         raise ConfigError(f"scene.params: {err}") from None
 
 
-def build_robot(settings: dict, seed: int):
+def build_robot(settings: EpisodeConfig, seed: int):
     """A :class:`~harvest_qp.sim.SimRobot` for the settings' camera, force sensor and scene."""
     from harvest_qp.sim import CameraConfig, ForceSensorConfig, SimRobot
     from harvest_qp.sim.robot import SensorFaults
 
-    camera = {k: v for k, v in settings["camera"].items() if k != "frame_loss"}
-    force = dict(settings["force_sensor"])
+    camera = settings.camera.model_dump(exclude={"frame_loss"})
+    force = settings.force_sensor.model_dump()
     try:
         return SimRobot(scene_params(settings, seed), seed=seed, camera=CameraConfig(**camera),
                         force=ForceSensorConfig(**force),
-                        faults=SensorFaults(frame_loss=float(settings["camera"]["frame_loss"])))
+                        faults=SensorFaults(frame_loss=float(settings.camera.frame_loss)))
     except InvalidInputError as err:
         raise ConfigError(f"camera/force_sensor settings: {err}") from None
 
@@ -103,7 +104,7 @@ def episode_ground_truth(robot) -> callable:
 
 
 def run_paper_episode(
-    settings: dict,
+    settings: EpisodeConfig,
     *,
     seed: int = 0,
     mapper: str | None = None,
@@ -127,21 +128,21 @@ def run_paper_episode(
             runs, e.g. a live viewer that observes each tick (``harvest_qp.viewer``); the
             wrapped object must keep the runner's reset/step protocol.
     """
-    mapper = mapper or settings["mapper"]["kind"]
-    duration = float(duration if duration is not None else settings["episode"]["duration"])
+    mapper = mapper or settings.mapper.kind
+    duration = float(duration if duration is not None else settings.episode.duration)
     if out_dir is None:
         out_dir = Path("runs") / f"{config_name}-{seed}{'-pinv' if mapper == 'pinv' else ''}"
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     robot = build_robot(settings, seed)
-    environment = environment_capsules_for(robot, settings["qp"]["environment"])
+    environment = environment_capsules_for(robot, settings.qp.environment)
     controller = HarvestController(settings, environment=environment, mapper=mapper)
     episode_controller = controller if wrap_controller is None else wrap_controller(robot, controller)
     wall0 = time.perf_counter()
     result = run_episode(
         robot, episode_controller, duration=duration, log_path=None, log_timing=True,
         # thinned clouds for the replay viewer and its HTML export (not used by any metric)
-        log_clouds=settings["episode"]["log_cloud_every"], cloud_max_points=settings["episode"]["log_cloud_points"],
+        log_clouds=settings.episode.log_cloud_every, cloud_max_points=settings.episode.log_cloud_points,
         metadata={"config": config_name, "mapper": mapper, "phase_names": ",".join(p.name.lower() for p in Phase),
                   # the replay viewer rebuilds the vine from the scene's seed (0 = the default scene)
                   **({"scene_sample_seed": seed} if seed > 0 else {})},

@@ -52,7 +52,7 @@ def config_fingerprint(config: Path, overrides: tuple[str, ...] = ()) -> dict[st
     """
     from harvest_qp.config.settings import load_settings
 
-    settings = load_settings(config, list(overrides))
+    settings = load_settings(config, list(overrides)).model_dump(exclude={"extends"})
     canonical = json.dumps(settings, sort_keys=True, separators=(",", ":"), default=str)
     return {"config": config.name, "settings_sha256": hashlib.sha256(canonical.encode()).hexdigest()}
 

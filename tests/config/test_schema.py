@@ -102,7 +102,7 @@ def test_the_settings_the_loop_reads_are_the_values_of_paper_yaml():
     Catches: a key renamed, dropped or shadowed by a default in the schema, i.e. an
     episode that would differ from the one `harvest-qp run tasks/paper.yaml` gave before."""
     raw = yaml.safe_load((tasks_dir() / "paper.yaml").read_text())
-    settings = load_settings(tasks_dir() / "paper.yaml")
+    settings = load_settings(tasks_dir() / "paper.yaml").model_dump()
     for keys, value in _leaves(raw):
         got = settings
         for key in keys:
@@ -113,7 +113,7 @@ def test_the_settings_the_loop_reads_are_the_values_of_paper_yaml():
             continue
         assert got == value, keys
     for keys, value in _leaves({k: v for k, v in raw.items() if k != "description"}):
-        got = DEFAULTS
+        got = DEFAULTS.model_dump()
         for key in keys:
             got = got[key]
         if keys != ("qp", "limits"):
@@ -215,11 +215,11 @@ def test_extends_deep_merges_relative_to_the_file(tmp_path, monkeypatch):
     child.write_text("extends: ../base/parent.yaml\ngrasping: {f_d: 2.5}\nqp:\n  limits: [{type: joint_position}]\n")
     monkeypatch.chdir(tmp_path / "base")
     settings = load_settings(child, ["grasping.k_og=0.7"])
-    assert settings["grasping"]["f_d"] == 2.5  # the child's
-    assert settings["grasping"]["k_pg"] == 0.2  # the parent's, kept by the deep merge
-    assert settings["grasping"]["k_og"] == 0.7  # --set
-    assert settings["grasping"]["k_fp"] == 0.001  # the default
-    assert [e["type"] for e in settings["qp"]["limits"]] == ["joint_position"]  # lists are replaced
+    assert settings.grasping.f_d == 2.5  # the child's
+    assert settings.grasping.k_pg == 0.2  # the parent's, kept by the deep merge
+    assert settings.grasping.k_og == 0.7  # --set
+    assert settings.grasping.k_fp == 0.001  # the default
+    assert [e.type for e in settings.qp.limits] == ["joint_position"]  # lists are replaced
 
 
 def test_extends_cycles_and_missing_parents_are_clear_errors(tmp_path):

@@ -135,7 +135,7 @@ def test_the_laws_every_kth_rows_give_the_laws_own_thinning(n_obstacles):
     from harvest_qp.config.settings import check_settings
     from harvest_qp.references import Unveiling
 
-    u = check_settings({})["unveiling"]
+    u = check_settings({}).unveiling
     rng = np.random.default_rng(n_obstacles)
     camera = np.array([0.6, 0.0, 0.4])
     stem = np.column_stack((0.02 * rng.normal(size=40), 0.02 * rng.normal(size=40), 0.5 + 0.1 * rng.random(40)))
@@ -147,8 +147,8 @@ def test_the_laws_every_kth_rows_give_the_laws_own_thinning(n_obstacles):
     frame = LabelledFrame(_cloud(points[order], labels[order], camera))
     laws = []
     for _ in range(2):
-        law = Unveiling(k_c=u["k_c"], d_a=u["d_a"], d_o=u["d_o"], time_constant=u["time_constant"],
-                        max_linear=u["max_linear"], max_angular=u["max_angular"], min_pivot=u["min_pivot"])
+        law = Unveiling(k_c=u.k_c, d_a=u.d_a, d_o=u.d_o, time_constant=u.time_constant,
+                        max_linear=u.max_linear, max_angular=u.max_angular, min_pivot=u.min_pivot)
         law.max_obstacle_points = 1000
         laws.append(law)
     thinned, whole = laws

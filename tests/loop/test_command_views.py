@@ -42,7 +42,7 @@ def setup():
 
 def _run(settings, wrapper):
     robot = build_robot(settings, 0)
-    controller = HarvestController(settings, environment=environment_capsules_for(robot, settings["qp"]["environment"]))
+    controller = HarvestController(settings, environment=environment_capsules_for(robot, settings.qp.environment))
     return run_episode(robot, wrapper(controller), duration=0.02)
 
 

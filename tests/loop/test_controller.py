@@ -30,7 +30,7 @@ def test_without_a_stem_it_aborts_and_brakes_to_rest_within_the_acceleration_lim
     settings, the timeout and stop time set here. Catches: a safe stop that jumps to zero or
     overshoots, an abort that keeps the QP running, an episode that never ends."""
     settings = check_settings({"safety": {"no_stem_timeout": 0.05}, "episode": {"stop_after_abort": 0.02}})
-    a_max = DEFAULTS["qp"]["limits"][2]["max_acceleration"]
+    a_max = DEFAULTS.qp.limits[2].max_acceleration
     controller = HarvestController(settings)
     q = np.asarray(HOME_Q, float) + 0.05
     controller.reset(_Robot(q))

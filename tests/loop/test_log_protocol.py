@@ -91,7 +91,7 @@ class _Generic:
 def _episode(generic: bool, overrides: list[str], duration: float):
     settings = load_settings(tasks_dir() / "paper.yaml", ["camera.downsample=6", *overrides])
     robot = build_robot(settings, 0)
-    controller = HarvestController(settings, environment=environment_capsules_for(robot, settings["qp"]["environment"]))
+    controller = HarvestController(settings, environment=environment_capsules_for(robot, settings.qp.environment))
     driven = _Generic(controller) if generic else controller
     return run_episode(robot, driven, duration=duration, ground_truth=episode_ground_truth(robot)), controller
 

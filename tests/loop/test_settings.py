@@ -18,26 +18,26 @@ def test_paper_yaml_holds_section_iv_values():
 
     Catches: a wrong or missing paper value in tasks/paper.yaml or in the defaults."""
     s = load_settings(PAPER)
-    assert s["reaching"]["radius"] == 0.35 and s["camera"]["stem_range"] == 0.7
-    assert s["unveiling"]["d_o"] == 0.001 and s["unveiling"]["d_a"] == 0.01 and s["unveiling"]["k_c"] == 0.00025
-    assert s["reaching"]["k_cp"] == 1 and s["reaching"]["k_co"] == 1
-    assert (s["switch"]["distance_factor"], s["switch"]["max_linear_speed"], s["switch"]["max_angular_speed"]) == (
+    assert s.reaching.radius == 0.35 and s.camera.stem_range == 0.7
+    assert s.unveiling.d_o == 0.001 and s.unveiling.d_a == 0.01 and s.unveiling.k_c == 0.00025
+    assert s.reaching.k_cp == 1 and s.reaching.k_co == 1
+    assert (s.switch.distance_factor, s.switch.max_linear_speed, s.switch.max_angular_speed) == (
         1.05, 0.01, 0.025)
-    g = s["grasping"]
-    assert (g["k_pg"], g["k_og"], g["k_fp"], g["k_fi"], g["f_d"], g["r_o"]) == (0.15, 0.3, 0.001, 0.0002, 3.0, "l")
-    assert (s["camera"]["width"], s["camera"]["height"], s["camera"]["downsample"], s["camera"]["rate"]) == (
+    g = s.grasping
+    assert (g.k_pg, g.k_og, g.k_fp, g.k_fi, g.f_d, g.r_o) == (0.15, 0.3, 0.001, 0.0002, 3.0, "l")
+    assert (s.camera.width, s.camera.height, s.camera.downsample, s.camera.rate) == (
         848, 480, 3, 30.0)
     # The file spells out every default (so that it documents every key), but qp.extra_tasks
     # (user tasks, empty for the paper; documented in docs/config.md).
     raw = yaml.safe_load(PAPER.read_text())
-    for section, values in DEFAULTS.items():
+    for section, values in DEFAULTS.model_dump().items():
         if isinstance(values, dict):
             assert set(raw[section]) == set(values) - {"extra_tasks"}, section
 
 
 def test_overrides_reach_every_key():
     s = load_settings(PAPER, ["grasping.f_d=2.5", "qp.camera_task.level=2", "safety.force_limit=4"])
-    assert s["grasping"]["f_d"] == 2.5 and s["qp"]["camera_task"]["level"] == 2 and s["safety"]["force_limit"] == 4
+    assert s.grasping.f_d == 2.5 and s.qp.camera_task.level == 2 and s.safety.force_limit == 4
 
 
 @pytest.mark.parametrize(

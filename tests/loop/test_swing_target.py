@@ -48,11 +48,11 @@ class _Scene:
     def __init__(self, swing_clearance):
         self.settings = settings = check_settings({"grasping": {"swing_clearance": swing_clearance}})
         self.configuration = Configuration.dual_ur5e()
-        m = settings["obstacle_map"]
-        self.obstacle_map = ObstacleMap(resolution=m["resolution"], clear_rays=m["clear_rays"])
+        m = settings.obstacle_map
+        self.obstacle_map = ObstacleMap(resolution=m.resolution, clear_rays=m.clear_rays)
         self.T_g = T_g = _pose(self, "gripper")
         self.p_g, self.R_g = T_g[:3, 3], T_g[:3, :3]
-        self.top = self.p_g - settings["perception"]["grasp_offset"] * self.R_g[:, 1]
+        self.top = self.p_g - settings.perception.grasp_offset * self.R_g[:, 1]
         self.p_sb = self.top - STEM_LENGTH * self.R_g[:, 1]
         # camera 0.35 m away across the stem (along the gripper's approach axis, backwards);
         # a wall of obstacle points behind the stem keeps F on the camera's side.
@@ -64,18 +64,18 @@ class _Scene:
         self.free = compute_free_space(wall.reshape(-1, 3), self.p_sb, STEM_LENGTH, self.camera, n_samples=500)
 
     def choice(self):
-        g = self.settings["grasping"]
+        g = self.settings.grasping
         swing = None
-        if g["swing_clearance"] is not None:
+        if g.swing_clearance is not None:
             capsules = []
             for body in description.collision_bodies():
                 if body.arm and body.name in SWING_CAPSULES:
                     pose = self.configuration.frame_pose(body.link)
                     ends = [pose.act(np.asarray(p, float)) for p in (body.capsule.p0, body.capsule.p1)]
                     capsules.append((*ends, float(body.capsule.radius)))
-            swing = SwingCheck(self.obstacle_map, self.p_g, capsules, clearance=g["swing_clearance"],
-                               stretch=g["swing_stretch"])
-        return choose_grasp_target(self.free, self.p_sb, self.top, max_swing_deg=g["max_swing_deg"], swing=swing)
+            swing = SwingCheck(self.obstacle_map, self.p_g, capsules, clearance=g.swing_clearance,
+                               stretch=g.swing_stretch)
+        return choose_grasp_target(self.free, self.p_sb, self.top, max_swing_deg=g.max_swing_deg, swing=swing)
 
     def target(self) -> np.ndarray:
         return self.choice().point

@@ -399,7 +399,7 @@ def test_cli_sweep_set_reaches_every_episode_and_the_fingerprint(tmp_path):
     assert sweep_main(parser.parse_args(argv), episode_for=factory) == 0
     assert seen[0][-4:] == ("--set", "camera.frame_loss=0.3", "--set", "force_sensor.noise_std=0.2")
     overridden = load_settings(config, ["camera.frame_loss=0.3", "force_sensor.noise_std=0.2"])
-    assert overridden["camera"]["frame_loss"] == 0.3 and overridden["force_sensor"]["noise_std"] == 0.2
+    assert overridden.camera.frame_loss == 0.3 and overridden.force_sensor.noise_std == 0.2
     plain, faulty = config_fingerprint(config), config_fingerprint(config, ("camera.frame_loss=0.3",))
     assert plain["settings_sha256"] != faulty["settings_sha256"]
     with pytest.raises(ConfigError, match="frame_los"):
