@@ -1,8 +1,10 @@
 """Episode metrics (``metrics.json``) and the ``success`` criteria of the paper episode.
 
-Computed after the episode from the runner's log: the controller's own per-tick values
-(``value/*``) for what the paper plots, and the simulator's ground truth (``truth/*``, the
-scene) for what a robot cannot measure (true stem base, contacts, tear, capsule distances).
+Computed after the episode from the runner's log in two parts: :func:`controller_metrics`, from the
+controller's own per-tick values (``value/*``) and what any robot measures (joints, frames), the
+same on the lab and on the real cell; and :func:`compute_metrics`, the lab's, which adds the
+simulator's ground truth (``truth/*``, the scene) for what a robot cannot measure (true stem base,
+contacts, tear, tension, capsule distances to the vine).
 
 ``success`` is all of (issue 7, section 5):
 
@@ -30,7 +32,7 @@ from harvest_qp.harvest.environment import environment_capsules_for
 from harvest_qp.harvest.phases import Phase
 from harvest_qp.limits import CollisionAvoidance
 
-__all__ = ["compute_metrics", "SUCCESS_KEYS"]
+__all__ = ["compute_metrics", "controller_metrics", "min_capsule_distance", "SUCCESS_KEYS"]
 
 SUCCESS_KEYS = (
     "inside_roi", "centred", "unveiled", "force_settled", "force_below_2fd", "aligned",
@@ -63,11 +65,21 @@ def min_capsule_distance(q_log: np.ndarray, environment, every: int = 10) -> flo
     return best
 
 
-def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, mapper: str, seed: int,
-                    realtime_factor: float) -> dict[str, Any]:
-    """The metrics of one episode (see the module docstring)."""
-    g = settings.grasping
-    f_d, radius = float(g.f_d), float(settings.reaching.radius)
+def _last_finite(log: dict, key: str) -> float:
+    """The last finite value of a per-tick series (the failing tick of an episode logs NaN)."""
+    values = np.asarray(log[key], dtype=float)
+    finite_values = values[np.isfinite(values)]
+    return float(finite_values[-1]) if len(finite_values) else math.nan
+
+
+def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
+                       realtime_factor: float) -> tuple[dict[str, Any], dict[str, bool]]:
+    """The metrics that need no ground truth, and their success checks (``unveiled``, the force, the
+    alignment, the position error, no abort): what the lab and the real cell both report.
+
+    Raises:
+        EpisodeError: the log holds no controller values (the episode failed before the first tick).
+    """
     t = log["t"]
     n = len(t)
     if n == 0 or "value/phase" not in log:
@@ -82,36 +94,83 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
             f"the episode ({n} ticks, status {status!r}) logged no value/phase: the paper episode's metrics need "
             "HarvestController's per-tick values; a wrapper must pass the controller's Command values through"
         )
-    phase = log["value/phase"]
     st, phases = controller.state, controller.phases
+    f_d = float(settings.grasping.f_d)
+    # --- stem points seen: the first frame, at the switch, the median of the last 0.5 s
+    frame_time, frame_stem = log["frame_time"], log["frame_stem_points"]
+    start = int(frame_stem[0]) if len(frame_stem) else 0
+    end = int(np.median(frame_stem[frame_time >= frame_time[-1] - 0.5])) if len(frame_stem) else 0
+    at_switch = None
+    if phases.t_switch is not None and len(frame_time):
+        before = np.flatnonzero(frame_time <= phases.t_switch + 1e-9)
+        at_switch = int(frame_stem[before[-1]]) if len(before) else None
+    # --- grasping arm: the wrist force along n_c over the last second, its peak
+    force_nc = log["value/force_nc"]
+    last = t >= t[-1] - 1.0 + 1e-9
+    force_mean = float(np.nanmean(force_nc[last])) if np.any(np.isfinite(force_nc[last])) else math.nan
+    force_max = float(np.nanmax(force_nc)) if np.any(np.isfinite(force_nc)) else math.nan
+    position_error = _last_finite(log, "value/position_error")
+    alignment = math.degrees(_last_finite(log, "value/alignment"))
+    reached = Phase(int(_last_finite(log, "value/phase")))
+    configuration = Configuration.dual_ur5e()
+    q = log["q"]
+    violation = max(float(np.maximum(configuration.lower_limits - q, 0.0).max(initial=0.0)),
+                    float(np.maximum(q - configuration.upper_limits, 0.0).max(initial=0.0)))
+    metrics: dict[str, Any] = {
+        "mapper": mapper,
+        "episode_status": str(log["episode_status"]),
+        "duration": float(n * float(log["control_period"])),
+        "phase_reached": "abort" if reached == Phase.ABORT else reached.name.lower(),
+        "t_bimanual_start": _finite(phases.t_switch) if phases.t_switch is not None else None,
+        "t_precut": _finite(phases.t_precut) if phases.t_precut is not None else None,
+        "final_distance_to_estimated_roi_center": _finite(_last_finite(log, "value/roi_distance")),
+        "roi_radius": float(settings.reaching.radius),
+        "final_theta_estimated_roi_deg": _finite(math.degrees(_last_finite(log, "value/theta"))),
+        "visible_stem_points_start": start,
+        "visible_stem_points_switch": at_switch,
+        "visible_stem_points_end": end,
+        "final_position_error": _finite(position_error),
+        "final_alignment_deg": _finite(alignment),
+        "force_mean_last_1s": _finite(force_mean),
+        "force_max": _finite(force_max),
+        "f_d": f_d,
+        "max_joint_limit_violation": violation,
+        "peak_joint_speed": float(np.abs(log["qdot"]).max()),
+        "qp_failures": int(phases.qp_failures),
+        "qp_backup_solves": int(phases.backup_solves),
+        "abort_reason": phases.abort_reason,
+        "p_gd_choice": getattr(controller, "target_choice", None),
+        "estimated_stem_length": _finite(st.stem_length),
+        "realtime_factor": float(realtime_factor),
+    }
+    checks = {
+        "unveiled": end >= 3 * max(start, 1),
+        "force_settled": math.isfinite(force_mean) and abs(force_mean - f_d) <= 0.1 * f_d,
+        "force_below_2fd": math.isfinite(force_max) and force_max <= 2.0 * f_d,
+        "aligned": math.isfinite(alignment) and alignment < 5.0,
+        "position_error_small": math.isfinite(position_error) and position_error < 0.005,
+        "no_abort": phases.abort_reason is None,
+    }
+    return metrics, checks
+
+
+def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, mapper: str, seed: int,
+                    realtime_factor: float) -> dict[str, Any]:
+    """The lab episode's metrics (see the module docstring): :func:`controller_metrics` and the ground truth."""
+    own, own_checks = controller_metrics(log, controller, settings, mapper=mapper, realtime_factor=realtime_factor)
+    radius = float(settings.reaching.radius)
+    t = log["t"]
+    n = len(t)
     # --- camera, from the true stem base
     p_sb_true = np.asarray(robot.scene.stem_base, float)
     p_c, z_c, x_c = log["value/p_c"][-1], log["value/z_c"][-1], log["value/x_c"][-1]
     distance_true = float(np.linalg.norm(p_sb_true - p_c))
     theta_true = _angle_deg(z_c, p_sb_true - p_c)
-    theta_paper = float(np.degrees(log["value/theta"][-1]))
-    # --- stem points
-    frame_time, frame_stem = log["frame_time"], log["frame_stem_points"]
-    start = int(frame_stem[0]) if len(frame_stem) else 0
-    end_frames = frame_stem[frame_time >= frame_time[-1] - 0.5] if len(frame_stem) else np.zeros(1)
-    end = int(np.median(end_frames))
-    t_switch = phases.t_switch
-    at_switch = None
-    if t_switch is not None and len(frame_time):
-        before = np.flatnonzero(frame_time <= t_switch + 1e-9)
-        at_switch = int(frame_stem[before[-1]]) if len(before) else None
-    # --- grasping arm
-    force_nc = log["value/force_nc"]
+    # --- the true stem tension over the last second, its peak
     last = t >= t[-1] - 1.0 + 1e-9
-    bimanual = phase >= Phase.BIMANUAL
-    bimanual &= phase != Phase.ABORT
-    force_mean = float(np.nanmean(force_nc[last])) if np.any(np.isfinite(force_nc[last])) else float("nan")
-    force_max = float(np.nanmax(force_nc)) if np.any(np.isfinite(force_nc)) else float("nan")
     tension = log.get("truth/stem_tension")
     tension_mean = float(np.mean(tension[last])) if tension is not None else float("nan")
     tension_max = float(np.max(tension)) if tension is not None else float("nan")
-    position_error = float(log["value/position_error"][-1])
-    alignment = float(np.degrees(log["value/alignment"][-1]))
     # cutter: the blade closes along x_c; angle between x_c and the true stem seen in the image plane
     stem_end_true = log["truth/stem_end"][-1] if "truth/stem_end" in log else robot.scene.stem_end
     stem_dir = p_sb_true - stem_end_true
@@ -127,43 +186,16 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
             in_contact |= np.nan_to_num(log[key]) > 0
     contacts = int(np.count_nonzero(in_contact))  # ticks with at least one robot contact
     torn = bool(np.any(log["truth/stem_torn"] > 0)) if "truth/stem_torn" in log else False
-    environment = environment_capsules_for(robot, ["branch", "cane"])
-    min_distance = min_capsule_distance(log["q"], environment)
-    configuration = Configuration.dual_ur5e()
-    q = log["q"]
-    violation = float(np.max(np.maximum(configuration.lower_limits - q, 0.0).max(initial=0.0),
-                             initial=0.0))
-    violation = max(violation, float(np.maximum(q - configuration.upper_limits, 0.0).max(initial=0.0)))
-    peak_speed = float(np.abs(log["qdot"]).max()) if n else 0.0
-    reached = Phase(int(phase[-1])) if n else Phase.APPROACH
-    if reached == Phase.ABORT:
-        reached_name = "abort"
-    else:
-        reached_name = reached.name.lower()
+    min_distance = min_capsule_distance(log["q"], environment_capsules_for(robot, ["branch", "cane"]))
+    st = controller.state
     metrics: dict[str, Any] = {
         "seed": int(seed),
-        "mapper": mapper,
-        "episode_status": str(log["episode_status"]),
-        "duration": float(n * float(log["control_period"])),
-        "phase_reached": reached_name,
-        "t_bimanual_start": _finite(t_switch) if t_switch is not None else None,
-        "t_precut": _finite(phases.t_precut) if phases.t_precut is not None else None,
+        **own,
         "final_distance_to_roi_center": distance_true,
-        "final_distance_to_estimated_roi_center": float(log["value/roi_distance"][-1]),
-        "roi_radius": radius,
         "final_theta_deg": theta_true,
-        "final_theta_estimated_roi_deg": theta_paper,
-        "visible_stem_points_start": start,
-        "visible_stem_points_switch": at_switch,
-        "visible_stem_points_end": end,
-        "final_position_error": _finite(position_error),
-        "final_alignment_deg": _finite(alignment),
         "final_cutter_stem_angle_deg": _finite(cutter_angle),
-        "force_mean_last_1s": _finite(force_mean),
-        "force_max": _finite(force_max),
         "true_tension_mean_last_1s": _finite(tension_mean),
         "true_tension_max": _finite(tension_max),
-        "f_d": f_d,
         "min_collision_distance": _finite(min_distance),
         "contacts": contacts,
         "contacts_by_kind": {k.removeprefix("truth/contacts_"): int(np.count_nonzero(np.nan_to_num(log[k]) > 0))
@@ -171,30 +203,17 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
         "min_vine_distance": (_finite(float(np.nanmin(log["truth/min_vine_distance"])))
                               if "truth/min_vine_distance" in log else None),
         "stem_torn": torn,
-        "max_joint_limit_violation": violation,
-        "peak_joint_speed": peak_speed,
-        "qp_failures": int(phases.qp_failures),
-        "qp_backup_solves": int(phases.backup_solves),
-        "abort_reason": phases.abort_reason,
-        "p_gd_choice": getattr(controller, "target_choice", None),
         "stem_base_error_at_switch": (
             float(np.linalg.norm(st.p_sb - p_sb_true)) if st.p_sb is not None else None
         ),
-        "estimated_stem_length": _finite(st.stem_length),
-        "realtime_factor": float(realtime_factor),
     }
     checks = {
         "inside_roi": distance_true <= 1.02 * radius,
         "centred": theta_true < 2.0,
-        "unveiled": end >= 3 * max(start, 1),
-        "force_settled": math.isfinite(force_mean) and abs(force_mean - f_d) <= 0.1 * f_d,
-        "force_below_2fd": math.isfinite(force_max) and force_max <= 2.0 * f_d,
-        "aligned": math.isfinite(alignment) and alignment < 5.0,
-        "position_error_small": math.isfinite(position_error) and position_error < 0.005,
+        **own_checks,
         "no_contact": contacts == 0,
         "no_tear": not torn,
-        "no_abort": phases.abort_reason is None,
     }
-    metrics["criteria"] = {k: bool(v) for k, v in checks.items()}
+    metrics["criteria"] = {k: bool(checks[k]) for k in SUCCESS_KEYS}
     metrics["success"] = bool(all(checks.values()))
     return metrics

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from harvest_qp.config import EpisodeConfig
-from harvest_qp.exceptions import ConfigError, EpisodeError
+from harvest_qp.exceptions import ConfigError
 from harvest_qp.real.calibration import Calibration, load_calibration
 from harvest_qp.real.cell import CellConfig, load_cell
 from harvest_qp.real.errors import CalibrationError
@@ -37,85 +37,32 @@ def _check_settings(settings: EpisodeConfig) -> None:
 
 def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
                  realtime_factor: float) -> dict[str, Any]:
-    """The episode's metrics that need no ground truth (the lab's names where they exist)."""
-    from harvest_qp.harvest.harvest_controller import Phase
-    from harvest_qp.harvest.metrics import min_capsule_distance
+    """The episode's metrics that need no ground truth (:func:`~harvest_qp.harvest.metrics.controller_metrics`,
+    the lab's names) and the real cell's own: why the robot stopped, the frames received, the closest
+    robot-robot / robot-stand capsule distance."""
+    from harvest_qp.harvest.metrics import controller_metrics, min_capsule_distance
 
-    t = log["t"]
-    n = len(t)
-    if n == 0 or "value/phase" not in log:
-        lines = str(log.get("error", "")).strip().splitlines()
-        raise EpisodeError(f"the episode ended with status {str(log.get('episode_status'))!r} before the controller "
-                           f"logged its values: {lines[0] if lines else 'no error message'}")
-    st, phases = controller.state, controller.phases
-    f_d = float(settings.grasping.f_d)
-
-    def finite(x: float) -> float | None:
-        return float(x) if x is not None and math.isfinite(float(x)) else None
-
-    frame_time, frame_stem = log["frame_time"], log["frame_stem_points"]
-    start = int(frame_stem[0]) if len(frame_stem) else 0
-    end = int(np.median(frame_stem[frame_time >= frame_time[-1] - 0.5])) if len(frame_stem) else 0
-    at_switch = None
-    if phases.t_switch is not None and len(frame_time):
-        before = np.flatnonzero(frame_time <= phases.t_switch + 1e-9)
-        at_switch = int(frame_stem[before[-1]]) if len(before) else None
-    force_nc = log["value/force_nc"]
-    last = t >= t[-1] - 1.0 + 1e-9
-    force_mean = float(np.nanmean(force_nc[last])) if np.any(np.isfinite(force_nc[last])) else math.nan
-    force_max = float(np.nanmax(force_nc)) if np.any(np.isfinite(force_nc)) else math.nan
-    def last(key: str) -> float:
-        """The last finite value of a per-tick series (the failing tick of an episode logs NaN)."""
-        values = np.asarray(log[key], dtype=float)
-        finite_values = values[np.isfinite(values)]
-        return float(finite_values[-1]) if len(finite_values) else math.nan
-
-    position_error = last("value/position_error")
-    alignment = math.degrees(last("value/alignment"))
-    reached = Phase(int(last("value/phase")))
-    error = str(log.get("error", ""))
-
+    own, own_checks = controller_metrics(log, controller, settings, mapper=mapper, realtime_factor=realtime_factor)
+    error = str(log.get("error", "")).strip()
     metrics: dict[str, Any] = {
         "robot": "ur",
-        "mapper": mapper,
-        "episode_status": str(log["episode_status"]),
-        "stop_reason": error.strip().splitlines()[0] if error.strip() else None,
-        "duration": float(n * float(log["control_period"])),
-        "phase_reached": "abort" if reached == Phase.ABORT else reached.name.lower(),
-        "t_bimanual_start": finite(phases.t_switch) if phases.t_switch is not None else None,
-        "t_precut": finite(phases.t_precut) if phases.t_precut is not None else None,
-        "final_distance_to_estimated_roi_center": finite(last("value/roi_distance")),
-        "final_theta_estimated_roi_deg": finite(math.degrees(last("value/theta"))),
-        "visible_stem_points_start": start,
-        "visible_stem_points_switch": at_switch,
-        "visible_stem_points_end": end,
-        "final_position_error": finite(position_error),
-        "final_alignment_deg": finite(alignment),
-        "force_mean_last_1s": finite(force_mean),
-        "force_max": finite(force_max),
-        "f_d": f_d,
-        "min_collision_distance": finite(min_capsule_distance(log["q"], [])),  # robot-robot and stand only
-        "peak_joint_speed": float(np.abs(log["qdot"]).max()),
-        "qp_failures": int(phases.qp_failures),
-        "qp_backup_solves": int(phases.backup_solves),
-        "abort_reason": phases.abort_reason,
-        "estimated_stem_length": finite(st.stem_length),
-        "camera_frames": int(len(frame_time)),
-        "realtime_factor": float(realtime_factor),
+        **own,
+        "stop_reason": error.splitlines()[0] if error else None,
+        "min_collision_distance": _finite(min_capsule_distance(log["q"], [])),  # robot-robot and stand only
+        "camera_frames": int(len(log["frame_time"])),
     }
     checks = {
-        "precut_reached": phases.t_precut is not None,
-        "unveiled": end >= 3 * max(start, 1),
-        "force_settled": math.isfinite(force_mean) and abs(force_mean - f_d) <= 0.1 * f_d,
-        "force_below_2fd": math.isfinite(force_max) and force_max <= 2.0 * f_d,
-        "aligned": math.isfinite(alignment) and alignment < 5.0,
-        "position_error_small": math.isfinite(position_error) and position_error < 0.005,
-        "no_abort": phases.abort_reason is None,
+        "precut_reached": controller.phases.t_precut is not None,
+        **own_checks,
         "no_robot_stop": metrics["episode_status"] == "completed",
     }
     metrics["criteria"] = {k: bool(v) for k, v in checks.items()}
     metrics["success"] = bool(all(checks.values()))
     return metrics
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if x is not None and math.isfinite(float(x)) else None
 
 
 def run_real_episode(settings: EpisodeConfig, robot, *, mapper: str | None = None, duration: float | None = None,
