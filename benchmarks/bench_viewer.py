@@ -40,9 +40,9 @@ from harvest_qp.robot.description import HOME_Q  # noqa: E402
 from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM  # noqa: E402
 from harvest_qp.runtime.runner import Observation  # noqa: E402
 from harvest_qp.viewer import LiveViewer, MeshcatViewer, ViewerFrame  # noqa: E402
+from harvest_qp.viewer.commands import Batch  # noqa: E402
 from harvest_qp.viewer.replay import free_port  # noqa: E402
 from harvest_qp.viewer.server import Connection  # noqa: E402
-from harvest_qp.viewer.viewer import _Batch  # noqa: E402
 
 
 def full_frame(k: int, rng: np.random.Generator, **extra) -> ViewerFrame:
@@ -87,7 +87,7 @@ def main() -> None:
         # text unchanged (wall_time fixed: the panel's rate limit holds it), cloud absent
         samples = time_frames(viewer, [full_frame(k, rng) for k in range(n)], wall_time=0.0)
         results["frame_ms"] = median_ms(samples)
-        b = _Batch()
+        b = Batch()
         viewer.frame_commands(b, full_frame(n + 1, rng), wall_time=0.0)
         results["frame_commands"] = len(b.messages)
 
@@ -114,7 +114,7 @@ def main() -> None:
         # the same commands pipelined without the batch command, then one round trip each
         messages = []
         for k in range(n):
-            b = _Batch()
+            b = Batch()
             viewer.frame_commands(b, full_frame(k + 1000, rng), wall_time=0.0)
             messages.append(b.messages)
         piped = Connection(viewer.server.zmq_url, batch=False)

@@ -16,7 +16,6 @@ are hidden (the grid would cut through the scene at the origin) and a floor is d
 
 from __future__ import annotations
 
-import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,8 +30,19 @@ from numpy.typing import NDArray
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.robot import description as desc
 from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM
+from harvest_qp.viewer.commands import (
+    Batch,
+    mesh_object,
+    points_object,
+    render_text_png,
+    rgba_int,
+    segment_transform,
+    stl_object,
+    translation,
+    y_to,
+)
 from harvest_qp.viewer.frame import ViewerFrame
-from harvest_qp.viewer.geometry import VineGeom, read_stl, robot_link_meshes, vine_body_poses, vine_geoms
+from harvest_qp.viewer.geometry import VineGeom, robot_link_meshes, vine_body_poses, vine_geoms
 from harvest_qp.viewer.server import Connection, ViewerServer
 
 __all__ = ["MeshcatViewer", "COLORS", "VIEW_CENTER", "CAMERA_OFFSET", "CAMERA_FOVY"]
@@ -72,192 +82,6 @@ CAMERA_FOVY = 75.0
 
 ROOT = "/harvest_qp"
 _PANEL_WIDTH = 0.4  # text panel width before scaling [m]
-
-
-def _hex_rgb(color: int) -> tuple[float, float, float]:
-    return ((color >> 16) & 255) / 255.0, ((color >> 8) & 255) / 255.0, (color & 255) / 255.0
-
-
-def _rgba_int(rgba: Sequence[float]) -> int:
-    r, g, b = (int(round(255 * min(max(c, 0.0), 1.0))) for c in rgba[:3])
-    return (r << 16) | (g << 8) | b
-
-
-def _y_to(direction: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A rotation whose y axis is ``direction`` (unit); meshcat cylinders run along y."""
-    y = direction / np.linalg.norm(direction)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(y[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
-    x = np.cross(y, helper)
-    x /= np.linalg.norm(x)
-    z = np.cross(x, y)
-    return np.column_stack([x, y, z])
-
-
-def _segment_transform(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Transform of a unit cylinder node (y from 0 to 1) onto the segment a-b (scaled along y)."""
-    d = b - a
-    length = float(np.linalg.norm(d))
-    T = np.eye(4)
-    if length < 1e-9:
-        T[:3, :3] = np.diag([1.0, 1e-6, 1.0])
-    else:
-        T[:3, :3] = _y_to(d) * np.array([1.0, length, 1.0])
-    T[:3, 3] = a
-    return T
-
-
-def _translation(p: Sequence[float], scale: float = 1.0) -> NDArray[np.float64]:
-    T = np.eye(4)
-    T[:3, :3] *= scale
-    T[:3, 3] = p
-    return T
-
-
-class _PointsMaterial(mg.Material):
-    """Unlit points of one colour (meshcat's PointsMaterial forces per-vertex colours)."""
-
-    def __init__(self, color: int, size: float) -> None:
-        super().__init__()
-        self.color, self.size = color, size
-
-    def lower(self, object_data):
-        return {"uuid": self.uuid, "type": "PointsMaterial", "color": self.color, "size": self.size,
-                "vertexColors": 0, "sizeAttenuation": True}  # fmt: skip
-
-
-def _points_object(points: NDArray[np.floating], color: int, size: float) -> dict:
-    pts = np.ascontiguousarray(points, dtype=np.float32)
-    if len(pts) == 0:
-        pts = np.zeros((1, 3), np.float32) + np.float32(1e6)  # three.js dislikes empty buffers
-    geometry = mg.PointsGeometry(pts.T)
-    return mg.Points(geometry, _PointsMaterial(color, size)).lower()
-
-
-def _mesh_object(geometry: mg.Geometry, color: int, *, opacity: float = 1.0, basic: bool = False,
-                 texture: mg.Texture | None = None) -> dict:  # fmt: skip
-    cls = mg.MeshBasicMaterial if basic else mg.MeshPhongMaterial
-    material = cls(color=color, opacity=opacity, map=texture) if texture else cls(color=color, opacity=opacity)
-    return mg.Mesh(geometry, material).lower()
-
-
-def _stl_object(path: Path, color: int) -> dict:
-    triangles, _ = read_stl(path)
-    vertices = triangles.reshape(-1, 3)
-    faces = np.arange(len(vertices), dtype=np.uint32).reshape(-1, 3)
-    # Indexed BufferGeometry: three.js computes the normals itself (meshcat does so when none
-    # are given), and the file is read here so the viewer does not depend on the JS STL loader.
-    return _mesh_object(mg.TriangularMeshGeometry(vertices, faces), color)
-
-
-_MATRIX_DTYPE = np.dtype([("tag", "u1"), ("value", ">f8")])
-_TRANSFORM_PREFIX: dict[str, tuple[bytes, bytes]] = {}
-
-
-def _pack_transform(path: str, matrix: NDArray[np.float64]) -> tuple[bytes, bytes]:
-    """msgpack of ``{"type": "set_transform", "path": path, "matrix": 16 floats}``, column-major.
-
-    The same bytes as ``umsgpack.packb`` of that dict (float64 values), about 20 times faster:
-    the dict's head is cached per path and the floats are packed by numpy.
-    """
-    cached = _TRANSFORM_PREFIX.get(path)
-    if cached is None:
-        head = umsgpack.packb({"type": "set_transform", "path": path, "matrix": []})
-        # the empty array's header (0x90) ends the dict; a 16-element array starts with 0xdc 0x00 0x10
-        cached = (path.encode(), head[:-1] + b"\xdc\x00\x10")
-        _TRANSFORM_PREFIX[path] = cached
-    values = np.empty(16, _MATRIX_DTYPE)
-    values["tag"] = 0xCB
-    values["value"] = np.asarray(matrix, dtype=float).T.reshape(-1)
-    return cached[0], cached[1] + values.tobytes()
-
-
-class _Batch:
-    """Commands of one viewer frame, packed for :meth:`Connection.send`."""
-
-    __slots__ = ("messages",)
-
-    def __init__(self) -> None:
-        self.messages: list[tuple[bytes, bytes, bytes]] = []
-
-    def transform(self, path: str, matrix: NDArray[np.float64]) -> None:
-        encoded_path, data = _pack_transform(path, matrix)
-        self.messages.append((b"set_transform", encoded_path, data))
-
-    def object(self, path: str, obj: dict) -> None:
-        self.messages.append(
-            (b"set_object", path.encode(), umsgpack.packb({"type": "set_object", "object": obj, "path": path}))
-        )
-
-    def property(self, path: str, key: str, value: Any) -> None:
-        self.messages.append((b"set_property", path.encode(), umsgpack.packb(
-            {"type": "set_property", "path": path, "property": key, "value": value})))  # fmt: skip
-
-    def delete(self, path: str) -> None:
-        self.messages.append((b"delete", path.encode(), umsgpack.packb({"type": "delete", "path": path})))
-
-    def animation(self, animations: list[dict], *, play: bool, repetitions: int) -> None:
-        self.messages.append((b"set_animation", b"", umsgpack.packb({
-            "type": "set_animation", "animations": animations, "path": "",
-            "options": {"play": play, "repetitions": repetitions}})))  # fmt: skip
-
-
-def render_text_png(lines: Sequence[str], *, width: int = 320, line_height: int = 26, compress_level: int = 0) -> bytes:
-    """The text panel as a greyscale PNG (light text on a dark, opaque background).
-
-    Glyphs are rendered once and cached, and lines composed from them (rendering a line
-    with FreeType took ~1 ms here); ``compress_level`` 0 encodes fastest (live view), 6
-    gives ~0.5 KB panels (replay files).
-    """
-    from PIL import Image
-
-    height = max(1, len(lines)) * line_height + 12
-    canvas = np.full((height, width), _PANEL_BACKGROUND, np.uint8)
-    for i, line in enumerate(lines):
-        top, x = 6 + i * line_height, 10.0
-        for ch in line:
-            glyph, advance = _glyph(ch, line_height)
-            left = int(round(x))
-            right = min(width, left + glyph.shape[1])
-            if right > left:
-                region = canvas[top : top + line_height, left:right]
-                np.maximum(region, glyph[:, : right - left], out=region)
-            x += advance
-    buffer = io.BytesIO()
-    Image.fromarray(canvas, mode="L").save(buffer, format="PNG", compress_level=compress_level)
-    return buffer.getvalue()
-
-
-_PANEL_BACKGROUND = 26
-_GLYPHS: dict[tuple[str, int], tuple[NDArray[np.uint8], float]] = {}
-
-
-def _glyph(ch: str, line_height: int) -> tuple[NDArray[np.uint8], float]:
-    key = (ch, line_height)
-    cached = _GLYPHS.get(key)
-    if cached is None:
-        from PIL import Image, ImageDraw
-
-        font = _font(int(line_height * 0.8))
-        advance = float(font.getlength(ch))
-        image = Image.new("L", (max(1, int(math.ceil(advance)) + 2), line_height), _PANEL_BACKGROUND)
-        ImageDraw.Draw(image).text((0, 2), ch, fill=240, font=font)
-        cached = (np.asarray(image), advance)
-        _GLYPHS[key] = cached
-    return cached
-
-
-_FONTS: dict[int, Any] = {}
-
-
-def _font(size: int):
-    from PIL import ImageFont
-
-    if size not in _FONTS:
-        try:
-            _FONTS[size] = ImageFont.load_default(size=size)
-        except TypeError:  # Pillow < 10.1: bitmap font only
-            _FONTS[size] = ImageFont.load_default()
-    return _FONTS[size]
 
 
 class MeshcatViewer:
@@ -389,10 +213,10 @@ class MeshcatViewer:
         return {name: self._data.oMf[fid].homogeneous for name, fid in zip(self._frames, self._fids)}
 
     def _build_scene(self, vine_model, show_capsules: bool) -> None:
-        b = _Batch()
+        b = Batch()
         b.delete(ROOT)
         # meshcat's orbit camera looks at its origin: put the scene's centre there.
-        b.transform(ROOT, _translation(-np.asarray(self.view_center)))
+        b.transform(ROOT, translation(-np.asarray(self.view_center)))
         b.property("/Grid", "visible", False)
         b.property("/Axes", "visible", False)
         b.property("/Background", "top_color", [0.22, 0.23, 0.25])
@@ -400,13 +224,13 @@ class MeshcatViewer:
         d = np.asarray(self.camera_offset)
         # The camera node is turned by Rx(90 deg) (three.js is y-up): world (x, y, z) = (x, -z, y).
         b.property("/Cameras/default/rotated/<object>", "position", [float(d[0]), float(d[2]), float(-d[1])])
-        b.object(f"{ROOT}/floor", _mesh_object(mg.Box([4.0, 4.0, 0.01]), COLORS["floor"]))
-        b.transform(f"{ROOT}/floor", _translation([0.5, 0.0, -0.005]))
+        b.object(f"{ROOT}/floor", mesh_object(mg.Box([4.0, 4.0, 0.01]), COLORS["floor"]))
+        b.transform(f"{ROOT}/floor", translation([0.5, 0.0, -0.005]))
 
         # robot: meshes under robot/<frame>, capsules under capsules/<frame> (one toggle)
         for mesh in self._meshes:
             path = f"{ROOT}/robot/{mesh.frame}/mesh"
-            b.object(path, _stl_object(mesh.path, COLORS["robot"]))
+            b.object(path, stl_object(mesh.path, COLORS["robot"]))
             b.transform(path, mesh.origin)
         for body in desc.collision_bodies():
             tool = body.link in self._tool_links
@@ -431,57 +255,57 @@ class MeshcatViewer:
         self._draw_robot(b, np.array(desc.HOME_Q))
         self.connection.send(b.messages)
 
-    def _capsule(self, b: _Batch, path: str, capsule, color: int, *, opacity: float = 1.0) -> None:
+    def _capsule(self, b: Batch, path: str, capsule, color: int, *, opacity: float = 1.0) -> None:
         p0, p1 = np.asarray(capsule.p0, float), np.asarray(capsule.p1, float)
         r = float(capsule.radius)
         length = float(np.linalg.norm(p1 - p0))
         if length > 1e-9:
-            b.object(f"{path}/cyl", _mesh_object(mg.Cylinder(length, r), color, opacity=opacity))
+            b.object(f"{path}/cyl", mesh_object(mg.Cylinder(length, r), color, opacity=opacity))
             T = np.eye(4)
-            T[:3, :3] = _y_to(p1 - p0)
+            T[:3, :3] = y_to(p1 - p0)
             T[:3, 3] = 0.5 * (p0 + p1)
             b.transform(f"{path}/cyl", T)
         for k, p in enumerate((p0, p1)):
-            b.object(f"{path}/end{k}", _mesh_object(mg.Sphere(r), color, opacity=opacity))
-            b.transform(f"{path}/end{k}", _translation(p))
+            b.object(f"{path}/end{k}", mesh_object(mg.Sphere(r), color, opacity=opacity))
+            b.transform(f"{path}/end{k}", translation(p))
 
-    def _vine_geom(self, b: _Batch, geom: VineGeom) -> None:
+    def _vine_geom(self, b: Batch, geom: VineGeom) -> None:
         path = f"{ROOT}/vine/{geom.body}/{geom.name}"
-        color = _rgba_int(geom.rgba)
+        color = rgba_int(geom.rgba)
         if geom.kind == "capsule":
             r, half = geom.size
             # MuJoCo capsules run along local z, meshcat cylinders along y: turn by Rx(90 deg).
             turn = np.eye(4)
             turn[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
-            b.object(f"{path}/cyl", _mesh_object(mg.Cylinder(2 * half, r), color))
+            b.object(f"{path}/cyl", mesh_object(mg.Cylinder(2 * half, r), color))
             b.transform(f"{path}/cyl", geom.local @ turn)
             for k, z in enumerate((-half, half)):
-                b.object(f"{path}/end{k}", _mesh_object(mg.Sphere(r), color))
-                b.transform(f"{path}/end{k}", geom.local @ _translation([0.0, 0.0, z]))
+                b.object(f"{path}/end{k}", mesh_object(mg.Sphere(r), color))
+                b.transform(f"{path}/end{k}", geom.local @ translation([0.0, 0.0, z]))
         elif geom.kind == "sphere":
-            b.object(path, _mesh_object(mg.Sphere(geom.size[0]), color))
+            b.object(path, mesh_object(mg.Sphere(geom.size[0]), color))
             b.transform(path, geom.local)
         else:
-            b.object(path, _mesh_object(mg.Ellipsoid(list(geom.size)), color))
+            b.object(path, mesh_object(mg.Ellipsoid(list(geom.size)), color))
             b.transform(path, geom.local)
 
-    def _build_markers(self, b: _Batch) -> None:
+    def _build_markers(self, b: Batch) -> None:
         m = f"{ROOT}/markers"
         # Objects sit one level below the node that moves: meshcat's exported HTML does not
         # animate a node that carries an object itself (measured in headless Chromium).
-        b.object(f"{m}/roi/shape", _mesh_object(mg.Sphere(1.0), COLORS["roi"], opacity=0.15))
+        b.object(f"{m}/roi/shape", mesh_object(mg.Sphere(1.0), COLORS["roi"], opacity=0.15))
         for name, radius in (("p_r", 0.012), ("p_sb", 0.01), ("p_gd", 0.012)):
-            b.object(f"{m}/{name}/shape", _mesh_object(mg.Sphere(radius), COLORS[name]))
+            b.object(f"{m}/{name}/shape", mesh_object(mg.Sphere(radius), COLORS[name]))
         for k in range(4):
             self._unit_rod(b, f"{m}/stem_segment_{k}", 0.004, COLORS["stem_segment"])
         self._unit_rod(b, f"{m}/closest_pair/line", 0.003, COLORS["closest_pair"])
         for k in range(2):
-            b.object(f"{m}/closest_pair/end{k}/shape", _mesh_object(mg.Sphere(0.008), COLORS["closest_pair"]))
+            b.object(f"{m}/closest_pair/end{k}/shape", mesh_object(mg.Sphere(0.008), COLORS["closest_pair"]))
         for name in ("v_c", "v_g", "force"):
             self._unit_rod(b, f"{m}/{name}/shaft", 0.006, COLORS[name])
-            b.object(f"{m}/{name}/head/cone", _mesh_object(mg.Cylinder(0.04, radiusTop=0.0, radiusBottom=0.016),
+            b.object(f"{m}/{name}/head/cone", mesh_object(mg.Cylinder(0.04, radiusTop=0.0, radiusBottom=0.016),
                                                            COLORS[name]))  # fmt: skip
-            b.transform(f"{m}/{name}/head/cone", _translation([0.0, 0.02, 0.0]))
+            b.transform(f"{m}/{name}/head/cone", translation([0.0, 0.02, 0.0]))
         # camera frustum in {C}: z forward, x right, y down; 40 deg vertical fov, 16:9, 0.3 m deep
         depth, tan_v = 0.3, math.tan(math.radians(20.0))
         hx, hy = depth * tan_v * 848 / 480, depth * tan_v
@@ -503,13 +327,13 @@ class MeshcatViewer:
                "samples_removed")  # fmt: skip
 
     @staticmethod
-    def _unit_rod(b: _Batch, path: str, radius: float, color: int) -> None:
+    def _unit_rod(b: Batch, path: str, radius: float, color: int) -> None:
         """A cylinder from y = 0 to y = 1 under ``path`` (scale the node along y to a length)."""
-        b.object(f"{path}/rod", _mesh_object(mg.Cylinder(1.0, radius), color))
-        b.transform(f"{path}/rod", _translation([0.0, 0.5, 0.0]))
+        b.object(f"{path}/rod", mesh_object(mg.Cylinder(1.0, radius), color))
+        b.transform(f"{path}/rod", translation([0.0, 0.5, 0.0]))
 
     # ------------------------------------------------------------------ drawing
-    def _draw_robot(self, b: _Batch, q: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+    def _draw_robot(self, b: Batch, q: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
         poses = self.frame_poses(q)
         # Hidden capsules are not moved (half the robot's commands); showing them sends all.
         capsules = self._state.get("capsules", False) or self._state.get("animating", False)
@@ -523,13 +347,13 @@ class MeshcatViewer:
         self._state["q"] = np.array(q, dtype=float)
         return poses
 
-    def _visible(self, b: _Batch, path: str, visible: bool) -> None:
+    def _visible(self, b: Batch, path: str, visible: bool) -> None:
         key = "visible:" + path
         if self._state.get(key) != visible:
             b.property(path, "visible", visible)
             self._state[key] = visible
 
-    def _arrow(self, b: _Batch, name: str, origin: NDArray[np.float64] | None, vector: NDArray[np.float64] | None,
+    def _arrow(self, b: Batch, name: str, origin: NDArray[np.float64] | None, vector: NDArray[np.float64] | None,
                scale: float) -> None:  # fmt: skip
         path = f"{ROOT}/markers/{name}"
         if origin is None or vector is None or not np.all(np.isfinite(vector)):
@@ -540,7 +364,7 @@ class MeshcatViewer:
             self._visible(b, path, False)
             return
         head = min(0.04, 0.5 * length)
-        R = _y_to(np.asarray(vector, float))
+        R = y_to(np.asarray(vector, float))
         shaft = np.eye(4)
         shaft[:3, :3] = R * np.array([1.0, max(length - head, 1e-6), 1.0])
         shaft[:3, 3] = origin
@@ -551,12 +375,12 @@ class MeshcatViewer:
         b.transform(f"{path}/head", tip)
         self._visible(b, path, True)
 
-    def _point(self, b: _Batch, name: str, p: NDArray[np.float64] | None, scale: float = 1.0) -> None:
+    def _point(self, b: Batch, name: str, p: NDArray[np.float64] | None, scale: float = 1.0) -> None:
         path = f"{ROOT}/markers/{name}"
         if p is None:
             self._visible(b, path, False)
             return
-        b.transform(path, _translation(p, scale))
+        b.transform(path, translation(p, scale))
         self._visible(b, path, True)
 
     def _changed(self, key: str, value: Any) -> bool:
@@ -565,13 +389,13 @@ class MeshcatViewer:
         self._state[key] = value
         return True
 
-    def _points(self, b: _Batch, path: str, points: NDArray[np.floating] | None, color: int, key: Any) -> None:
+    def _points(self, b: Batch, path: str, points: NDArray[np.floating] | None, color: int, key: Any) -> None:
         if points is None or len(points) == 0:
             self._visible(b, path, False)
             return
         if self._changed("points:" + path, key):
             stride = max(1, int(math.ceil(len(points) / self.max_cloud_points)))
-            b.object(f"{path}/shape", _points_object(np.asarray(points)[::stride], color, self.point_size))
+            b.object(f"{path}/shape", points_object(np.asarray(points)[::stride], color, self.point_size))
         self._visible(b, path, True)
 
     def draw(self, frame: ViewerFrame, *, wall_time: float | None = None) -> int:
@@ -583,13 +407,13 @@ class MeshcatViewer:
         """
         if not isinstance(frame, ViewerFrame):
             raise InvalidInputError(f"frame must be a ViewerFrame, got {type(frame).__name__}")
-        b = _Batch()
+        b = Batch()
         self.frame_commands(b, frame, wall_time=wall_time)
         self.connection.send(b.messages)
         return len(b.messages)
 
     def frame_commands(
-        self, b: _Batch, frame: ViewerFrame, *, wall_time: float | None = None, text: bool = True
+        self, b: Batch, frame: ViewerFrame, *, wall_time: float | None = None, text: bool = True
     ) -> None:
         """Append the commands that draw ``frame`` to the batch ``b`` (see :meth:`draw`)."""
         poses = self._draw_robot(b, frame.q)
@@ -606,7 +430,7 @@ class MeshcatViewer:
                 pts = np.asarray(frame.cloud_points)[::stride]
                 lab = labels[::stride]
                 for value, name in _CLOUD_LABELS:
-                    b.object(f"{ROOT}/cloud/{name}", _points_object(pts[lab == value], COLORS[f"cloud_{name}"],
+                    b.object(f"{ROOT}/cloud/{name}", points_object(pts[lab == value], COLORS[f"cloud_{name}"],
                                                                    self.point_size))  # fmt: skip
             for _, name in _CLOUD_LABELS:
                 self._visible(b, f"{ROOT}/cloud/{name}", True)
@@ -625,15 +449,15 @@ class MeshcatViewer:
         for k in range(4):
             path = f"{m}/stem_segment_{k}"
             if k < len(segments) and np.all(np.isfinite(segments[k])):
-                b.transform(path, _segment_transform(segments[k, 0], segments[k, 1]))
+                b.transform(path, segment_transform(segments[k, 0], segments[k, 1]))
                 self._visible(b, path, True)
             else:
                 self._visible(b, path, False)
         pair = frame.closest_pair
         if pair is not None and np.all(np.isfinite(pair)):
-            b.transform(f"{m}/closest_pair/line", _segment_transform(pair[0], pair[1]))
-            b.transform(f"{m}/closest_pair/end0", _translation(pair[0]))
-            b.transform(f"{m}/closest_pair/end1", _translation(pair[1]))
+            b.transform(f"{m}/closest_pair/line", segment_transform(pair[0], pair[1]))
+            b.transform(f"{m}/closest_pair/end0", translation(pair[0]))
+            b.transform(f"{m}/closest_pair/end1", translation(pair[1]))
             self._visible(b, f"{m}/closest_pair", True)
         else:
             self._visible(b, f"{m}/closest_pair", False)
@@ -668,7 +492,7 @@ class MeshcatViewer:
         T[:3, 3] = np.asarray(self.view_center) + 0.5 * d - 1.15 * half_h * right + 0.62 * half_h * up
         return T
 
-    def _text(self, b: _Batch, frame: ViewerFrame, wall_time: float | None) -> None:
+    def _text(self, b: Batch, frame: ViewerFrame, wall_time: float | None) -> None:
         lines = frame.text_lines()
         if lines == self._state.get("text"):
             return
@@ -688,12 +512,12 @@ class MeshcatViewer:
         w, h = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")  # PNG IHDR
         width = _PANEL_WIDTH
         texture = mg.ImageTexture(mg.PngImage(png))
-        return _mesh_object(mg.Box([width, width * h / w, 0.002]), 0xFFFFFF, basic=True, texture=texture)
+        return mesh_object(mg.Box([width, width * h / w, 0.002]), 0xFFFFFF, basic=True, texture=texture)
 
     # ------------------------------------------------------------------ controls
     def set_capsules_visible(self, visible: bool) -> None:
         """Show or hide the robot's collision capsules (the links keep their meshes)."""
-        b = _Batch()
+        b = Batch()
         self._state["capsules"] = bool(visible)
         if visible and "q" in self._state:
             poses = self.frame_poses(self._state["q"])
@@ -755,7 +579,7 @@ class MeshcatViewer:
         history: dict[str, list[tuple[float, NDArray[np.float64], bool]]] = {}
         current: dict[str, list[Any]] = {}
 
-        b = _Batch()
+        b = Batch()
         b.delete(f"{ROOT}/replay")
         # Forget the visibility sent so far so the first frame states every marker's.
         self._state = {k: v for k, v in self._state.items() if not k.startswith("visible:")}
@@ -765,7 +589,7 @@ class MeshcatViewer:
         last_cloud_key, last_cloud_t, last_text, last_text_t = object(), -math.inf, None, -math.inf
         try:
             for frame in frames:
-                fb = _Batch()
+                fb = Batch()
                 self.frame_commands(fb, _without_geometry(frame), wall_time=None, text=False)
                 for command, path, data in fb.messages:
                     p = path.decode()
@@ -787,7 +611,7 @@ class MeshcatViewer:
                         stride = max(1, int(math.ceil(len(labels) / max_cloud_points)))
                         pts, lab = np.asarray(frame.cloud_points)[::stride], labels[::stride]
                         for value, name in _CLOUD_LABELS:
-                            b.object(f"{path}/{name}", _points_object(pts[lab == value], COLORS[f"cloud_{name}"],
+                            b.object(f"{path}/{name}", points_object(pts[lab == value], COLORS[f"cloud_{name}"],
                                                                       self.point_size))  # fmt: skip
                         cloud_snaps.append((frame.time, path, np.eye(4)))
                 lines = frame.text_lines()

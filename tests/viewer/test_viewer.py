@@ -11,8 +11,9 @@ from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.robot.description import HOME_Q
 from harvest_qp.runtime.interface import OBSTACLE, STEM
 from harvest_qp.viewer import MeshcatViewer, ViewerFrame
+from harvest_qp.viewer.commands import pack_transform
 from harvest_qp.viewer.replay import free_port
-from harvest_qp.viewer.viewer import ROOT, _pack_transform
+from harvest_qp.viewer.viewer import ROOT
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +51,7 @@ def matrix(message) -> np.ndarray:
 
 def test_pack_transform_is_umsgpack():
     M = np.random.default_rng(0).normal(size=(4, 4))
-    _, data = _pack_transform("/a/b", M)
+    _, data = pack_transform("/a/b", M)
     assert data == umsgpack.packb({"type": "set_transform", "path": "/a/b", "matrix": M.T.reshape(-1).tolist()})
 
 
