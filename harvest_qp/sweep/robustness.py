@@ -1,0 +1,91 @@
+"""Judging a sweep as a grower would: success on the lab's truth, each failure in a class, time to pre-cut.
+
+Used by ``benchmarks/sweep_robustness.py`` (issue 20's evidence) on the rows of ``sweep.csv``.
+Success is the episode's own ``success`` and, on the lab's ground truth, the true stem never torn,
+the true stem tension never above 2 f_d and at most 50 ms (25 ticks) with a robot contact.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from harvest_qp.sweep.stats import STATUS_OK, wilson_interval
+
+__all__ = ["CLASSES", "MAX_CONTACT_TICKS", "failure_class", "grower_success", "summarise"]
+
+#: Most ticks (2 ms each) with a robot contact that a grower would still accept.
+MAX_CONTACT_TICKS = 25
+CLASSES = ("lab", "safety", "target", "priority", "perception", "other")
+
+
+def grower_success(row: Mapping[str, Any]) -> bool:
+    """The episode's ``success`` and, on the lab's truth: no tear, tension <= 2 f_d, <= 50 ms of contact."""
+    if row.get("status") != STATUS_OK or not row.get("success"):
+        return False
+    f_d = float(row.get("f_d") or 3.0)
+    tension = row.get("true_tension_max")
+    return (not row.get("stem_torn") and (tension is None or float(tension) <= 2.0 * f_d)
+            and int(row.get("contacts") or 0) <= MAX_CONTACT_TICKS)
+
+
+def failure_class(row: Mapping[str, Any]) -> str:
+    """Why a row failed, in issue 20's classes.
+
+    * ``lab``: the episode did not run to its end (an exception, a dead or timed-out process);
+    * ``safety``: a torn stem, a true tension above 2 f_d, more than 50 ms of contact, or a force abort;
+    * ``target``: the grasp target came from a fallback rule, not the free cone of ``eq:attr_point``;
+    * ``priority``: the bimanual phase ran but pre-cut was never reached (position or alignment
+      never converged);
+    * ``perception``: no stem base found, or the stem lost;
+    * ``other``: anything else (listed with its reason).
+    """
+    if row.get("status") != STATUS_OK:
+        return "lab"
+    f_d = float(row.get("f_d") or 3.0)
+    reason = str(row.get("abort_reason") or "")
+    tension = row.get("true_tension_max")
+    if (row.get("stem_torn") or (tension is not None and float(tension) > 2.0 * f_d)
+            or int(row.get("contacts") or 0) > MAX_CONTACT_TICKS or "force" in reason):
+        return "safety"
+    if "stem" in reason and ("not seen" in reason or "no stem base" in reason):
+        return "perception"
+    choice = str(row.get("p_gd_choice") or "")
+    if choice and "in the cone" not in choice:
+        return "target"
+    if row.get("phase_reached") == "bimanual":
+        return "priority"
+    return "other"
+
+
+def _percentile(values: Sequence[float], q: float) -> float:
+    if not values:
+        return math.nan
+    ordered = sorted(values)
+    k = (len(ordered) - 1) * q
+    lo, hi = math.floor(k), math.ceil(k)
+    return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
+
+
+def summarise(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Success (the episode's and the grower's) with 95 % Wilson intervals, failures by class, pre-cut times."""
+    n = len(rows)
+    own = sum(1 for r in rows if r.get("status") == STATUS_OK and r.get("success"))
+    grower = sum(1 for r in rows if grower_success(r))
+    failures: dict[str, list[int]] = {c: [] for c in CLASSES}
+    for row in rows:
+        if not grower_success(row):
+            failures[failure_class(row)].append(int(row["seed"]))
+    precut = [float(r["t_precut"]) for r in rows if grower_success(r) and r.get("t_precut") is not None]
+    return {
+        "episodes": n,
+        "success": own, "success_interval": wilson_interval(own, n),
+        "grower_success": grower, "grower_interval": wilson_interval(grower, n),
+        "failures": {c: seeds for c, seeds in failures.items() if seeds},
+        "abort_reasons": dict(Counter(str(r.get("abort_reason")) for r in rows if not grower_success(r))),
+        "t_precut_median": _percentile(precut, 0.5), "t_precut_p90": _percentile(precut, 0.9),
+        "torn": sum(1 for r in rows if r.get("stem_torn")),
+        "contact_over_50ms": sum(1 for r in rows if int(r.get("contacts") or 0) > MAX_CONTACT_TICKS),
+    }

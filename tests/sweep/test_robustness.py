@@ -1,0 +1,62 @@
+"""Judging sweep rows as a grower would (harvest_qp.sweep.robustness), on hand-made rows.
+
+Oracle: the rules written out by hand per row (issue 20's classes). Catches: a torn stem or a
+50 ms contact counted as a success because the episode's own flag said so; a failure put in the
+wrong class; an interval computed on the episode's flag instead of the grower's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from harvest_qp.sweep.robustness import failure_class, grower_success, summarise
+
+GOOD_CHOICE = "free, in the cone, swing clear (eq:attr_point among them)"
+
+
+def row(seed, **kw):
+    base = {"seed": seed, "status": "ok", "success": True, "f_d": 3.0, "true_tension_max": 3.2, "contacts": 0,
+            "stem_torn": False, "abort_reason": None, "p_gd_choice": GOOD_CHOICE, "phase_reached": "precut",
+            "t_precut": 15.0}
+    base.update(kw)
+    return base
+
+
+@pytest.mark.parametrize(("kw", "grower", "cls"), [
+    ({}, True, None),
+    ({"stem_torn": True}, False, "safety"),  # the episode's own flag may still be True
+    ({"true_tension_max": 6.5}, False, "safety"),
+    ({"contacts": 26}, False, "safety"),
+    ({"contacts": 25}, True, None),
+    ({"success": False, "abort_reason": "stem force 6.10 N above the limit 6.00 N", "phase_reached": "abort"},
+     False, "safety"),
+    ({"success": False, "abort_reason": "no stem base found within 30 s", "phase_reached": "abort"},
+     False, "perception"),
+    ({"success": False, "p_gd_choice": "fallback: the hanging direction", "phase_reached": "bimanual"},
+     False, "target"),
+    ({"success": False, "phase_reached": "bimanual", "t_precut": None}, False, "priority"),
+    ({"status": "error", "success": None}, False, "lab"),
+])
+def test_each_row_is_judged_and_classed(kw, grower, cls):
+    r = row(1, **kw)
+    assert grower_success(r) is grower
+    if cls is not None:
+        assert failure_class(r) == cls
+
+
+def test_summary_counts_the_growers_success_and_its_interval():
+    rows = [row(s) for s in range(8)] + [row(8, stem_torn=True), row(9, success=False, phase_reached="bimanual",
+                                                                      t_precut=None, p_gd_choice=GOOD_CHOICE)]
+    rows[1]["t_precut"] = 25.0
+    s = summarise(rows)
+    assert (s["episodes"], s["success"], s["grower_success"]) == (10, 9, 8)
+    assert s["failures"] == {"safety": [8], "priority": [9]}
+    assert s["torn"] == 1
+    # Wilson 95 % for 8/10, by hand: centre (0.8 + z^2/20) / (1 + z^2/10), half-width as in the formula
+    z = 1.959963984540054
+    centre = (0.8 + z * z / 20) / (1 + z * z / 10)
+    half = z / (1 + z * z / 10) * math.sqrt(0.8 * 0.2 / 10 + z * z / 400)
+    assert s["grower_interval"] == pytest.approx((centre - half, centre + half))
+    assert s["t_precut_median"] == 15.0 and s["t_precut_p90"] == pytest.approx(15.0 + 0.3 * 10.0)
