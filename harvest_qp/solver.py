@@ -291,6 +291,8 @@ class Solver:
         self._make = backend_factory if backend_factory is not None else (lambda name, level: make_backend(name))
         self._backends: dict[tuple[str, int], Backend] = {}
         self._unavailable: set[str] = set()
+        self._key: tuple | None = None  # the task and limit lists last checked (see _checked)
+        self._lists: tuple[list[Task], list[Limit], list[tuple[Limit, bool]]] = ([], [], [])
 
     def _backend(self, name: str, level: int) -> Backend:
         """The backend ``name`` for priority ``level`` (one workspace per level, kept between steps)."""
@@ -322,25 +324,21 @@ class Solver:
             InfeasibleProblemError: the safety constraints admit no solution even
                 with the acceleration limits relaxed.
         """
-        tasks = check_tasks(tasks)
-        limits = check_limits(limits)
+        tasks, box_limits, row_limits = self._checked(tasks, limits)
         dt = as_positive_scalar(dt, "dt")
         if previous_qdot is not None:
             previous_qdot = as_vector(previous_qdot, configuration.nv, "previous_qdot")
         n = configuration.nv
 
         # Boxes, in priority order (velocity, position, acceleration, ...).
-        box_limits = sorted((limit for limit in limits if limit.has_box), key=lambda limit: limit.priority)
         lowers, uppers = np.empty((len(box_limits), n)), np.empty((len(box_limits), n))
         for limit, lower_row, upper_row in zip(box_limits, lowers, uppers):
             limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
         lower, upper, conflicts = combine_boxes(box_limits, lowers, uppers, n)
 
         # Inequality rows G x <= h, and which of them ask for separation (relaxable).
-        G_rows, h_rows, separating = [], [], []
-        for limit in limits:
-            if limit.has_box:
-                continue
+        G_rows, h_rows, separating = [], [], []  # separating: (row count, asks for separation) per limit
+        for limit, separates in row_limits:
             rows = limit.compute(configuration, dt, previous_qdot)
             if rows.lower is not None:
                 raise InvalidInputError(
@@ -350,13 +348,13 @@ class Solver:
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
-                separating.append(np.full(rows.h.shape[0], _is_separating(limit)))
+                separating.append((rows.h.shape[0], separates))
         if len(G_rows) == 1:  # (the usual case: one collision limit; no copy)
-            G, h, separating = G_rows[0], h_rows[0], separating[0]
+            G, h = G_rows[0], h_rows[0]
         elif G_rows:
-            G, h, separating = np.vstack(G_rows), np.concatenate(h_rows), np.concatenate(separating)
+            G, h = np.vstack(G_rows), np.concatenate(h_rows)
         else:
-            G, h, separating = np.zeros((0, n)), np.zeros(0), np.zeros(0, dtype=bool)
+            G, h = np.zeros((0, n)), np.zeros(0)
 
         # The tasks' rows, grouped by level.
         by_level: dict[int, list] = {}
@@ -377,6 +375,23 @@ class Solver:
                                      separating, retries)
         solution.conflicts = conflicts
         return solution
+
+    def _checked(self, tasks, limits) -> tuple[list[Task], list[Limit], list[tuple[Limit, bool]]]:
+        """The tasks, the box limits in priority order and the row limits (with whether their rows ask
+        for separation), checked when a list changes.
+
+        A list is checked (each item a Task / a Limit) and its limits sorted only when its items
+        differ from the last call's (compared by identity), not at every control step.
+        """
+        key = (tuple(tasks), tuple(limits)) if isinstance(tasks, list | tuple) and isinstance(limits, list | tuple) \
+            else None
+        if key is None or key != self._key:
+            tasks, limits = check_tasks(tasks), check_limits(limits)
+            box_limits = sorted((limit for limit in limits if limit.has_box), key=lambda limit: limit.priority)
+            row_limits = [(limit, _is_separating(limit)) for limit in limits if not limit.has_box]
+            self._key = (tuple(tasks), tuple(limits))
+            self._lists = (tasks, box_limits, row_limits)
+        return self._lists
 
     # ------------------------------------------------------------------ the cascade
     def _cascade(self, levels, lower, upper, A, b, G, h, retries, confirm=None) -> Solution:
@@ -450,7 +465,11 @@ class Solver:
     # ------------------------------------------------------------------ relaxation
     def _relaxed(self, err, levels, box_limits, lowers, uppers, lower, upper, A, b, G, h, separating,
                  retries) -> Solution:
-        """The cascade after it failed with ``err``: under the least relaxation, or ``err`` raised."""
+        """The cascade after it failed with ``err``: under the least relaxation, or ``err`` raised.
+
+        ``separating``: ``(row count, whether the rows ask for separation)`` of each row limit, in row order.
+        """
+        separating = np.array([flag for count, flag in separating for _ in range(count)], dtype=bool)
         # The safety boxes (speed, position) come first in priority order.
         k = sum(limit.priority < RELAXABLE_PRIORITY for limit in box_limits)
         safe_lower, safe_upper, _ = combine_boxes(box_limits[:k], lowers[:k], uppers[:k], lower.shape[0])
