@@ -171,19 +171,19 @@ def combine_boxes(box_limits: Sequence[Limit], lowers: np.ndarray, uppers: np.nd
     return lower, upper, conflicts
 
 
-def orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = RANK_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
-    """Equivalent equality rows with orthonormal, independent rows (for consistent ``A x = b``).
+def orthonormal_rows(A: np.ndarray, x: np.ndarray, tol: float = RANK_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal, independent rows ``Q`` spanning the rows of ``A``, and ``Q x``: ``{y : Q y = Q x}``
+    is ``{y : A y = A x}`` without dependent rows.
 
     A Householder QR of ``A^T`` with column pivoting (:func:`orthonormal_rows_qr`), rank from
     its pivots ``|R_kk| > tol max(1, |R_00|)`` (the SVD of the paper's 11 x 12 level-1 rows cost
     ~20 us, the compiled QR ~2 us; same span, another orthonormal basis of it).
     """
     if A.shape[0] == 0:
-        return A, b
+        return A, np.zeros(0)
     k = min(A.shape)
     rows, rhs = np.empty((k, A.shape[1])), np.empty(k)
-    rank = orthonormal_rows_qr(np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(b, dtype=float), tol,
-                               rows, rhs)
+    rank = orthonormal_rows_qr(np.ascontiguousarray(A, dtype=float), x, tol, rows, rhs)
     return rows[:rank], rhs[:rank]
 
 
@@ -192,7 +192,7 @@ def least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = RANK_TOLERANCE
 
     The SVD basis of ``A``'s row space with ``b`` projected on its range: two hard tasks that
     ask for different things get the least-squares compromise (independent of their order).
-    :func:`orthonormal_rows` (pivoted QR) is only for the consistent rows a level hands on.
+    :func:`orthonormal_rows` (pivoted QR) is only for the rows a level hands on (held at its optimum).
     """
     if A.shape[0] == 0:
         return A, b
@@ -208,14 +208,13 @@ def level_equalities(A: np.ndarray, entries, x: np.ndarray) -> tuple[np.ndarray,
     (``w_r > 0``; ``J`` None is the identity), with ``rows @ x`` as right-hand side.
     """
     n = x.shape[0]
-    m = A.shape[0] + sum(task.weight.shape[0] for task, _, _ in entries)
+    m = A.shape[0] + sum([task.weight.shape[0] for task, _, _ in entries])
     rows = np.empty((m, n))
     end = A.shape[0]
     rows[:end] = A
     for task, J, _ in entries:
         end = weighted_rows(_identity(n) if J is None else J, task.weight, rows, end)
-    rows = rows[:end]
-    return orthonormal_rows(rows, rows @ x)
+    return orthonormal_rows(rows[:end], x)
 
 
 _IDENTITIES: dict[int, np.ndarray] = {}
