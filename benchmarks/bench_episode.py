@@ -281,7 +281,7 @@ def _qp_isolated(controller, log: dict, clock, n: int = 1000) -> float:
     rest of the loop in between (caches stay warm).
     """
     qp = getattr(controller, "qp", None)
-    if qp is None or getattr(qp, "_step_unwrapped", None) is None:  # the pinv mapper
+    if qp is None or getattr(qp, "step_unwrapped", None) is None:  # the pinv mapper
         return float("nan")
     step = qp.step_unwrapped
     q, qdot = log["q"], log["qdot_cmd"]

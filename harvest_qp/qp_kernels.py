@@ -262,21 +262,20 @@ def load_daqp_rows(A_buf, upper, lower, sense, A, b, G, h, box_lower, box_upper,
 
 
 @njit(cache=True)
-def orthonormal_rows_qr(A, c, tol, rows_out, rhs_out):
-    """Orthonormal rows spanning the rows of ``A`` (m x n) and the right-hand side that keeps
-    ``A x = c``: Householder QR of ``A^T`` with column pivoting (``A^T P = Q R``).
+def orthonormal_rows_qr(A, x, tol, rows_out, rhs_out):
+    """Orthonormal rows spanning the rows of ``A`` (m x n) and the right-hand side that holds
+    ``A x`` fixed: Householder QR of ``A^T`` with column pivoting (``A^T P = Q R``).
 
-    Writes the ``rank`` rows of ``Q^T`` into ``rows_out[:rank]`` and ``y`` with
-    ``R11^T y = (P^T c)[:rank]`` into ``rhs_out[:rank]``; returns ``rank``, the number of
-    pivots with ``|R_kk| > tol * max(1, |R_00|)`` (``|R_00|``: the largest row norm of ``A``).
-    For consistent ``c`` (``c = A x0``), ``{x : rows x = y}`` is ``{x : A x = c}``.
+    Writes the ``rank`` rows of ``Q^T`` into ``rows_out[:rank]`` and ``rows_out[:rank] @ x`` into
+    ``rhs_out[:rank]``; returns ``rank``, the number of pivots with ``|R_kk| > tol * max(1, |R_00|)``
+    (``|R_00|``: the largest row norm of ``A``). The rows span ``A``'s rows (up to the rank
+    tolerance), so ``{y : rows y = rows x}`` is ``{y : A y = A x}``.
     """
     m, n = A.shape
     M = np.empty((n, m))  # A^T, overwritten by R above the diagonal and the reflectors below
     for i in range(m):
         for j in range(n):
             M[j, i] = A[i, j]
-    piv = np.arange(m)
     beta = np.zeros(n)
     diag = np.zeros(min(m, n))
     steps = min(m, n)
@@ -299,9 +298,6 @@ def orthonormal_rows_qr(A, c, tol, rows_out, rhs_out):
                 tmp = M[r, k]
                 M[r, k] = M[r, p]
                 M[r, p] = tmp
-            tmp_i = piv[k]
-            piv[k] = piv[p]
-            piv[p] = tmp_i
         norm = np.sqrt(best)
         if k == 0:
             threshold = tol * max(1.0, norm)
@@ -339,14 +335,11 @@ def orthonormal_rows_qr(A, c, tol, rows_out, rhs_out):
             for r in range(k + 1, n):
                 Q[r, j] -= acc * M[r, k]
     for j in range(rank):
+        acc = 0.0
         for r in range(n):
             rows_out[j, r] = Q[r, j]
-    # R11^T y = c[piv[:rank]] (R11 upper triangular: forward substitution).
-    for i in range(rank):
-        acc = c[piv[i]]
-        for j in range(i):
-            acc -= M[j, i] * rhs_out[j]
-        rhs_out[i] = acc / M[i, i]
+            acc += Q[r, j] * x[r]
+        rhs_out[j] = acc
     return rank
 
 

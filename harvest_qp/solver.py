@@ -171,19 +171,19 @@ def combine_boxes(box_limits: Sequence[Limit], lowers: np.ndarray, uppers: np.nd
     return lower, upper, conflicts
 
 
-def orthonormal_rows(A: np.ndarray, b: np.ndarray, tol: float = RANK_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
-    """Equivalent equality rows with orthonormal, independent rows (for consistent ``A x = b``).
+def orthonormal_rows(A: np.ndarray, x: np.ndarray, tol: float = RANK_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal, independent rows ``Q`` spanning the rows of ``A``, and ``Q x``: ``{y : Q y = Q x}``
+    is ``{y : A y = A x}`` without dependent rows.
 
     A Householder QR of ``A^T`` with column pivoting (:func:`orthonormal_rows_qr`), rank from
     its pivots ``|R_kk| > tol max(1, |R_00|)`` (the SVD of the paper's 11 x 12 level-1 rows cost
     ~20 us, the compiled QR ~2 us; same span, another orthonormal basis of it).
     """
     if A.shape[0] == 0:
-        return A, b
+        return A, np.zeros(0)
     k = min(A.shape)
     rows, rhs = np.empty((k, A.shape[1])), np.empty(k)
-    rank = orthonormal_rows_qr(np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(b, dtype=float), tol,
-                               rows, rhs)
+    rank = orthonormal_rows_qr(np.ascontiguousarray(A, dtype=float), x, tol, rows, rhs)
     return rows[:rank], rhs[:rank]
 
 
@@ -192,7 +192,7 @@ def least_squares_rows(A: np.ndarray, b: np.ndarray, tol: float = RANK_TOLERANCE
 
     The SVD basis of ``A``'s row space with ``b`` projected on its range: two hard tasks that
     ask for different things get the least-squares compromise (independent of their order).
-    :func:`orthonormal_rows` (pivoted QR) is only for the consistent rows a level hands on.
+    :func:`orthonormal_rows` (pivoted QR) is only for the rows a level hands on (held at its optimum).
     """
     if A.shape[0] == 0:
         return A, b
@@ -208,14 +208,13 @@ def level_equalities(A: np.ndarray, entries, x: np.ndarray) -> tuple[np.ndarray,
     (``w_r > 0``; ``J`` None is the identity), with ``rows @ x`` as right-hand side.
     """
     n = x.shape[0]
-    m = A.shape[0] + sum(task.weight.shape[0] for task, _, _ in entries)
+    m = A.shape[0] + sum([task.weight.shape[0] for task, _, _ in entries])
     rows = np.empty((m, n))
     end = A.shape[0]
     rows[:end] = A
     for task, J, _ in entries:
         end = weighted_rows(_identity(n) if J is None else J, task.weight, rows, end)
-    rows = rows[:end]
-    return orthonormal_rows(rows, rows @ x)
+    return orthonormal_rows(rows[:end], x)
 
 
 _IDENTITIES: dict[int, np.ndarray] = {}
@@ -291,6 +290,8 @@ class Solver:
         self._make = backend_factory if backend_factory is not None else (lambda name, level: make_backend(name))
         self._backends: dict[tuple[str, int], Backend] = {}
         self._unavailable: set[str] = set()
+        self._key: tuple | None = None  # the task and limit lists last checked (see _checked)
+        self._lists: tuple[list[Task], list[Limit], list[tuple[Limit, bool]]] = ([], [], [])
 
     def _backend(self, name: str, level: int) -> Backend:
         """The backend ``name`` for priority ``level`` (one workspace per level, kept between steps)."""
@@ -322,25 +323,21 @@ class Solver:
             InfeasibleProblemError: the safety constraints admit no solution even
                 with the acceleration limits relaxed.
         """
-        tasks = check_tasks(tasks)
-        limits = check_limits(limits)
+        tasks, box_limits, row_limits = self._checked(tasks, limits)
         dt = as_positive_scalar(dt, "dt")
         if previous_qdot is not None:
             previous_qdot = as_vector(previous_qdot, configuration.nv, "previous_qdot")
         n = configuration.nv
 
         # Boxes, in priority order (velocity, position, acceleration, ...).
-        box_limits = sorted((limit for limit in limits if limit.has_box), key=lambda limit: limit.priority)
         lowers, uppers = np.empty((len(box_limits), n)), np.empty((len(box_limits), n))
         for limit, lower_row, upper_row in zip(box_limits, lowers, uppers):
             limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
         lower, upper, conflicts = combine_boxes(box_limits, lowers, uppers, n)
 
         # Inequality rows G x <= h, and which of them ask for separation (relaxable).
-        G_rows, h_rows, separating = [], [], []
-        for limit in limits:
-            if limit.has_box:
-                continue
+        G_rows, h_rows, separating = [], [], []  # separating: (row count, asks for separation) per limit
+        for limit, separates in row_limits:
             rows = limit.compute(configuration, dt, previous_qdot)
             if rows.lower is not None:
                 raise InvalidInputError(
@@ -350,13 +347,13 @@ class Solver:
             if rows.G is not None:
                 G_rows.append(rows.G)
                 h_rows.append(rows.h)
-                separating.append(np.full(rows.h.shape[0], _is_separating(limit)))
+                separating.append((rows.h.shape[0], separates))
         if len(G_rows) == 1:  # (the usual case: one collision limit; no copy)
-            G, h, separating = G_rows[0], h_rows[0], separating[0]
+            G, h = G_rows[0], h_rows[0]
         elif G_rows:
-            G, h, separating = np.vstack(G_rows), np.concatenate(h_rows), np.concatenate(separating)
+            G, h = np.vstack(G_rows), np.concatenate(h_rows)
         else:
-            G, h, separating = np.zeros((0, n)), np.zeros(0), np.zeros(0, dtype=bool)
+            G, h = np.zeros((0, n)), np.zeros(0)
 
         # The tasks' rows, grouped by level.
         by_level: dict[int, list] = {}
@@ -377,6 +374,23 @@ class Solver:
                                      separating, retries)
         solution.conflicts = conflicts
         return solution
+
+    def _checked(self, tasks, limits) -> tuple[list[Task], list[Limit], list[tuple[Limit, bool]]]:
+        """The tasks, the box limits in priority order and the row limits (with whether their rows ask
+        for separation), checked when a list changes.
+
+        A list is checked (each item a Task / a Limit) and its limits sorted only when its items
+        differ from the last call's (compared by identity), not at every control step.
+        """
+        key = (tuple(tasks), tuple(limits)) if isinstance(tasks, list | tuple) and isinstance(limits, list | tuple) \
+            else None
+        if key is None or key != self._key:
+            tasks, limits = check_tasks(tasks), check_limits(limits)
+            box_limits = sorted((limit for limit in limits if limit.has_box), key=lambda limit: limit.priority)
+            row_limits = [(limit, _is_separating(limit)) for limit in limits if not limit.has_box]
+            self._key = (tuple(tasks), tuple(limits))
+            self._lists = (tasks, box_limits, row_limits)
+        return self._lists
 
     # ------------------------------------------------------------------ the cascade
     def _cascade(self, levels, lower, upper, A, b, G, h, retries, confirm=None) -> Solution:
@@ -450,7 +464,11 @@ class Solver:
     # ------------------------------------------------------------------ relaxation
     def _relaxed(self, err, levels, box_limits, lowers, uppers, lower, upper, A, b, G, h, separating,
                  retries) -> Solution:
-        """The cascade after it failed with ``err``: under the least relaxation, or ``err`` raised."""
+        """The cascade after it failed with ``err``: under the least relaxation, or ``err`` raised.
+
+        ``separating``: ``(row count, whether the rows ask for separation)`` of each row limit, in row order.
+        """
+        separating = np.array([flag for count, flag in separating for _ in range(count)], dtype=bool)
         # The safety boxes (speed, position) come first in priority order.
         k = sum(limit.priority < RELAXABLE_PRIORITY for limit in box_limits)
         safe_lower, safe_upper, _ = combine_boxes(box_limits[:k], lowers[:k], uppers[:k], lower.shape[0])

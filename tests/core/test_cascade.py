@@ -181,6 +181,24 @@ def test_a_non_limit_among_the_limits_is_named_by_position_and_type():
             build()
 
 
+def test_a_list_changed_after_a_solve_is_checked_again():
+    """The solver checks the lists when they change (not every step): a non-Task put into the
+    same list after a good solve, or a non-Limit appended, is still named. Bug caught: a check
+    cached on the list object, so the changed list reached the cascade unchecked."""
+    configuration = Configuration.dual_ur5e(HOME_Q)
+    tasks, limits = [DampingTask(12), PostureTask(HOME_Q)], [JointVelocityLimit(configuration)]
+    solver = Solver()
+    solver.solve(configuration, tasks, limits)
+    tasks[1] = "posture"
+    with pytest.raises(InvalidInputError, match=r"tasks\[1\] must be a Task, got str"):
+        solver.solve(configuration, tasks, limits)
+    tasks[1] = PostureTask(HOME_Q)
+    solver.solve(configuration, tasks, limits)
+    limits.append(3)
+    with pytest.raises(InvalidInputError, match=r"limits\[1\] must be a Limit, got int"):
+        solver.solve(configuration, tasks, limits)
+
+
 def test_controller_step_with_updated_kinematics_equals_the_plain_step(rng):
     """Oracle: the public step that recomputes the kinematics. ``step(q, kinematics_updated=True)`` after
     the loop's own ``configuration.update(q)`` gives the same command."""
