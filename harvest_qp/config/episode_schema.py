@@ -217,7 +217,10 @@ class ObstacleMap(Section):
 class Safety(Section):
     """Aborts."""
 
-    force_limit: PositiveOrNull = _f(None, "[N] abort above it (null: 2 f_d)")
+    force_limit: PositiveOrNull = _f(None, "[N] abort when the wrist force along n_c or its magnitude is above it "
+                                           "(null: 2 f_d)")
+    off_axis_force_limit: PositiveOrNull = _f(None, "[N] abort when the wrist force's part across n_c is above it "
+                                                    "(null: f_d)")
     stem_lost_timeout: Positive = _f(5.0, "[s] abort when no stem point is seen this long in the bimanual phase")
     no_stem_timeout: Positive = _f(30.0, "[s] abort when no valid stem base is ever found this long")
     max_qp_failures: PositiveInt = _f(25, "abort after this many QP failures in a row")
@@ -231,6 +234,7 @@ class Precut(Section):
     alignment_tolerance_deg: Positive = _f(5.0, "[deg] cutter-stem alignment")
     hold_time: NonNegative = _f(1.0, "[s] all tolerances held this long")
     force_time_constant: NonNegative = _f(0.2, "[s] low-pass on the force for this test (sensor noise)")
+    max_force_angle_deg: Positive = _f(20.0, "[deg] the wrist force within this angle of n_c")
 
 
 class TaskSlot(Section):

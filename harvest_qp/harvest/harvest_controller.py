@@ -532,7 +532,8 @@ class HarvestController:
             force_nc = stretching.force_along_nc
             if s.grasping.feed_forward:
                 V_c += self.feed_forward(stretching.v_gt, T_c[:3, 3], st.p_sb)
-            self.phases.stretch(t, dt, force_nc, stretching.position_error, stretching.alignment)
+            self.phases.stretch(t, dt, force_nc, stretching.position_error, stretching.alignment,
+                                force_norm=math.hypot(*force))
             direction = stretching.n_c
         roll, roll_error = roll_reference(T_c, direction, k_roll=s.roll.k_roll)
         return _References(V_c, V_g, roll, roll_error, force_nc, reaching.distance)

@@ -13,7 +13,8 @@ contacts, tear, tension, capsule distances to the vine).
 * visible stem points at the end >= 3x those at the start (start counted as at least 1);
   "at the end" is the median over the frames of the last 0.5 s, "at the start" the first frame;
 * mean force along n_c over the last second within 10 % of f_d, never above 2 f_d
-  after the tare;
+  after the tare; the same for the lab's true stem tension (what the stem really feels: a wrist
+  force held by a branch contact is not a stretched stem);
 * alignment < 5 deg and projected position error < 5 mm at the end;
 * no contact, no tear, no abort.
 """
@@ -35,8 +36,8 @@ from harvest_qp.limits import CollisionAvoidance
 __all__ = ["compute_metrics", "controller_metrics", "min_capsule_distance", "SUCCESS_KEYS"]
 
 SUCCESS_KEYS = (
-    "inside_roi", "centred", "unveiled", "force_settled", "force_below_2fd", "aligned",
-    "position_error_small", "no_contact", "no_tear", "no_abort",
+    "inside_roi", "centred", "unveiled", "force_settled", "force_below_2fd", "true_tension_settled",
+    "true_tension_below_2fd", "aligned", "position_error_small", "no_contact", "no_tear", "no_abort",
 )
 
 
@@ -187,6 +188,16 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
     contacts = int(np.count_nonzero(in_contact))  # ticks with at least one robot contact
     torn = bool(np.any(log["truth/stem_torn"] > 0)) if "truth/stem_torn" in log else False
     min_distance = min_capsule_distance(log["q"], environment_capsules_for(robot, ["branch", "cane"]))
+    # --- the grasp target chosen at the switch, against the true stem: its angle off the hanging stem
+    # (p_sb -> stem end) and whether it lies above the stem base (the crop turned upside down)
+    target_angle, target_above = None, None
+    bimanual = np.flatnonzero(log["value/phase"] >= Phase.BIMANUAL)
+    if len(bimanual) and "truth/stem_end" in log:
+        k = int(bimanual[0])
+        p_gd = np.asarray(log["value/p_gd"][k], float)
+        if np.all(np.isfinite(p_gd)):
+            target_angle = _finite(_angle_deg(p_gd - p_sb_true, np.asarray(log["truth/stem_end"][k]) - p_sb_true))
+            target_above = bool(p_gd[2] > p_sb_true[2])
     st = controller.state
     metrics: dict[str, Any] = {
         "seed": int(seed),
@@ -203,6 +214,8 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
         "min_vine_distance": (_finite(float(np.nanmin(log["truth/min_vine_distance"])))
                               if "truth/min_vine_distance" in log else None),
         "stem_torn": torn,
+        "target_angle_off_stem_deg": target_angle,
+        "target_above_stem_base": target_above,
         "stem_base_error_at_switch": (
             float(np.linalg.norm(st.p_sb - p_sb_true)) if st.p_sb is not None else None
         ),
@@ -211,6 +224,10 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
         "inside_roi": distance_true <= 1.02 * radius,
         "centred": theta_true < 2.0,
         **own_checks,
+        "true_tension_settled": tension is None or (math.isfinite(tension_mean)
+                                                    and abs(tension_mean - float(settings.grasping.f_d))
+                                                    <= 0.1 * float(settings.grasping.f_d)),
+        "true_tension_below_2fd": tension is None or tension_max <= 2.0 * float(settings.grasping.f_d),
         "no_contact": contacts == 0,
         "no_tear": not torn,
     }

@@ -71,6 +71,8 @@ class PhaseRules:
     force_time_constant: float  # [s] low-pass of the force for the pre-cut test (precut.force_time_constant)
     end_after_precut: float | None  # [s] (episode.end_after_precut; None: never)
     stop_after_abort: float  # [s] at rest after an abort (episode.stop_after_abort)
+    off_axis_force_limit: float = math.inf  # [N] the wrist force across n_c (safety.off_axis_force_limit; f_d)
+    max_force_angle_deg: float = 180.0  # [deg] the force's angle from n_c at pre-cut (precut.max_force_angle_deg)
 
     @classmethod
     def from_settings(cls, s: dict[str, Any]) -> PhaseRules:
@@ -87,6 +89,8 @@ class PhaseRules:
             position_tolerance=p.position_tolerance, alignment_tolerance_deg=p.alignment_tolerance_deg,
             hold_time=p.hold_time, force_time_constant=p.force_time_constant,
             end_after_precut=s.episode.end_after_precut, stop_after_abort=s.episode.stop_after_abort,
+            off_axis_force_limit=f_d if safety.off_axis_force_limit is None else float(safety.off_axis_force_limit),
+            max_force_angle_deg=p.max_force_angle_deg,
         )
 
 
@@ -178,22 +182,39 @@ class PhaseMachine:
         if self.bimanual and t - last_stem_time > timeout:
             self.abort(t, f"stem not seen for {timeout} s in the bimanual phase")
 
-    def stretch(self, t: float, dt: float, force_nc: float, position_error: float, alignment: float) -> None:
-        """One bimanual tick's grasp state: the force along n_c [N], the projected position error
-        [m] and the alignment angle [rad] of V_g (``eq:superimp_g``). Aborts above the force
-        limit; else low-passes the force (with 0.2 N sensor noise the raw samples leave the +-10 %
-        band on ~13 % of ticks) and runs the pre-cut test."""
+    def stretch(self, t: float, dt: float, force_nc: float, position_error: float, alignment: float, *,
+                force_norm: float) -> None:
+        """One bimanual tick's grasp state: the wrist force along n_c and its magnitude [N], the
+        projected position error [m] and the alignment angle [rad] of V_g (``eq:superimp_g``).
+
+        Aborts on what the robot can see (beyond the paper, which compares n_c^T f alone): the force
+        along n_c or the force's magnitude above ``force_limit`` (a stem pulled off-axis, or the
+        gripper pressed on a petiole, reads little along n_c), or its part across n_c above
+        ``off_axis_force_limit``. Else low-passes the force along n_c (with 0.2 N sensor noise the raw
+        samples leave the +-10 % band on ~13 % of ticks) and runs the pre-cut test, which also asks
+        that the force lie within ``max_force_angle_deg`` of n_c (a pull held by a branch contact
+        across n_c is not a stretched stem)."""
         r = self.rules
         if force_nc > r.force_limit:
             self.abort(t, f"stem force {force_nc:.2f} N above the limit {r.force_limit:.2f} N")
+            return
+        if force_norm > r.force_limit:
+            self.abort(t, f"wrist force magnitude {force_norm:.2f} N above the limit {r.force_limit:.2f} N "
+                          f"({force_nc:.2f} N along n_c)")
+            return
+        across = math.sqrt(max(force_norm * force_norm - force_nc * force_nc, 0.0))
+        if across > r.off_axis_force_limit:
+            self.abort(t, f"wrist force {across:.2f} N across n_c above the limit {r.off_axis_force_limit:.2f} N")
             return
         tau = r.force_time_constant
         if self.force_filtered is None or tau == 0:
             self.force_filtered = force_nc
         else:
             self.force_filtered += -math.expm1(-dt / tau) * (force_nc - self.force_filtered)
+        along = force_nc > 0.0 and math.degrees(math.atan2(across, force_nc)) <= r.max_force_angle_deg
         within = (
-            abs(self.force_filtered - r.f_d) <= r.force_tolerance * r.f_d
+            along
+            and abs(self.force_filtered - r.f_d) <= r.force_tolerance * r.f_d
             and position_error <= r.position_tolerance
             and math.degrees(alignment) <= r.alignment_tolerance_deg
         )

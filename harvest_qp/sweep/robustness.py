@@ -18,6 +18,8 @@ __all__ = ["CLASSES", "MAX_CONTACT_TICKS", "failure_class", "grower_success", "s
 
 #: Most ticks (2 ms each) with a robot contact that a grower would still accept.
 MAX_CONTACT_TICKS = 25
+#: A grasp target farther than this from the true hanging stem [deg] (the swing bound, 30, plus 10 of slack).
+MAX_TARGET_ANGLE_DEG = 40.0
 CLASSES = ("lab", "safety", "target", "priority", "perception", "other")
 
 
@@ -36,7 +38,8 @@ def failure_class(row: Mapping[str, Any]) -> str:
 
     * ``lab``: the episode did not run to its end (an exception, a dead or timed-out process);
     * ``safety``: a torn stem, a true tension above 2 f_d, more than 50 ms of contact, or a force abort;
-    * ``target``: the grasp target came from a fallback rule, not the free cone of ``eq:attr_point``;
+    * ``target``: the grasp target came from a fallback rule, not the free cone of ``eq:attr_point``,
+      or lies more than :data:`MAX_TARGET_ANGLE_DEG` off the true hanging stem or above the stem base;
     * ``priority``: the bimanual phase ran but pre-cut was never reached (position or alignment
       never converged);
     * ``perception``: no stem base found, or the stem lost;
@@ -53,7 +56,9 @@ def failure_class(row: Mapping[str, Any]) -> str:
     if "stem" in reason and ("not seen" in reason or "no stem base" in reason):
         return "perception"
     choice = str(row.get("p_gd_choice") or "")
-    if choice and "in the cone" not in choice:
+    angle = row.get("target_angle_off_stem_deg")
+    if ((choice and "in the cone" not in choice) or row.get("target_above_stem_base")
+            or (angle is not None and float(angle) > MAX_TARGET_ANGLE_DEG)):
         return "target"
     if row.get("phase_reached") == "bimanual":
         return "priority"

@@ -92,6 +92,16 @@ def _check_success(seed: int, code: int, metrics: dict, log: dict) -> None:
     # the true stem (base -> where it enters the crop) is where the controller pulls it
     stem = log["truth/stem_end"][-1] - base
     assert np.degrees(np.arccos(np.clip(stem @ n_c / np.linalg.norm(stem), -1, 1))) < 15.0, label
+    # the grasp target chosen at the switch: below the stem base, and the metric's angle off the
+    # true hanging stem is this one (not asserted within the 30 deg swing bound: seed 2's target is
+    # 43.9 deg off the true stem although its episode succeeds, an issue-20 case left open)
+    k = int(np.flatnonzero(phase >= 1)[0])
+    to_target, hanging = log["value/p_gd"][k] - base, log["truth/stem_end"][k] - base
+    angle = np.degrees(np.arccos(np.clip(to_target @ hanging / np.linalg.norm(to_target) / np.linalg.norm(hanging),
+                                         -1, 1)))
+    assert log["value/p_gd"][k][2] < base[2], f"{label}: target above the stem base"
+    assert metrics["target_angle_off_stem_deg"] == pytest.approx(angle, abs=0.5)
+    assert metrics["target_above_stem_base"] is False
     assert metrics["success"] and code == 0, f"{label}: {metrics['criteria']}"
 
 

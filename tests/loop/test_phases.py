@@ -107,10 +107,42 @@ def test_a_stem_lost_for_the_timeout_aborts_only_after_the_switch(rules):
 def test_force_above_the_limit_aborts(rules):
     machine = PhaseMachine(rules)
     machine.switch(0.0)
-    machine.stretch(0.1, DT, 6.0, 0.0, 0.0)
+    machine.stretch(0.1, DT, 6.0, 0.0, 0.0, force_norm=6.0)
     assert machine.phase == Phase.BIMANUAL
-    machine.stretch(0.102, DT, 6.01, 0.0, 0.0)
+    machine.stretch(0.102, DT, 6.01, 0.0, 0.0, force_norm=6.01)
     assert machine.phase == Phase.ABORT and machine.abort_reason == "stem force 6.01 N above the limit 6.00 N"
+
+
+@pytest.mark.parametrize(("along", "norm", "reason"), [
+    (-8.9, 15.0, "wrist force magnitude 15.00 N above the limit 6.00 N (-8.90 N along n_c)"),  # a stem pulled
+    (1.0, 6.5, "wrist force magnitude 6.50 N above the limit 6.00 N (1.00 N along n_c)"),  # off n_c: FINDINGS
+    (2.0, 4.0, "wrist force 3.46 N across n_c above the limit 3.00 N"),
+])
+def test_the_wrist_force_aborts_off_n_c_too(rules, along, norm, reason):
+    """What the robot sees off n_c stops the arms (issue 20, safety): a 15 N wrist force reading -8.9 N
+    along n_c (a stem torn at 15 N while n_c^T f never reached 2 f_d), or a force across n_c above
+    f_d. Hand values: across = sqrt(4^2 - 2^2) = 3.46 N. Catches: the abort comparing n_c^T f alone."""
+    machine = PhaseMachine(dataclasses.replace(rules, off_axis_force_limit=3.0))
+    machine.switch(0.0)
+    machine.stretch(0.1, DT, along, 0.0, 0.0, force_norm=norm)
+    assert machine.phase == Phase.ABORT and machine.abort_reason == reason
+
+
+def test_precut_only_with_the_force_along_n_c(rules):
+    """3 N along n_c but 1.5 N across it (27 deg off, a pull held by a branch contact): every other
+    pre-cut test holds, yet pre-cut is never declared; 1.0 N across (18 deg) is. Catches: pre-cut
+    judged on n_c^T f alone."""
+    machine = PhaseMachine(dataclasses.replace(rules, max_force_angle_deg=20.0))
+    machine.switch(0.0)
+    t = 0.1
+    while t < 2.0:
+        machine.stretch(t, DT, 3.0, 0.0, 0.0, force_norm=math.hypot(3.0, 1.5))
+        t += DT
+    assert machine.phase == Phase.BIMANUAL
+    while t < 3.2:
+        machine.stretch(t, DT, 3.0, 0.0, 0.0, force_norm=math.hypot(3.0, 1.0))
+        t += DT
+    assert machine.phase == Phase.PRECUT
 
 
 def test_precut_after_the_tests_hold_for_the_hold_time(rules):
@@ -121,14 +153,14 @@ def test_precut_after_the_tests_hold_for_the_hold_time(rules):
     machine.switch(0.5)
     t = 1.0
     while t < 1.3:
-        machine.stretch(t, DT, 3.2, 0.005, math.radians(5))
+        machine.stretch(t, DT, 3.2, 0.005, math.radians(5), force_norm=3.2)
         t += DT
-    machine.stretch(t, DT, 3.31, 0.005, math.radians(5))  # 10.3 % off: out
+    machine.stretch(t, DT, 3.31, 0.005, math.radians(5), force_norm=3.31)  # 10.3 % off: out
     assert machine.precut_since is None
     start = t + DT
     for k in range(1000):
         t = start + DT * k
-        machine.stretch(t, DT, 2.75, 0.009, math.radians(9.9))
+        machine.stretch(t, DT, 2.75, 0.009, math.radians(9.9), force_norm=2.75)
         if machine.phase == Phase.PRECUT:
             break
     assert machine.t_precut == pytest.approx(start + 0.5, abs=1.5 * DT)
@@ -137,7 +169,7 @@ def test_precut_after_the_tests_hold_for_the_hold_time(rules):
         other = PhaseMachine(rules)
         other.switch(0.0)
         for k in range(400):
-            other.stretch(DT * k, DT, 3.0, error, alignment)
+            other.stretch(DT * k, DT, 3.0, error, alignment, force_norm=3.0)
         assert other.phase == Phase.BIMANUAL
 
 
@@ -149,7 +181,8 @@ def test_the_precut_force_is_low_passed(rules):
     for machine in (filtered, raw):
         machine.switch(0.0)
         for k in range(1000):
-            machine.stretch(DT * (k + 1), DT, 3.0 + 0.6 * (-1) ** k, 0.0, 0.0)
+            force = 3.0 + 0.6 * (-1) ** k
+            machine.stretch(DT * (k + 1), DT, force, 0.0, 0.0, force_norm=force)
     assert filtered.phase == Phase.PRECUT and raw.phase == Phase.BIMANUAL
     assert abs(filtered.force_filtered - 3.0) < 0.1
 

@@ -37,6 +37,8 @@ def row(seed, **kw):
     ({"success": False, "p_gd_choice": "fallback: the hanging direction", "phase_reached": "bimanual"},
      False, "target"),
     ({"success": False, "phase_reached": "bimanual", "t_precut": None}, False, "priority"),
+    ({"success": False, "phase_reached": "bimanual", "target_angle_off_stem_deg": 164.0}, False, "target"),
+    ({"success": False, "phase_reached": "bimanual", "target_above_stem_base": True}, False, "target"),
     ({"status": "error", "success": None}, False, "lab"),
 ])
 def test_each_row_is_judged_and_classed(kw, grower, cls):
