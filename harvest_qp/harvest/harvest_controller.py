@@ -74,7 +74,8 @@ from harvest_qp.references import (
     roll_reference,
 )
 from harvest_qp.runtime.interface import PointCloud, RobotInterface
-from harvest_qp.runtime.runner import Command, Observation, _command, _PairColumns, _ValueLayout, _ValueRow
+from harvest_qp.runtime.log import PairColumns, ValueLayout, ValueRow
+from harvest_qp.runtime.runner import Command, Observation
 from harvest_qp.task_controller import TaskController
 from harvest_qp.tasks import DampingTask, FrameTwistTask, PostureTask
 
@@ -139,15 +140,15 @@ _LOGGED_VALUES = (
     ("n_c", (3,)), ("V_c", (6,)), ("V_g", (6,)), ("force_nc", ()), ("theta", ()), ("roi_distance", ()),
     ("position_error", ()), ("alignment", ()), ("unveiling_pairs", ()),
 )
-#: The tick's values as one row for the runner (runner._ValueRow), with and without the map's cell count.
-_LAYOUT_WITH_MAP = _ValueLayout((("roll_error", ()), ("map_cells", ()), *_LOGGED_VALUES))
-_LAYOUT_WITHOUT_MAP = _ValueLayout((("roll_error", ()), *_LOGGED_VALUES))
+#: The tick's values as one row for the runner (harvest_qp.runtime.log.ValueRow), with and without the map's cell count.
+_LAYOUT_WITH_MAP = ValueLayout((("roll_error", ()), ("map_cells", ()), *_LOGGED_VALUES))
+_LAYOUT_WITHOUT_MAP = ValueLayout((("roll_error", ()), *_LOGGED_VALUES))
 
 
 
 
 def _missing_names(roll_error: float | None, map_cells: float | None, with_map: bool) -> tuple[str, ...]:
-    """The tick's value names not given (``_ValueRow.missing``) of the row layouts."""
+    """The tick's value names not given (``ValueRow.missing``) of the row layouts."""
     if roll_error is None:
         return ("roll_error", "map_cells") if with_map and map_cells is None else ("roll_error",)
     return ("map_cells",) if with_map and map_cells is None else ()
@@ -493,7 +494,8 @@ class HarvestController:
             timing.setdefault("mapper", []).append(clock() - t_mapper)
         self.state.phase = self.phases.phase  # the perception's view of the phase
         values = self._log_row(T_c, references, map_cells)
-        return _command(qdot, status, values, self._active_pair_columns(), self.phases.done(t))
+        return Command(qdot=qdot, status=status, values=values, collision_pairs=self._active_pair_columns(),
+                       done=self.phases.done(t))
 
     def _advance_phase(self, t: float, obs: Observation, T_c: np.ndarray, T_g: np.ndarray) -> None:
         """The phase machine's tick: the switch test (then p_sb, p_gd at the switch) or the stem watch."""
@@ -585,9 +587,9 @@ class HarvestController:
 
     # ------------------------------------------------------------------ log
 
-    def _log_row(self, T_c: np.ndarray, references: _References, map_cells: float | None) -> _ValueRow:
+    def _log_row(self, T_c: np.ndarray, references: _References, map_cells: float | None) -> ValueRow:
         """The tick's logged values (``value/<name>``: ``roll_error``, ``map_cells`` with the map,
-        then :data:`_LOGGED_VALUES`) as one float64 row for the runner (``runner._ValueRow``);
+        then :data:`_LOGGED_VALUES`) as one float64 row for the runner (``harvest_qp.runtime.log.ValueRow``);
         NaN where a value is not defined (before the switch, or no references after an abort)."""
         st, phases, reaching, stretching = self.state, self.phases, self.reaching, self.stretching
         nan = math.nan
@@ -607,10 +609,10 @@ class HarvestController:
              stretching.alignment if switched else nan, float(self.unveiling.n_pairs)],
         ))
         layout = _LAYOUT_WITH_MAP if with_map else _LAYOUT_WITHOUT_MAP
-        return _ValueRow._built(layout, row, _missing_names(roll_error, map_cells, with_map))
+        return ValueRow._built(layout, row, _missing_names(roll_error, map_cells, with_map))
 
-    def _active_pair_columns(self) -> _PairColumns | list:
-        """The collision pairs active in this tick's QP as three columns (``runner._PairColumns``:
+    def _active_pair_columns(self) -> PairColumns | list:
+        """The collision pairs active in this tick's QP as three columns (``harvest_qp.runtime.log.PairColumns``:
         first names, second names, distances [m]); ``[]`` without (no limit, the pinv mapper)."""
         lim = self.collision
         if lim is None or self.mapper_kind != "qp":
@@ -619,7 +621,7 @@ class HarvestController:
         if not active.size:
             return []
         distances = getattr(lim, "_dist", None)
-        # Python floats of float64 values (what _PairColumns' constructor made of the array).
+        # Python floats of float64 values (what PairColumns' constructor made of the array).
         if distances is None:
             distances = [math.nan] * active.size
         else:
@@ -645,7 +647,7 @@ class HarvestController:
             first = list(map(lookup, pair_a[active].tolist()))
             second = list(map(lookup, pair_b[active].tolist()))
             self._last_pair_names = (pair_a, pair_b, list(names), first, second, key)
-        return _PairColumns._built(first, second, distances)  # lists of one length: no check needed
+        return PairColumns._built(first, second, distances)  # lists of one length: no check needed
 
     # ------------------------------------------------------------------ summary
 

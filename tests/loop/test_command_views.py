@@ -48,7 +48,7 @@ def _run(settings, wrapper):
 
 def test_extending_the_values_in_place_names_the_fix(setup):
     """Bug caught (audit): a wrapper that added a value in place (a dict before the row
-    protocol) got only "'_ValueRow' object does not support item assignment".
+    protocol) got only "'ValueRow' object does not support item assignment".
 
     Oracle: the episode ends as a controller error whose message gives the replacement call.
     """

@@ -1,8 +1,8 @@
 """HarvestController's per-tick log protocol: its values as one row, its active pairs as columns.
 
 The controller hands the runner its ~18 logged values as one float64 row
-(``runner._ValueRow``) and its active collision pairs as three columns
-(``runner._PairColumns``). Oracles: the collision limit's own ``active_pair_distances``,
+(``harvest_qp.runtime.log.ValueRow``) and its active collision pairs as three columns
+(``harvest_qp.runtime.log.PairColumns``). Oracles: the collision limit's own ``active_pair_distances``,
 pinocchio's frame placements, and the same episode handed to the runner through its generic
 protocol (a wrapper that passes every value as a plain array in a dict and the pairs as a list
 of tuples): the logs must be equal, with the same keys in the same order.
@@ -20,7 +20,8 @@ from harvest_qp.configuration import Configuration
 from harvest_qp.harvest.harvest_controller import HarvestController
 from harvest_qp.harvest.phases import Phase
 from harvest_qp.robot.paths import tasks_dir
-from harvest_qp.runtime.runner import _PairColumns, run_episode
+from harvest_qp.runtime.log import PairColumns
+from harvest_qp.runtime.runner import run_episode
 from harvest_qp.sim.paper_episode import build_robot, environment_capsules_for, episode_ground_truth
 
 
@@ -46,7 +47,7 @@ def test_pair_columns_read_as_the_pair_tuples(controller):
     c.qp.reset(q)
     c.qp.step(q)
     pairs = c._active_pair_columns()
-    assert type(pairs) is _PairColumns and len(pairs) > 0
+    assert type(pairs) is PairColumns and len(pairs) > 0
     listing = c.collision.active_pair_distances()
     assert pairs == listing and list(pairs) == listing and pairs[0] == listing[0]
     assert all(type(d) is float for _, _, d in pairs)

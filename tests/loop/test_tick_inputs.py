@@ -42,7 +42,7 @@ def test_command_check_by_sum_then_by_entry():
     refused at every pair of positions, finite values whose sum overflows or cancels are
     accepted (oracle: np.isfinite on each entry). Catches: a fast check that passes a non-finite
     command (e.g. one testing only the first and last speeds, or none)."""
-    from harvest_qp.runtime.runner import Command, _as_command_fast
+    from harvest_qp.runtime.runner import Command, as_command
 
     rng = np.random.default_rng(3)
     for i in range(12):
@@ -54,8 +54,8 @@ def test_command_check_by_sum_then_by_entry():
                 qdot[i], qdot[j] = a, b
                 assert not np.isfinite(qdot).all()
                 with pytest.raises(InvalidInputError, match="finite"):
-                    _as_command_fast(Command(qdot=qdot))
+                    as_command(Command(qdot=qdot))
     for qdot in (np.array([1e308, 1e308, -1e308] * 4), np.array([1.7e308] * 6 + [-1.7e308] * 6),
                  np.full(12, 1e308), rng.normal(size=12)):
         assert np.isfinite(qdot).all()
-        assert _as_command_fast(Command(qdot=qdot)).qdot is qdot
+        assert as_command(Command(qdot=qdot)).qdot is qdot

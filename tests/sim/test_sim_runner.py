@@ -239,10 +239,10 @@ def test_command_done_ends_the_episode():
 # ---------------------------------------------------------------- the library's own log protocol
 
 from harvest_qp.runtime import runner as _runner  # noqa: E402
-from harvest_qp.runtime.runner import _PairColumns, _ValueLayout, _ValueRow  # noqa: E402
+from harvest_qp.runtime.log import EpisodeLog, PairColumns, ValueLayout, ValueRow  # noqa: E402
 
-_LAYOUT_A = _ValueLayout((("late", ()), ("never", (2,)), ("s", ()), ("v", (3,)), ("m", (2, 2))))
-_LAYOUT_B = _ValueLayout((("s", ()), ("w", (2,))))
+_LAYOUT_A = ValueLayout((("late", ()), ("never", (2,)), ("s", ()), ("v", (3,)), ("m", (2, 2))))
+_LAYOUT_B = ValueLayout((("s", ()), ("w", (2,))))
 
 
 class _Rows:
@@ -263,17 +263,17 @@ class _Rows:
             if self.other == "dict":
                 values = {"s": -t, "v": np.array([t, 2 * t, -0.0])}
             else:
-                values = _ValueRow(_LAYOUT_B, np.array([t, np.nan, -t]), ("w",) if k % 2 else ())
+                values = ValueRow(_LAYOUT_B, np.array([t, np.nan, -t]), ("w",) if k % 2 else ())
         else:
             row = np.array([k, 9.0, 9.0, t, 1.0 + t, -0.0, np.inf, 1.0, 2.0, 3.0, 4.0 * t])
             missing = ("never",) + (("late",) if k < 3 else ()) + (("v",) if k % 4 == 1 else ())
-            values = _ValueRow(_LAYOUT_A, row, missing)
+            values = ValueRow(_LAYOUT_A, row, missing)
         # The same first names with other second names (c|d, c|5), and 5 / "5" (one name in the log).
         first, second = ["a", "b", "c"], ["b", "c", ("d", 5, "5")[k % 3]]
         n = 3 if k % 4 else 2
-        pairs = _PairColumns(first[:n], second[:n], np.array([0.01 * k + i for i in range(n)]))
+        pairs = PairColumns(first[:n], second[:n], np.array([0.01 * k + i for i in range(n)]))
         if self.as_dicts:
-            values = dict(values) if isinstance(values, _ValueRow) else values
+            values = dict(values) if isinstance(values, ValueRow) else values
             pairs = [(str(a), str(b), d) for a, b, d in pairs]
         return Command(qdot=np.zeros(12), values=values, collision_pairs=pairs)
 
@@ -310,9 +310,9 @@ def test_fast_finiteness_check_refuses_every_non_finite_entry():
             qdot = np.zeros(12)
             qdot[i] = bad
             with pytest.raises(InvalidInputError, match="finite"):
-                _runner._as_command_fast(Command(qdot=qdot))
+                _runner.as_command(Command(qdot=qdot))
     for qdot in (np.full(12, 1e308), np.full(12, -1e308), np.full(12, -0.0), np.full(12, 5e-324)):
-        cmd = _runner._as_command_fast(Command(qdot=qdot))
+        cmd = _runner.as_command(Command(qdot=qdot))
         assert cmd.qdot is qdot
 
 
@@ -321,7 +321,7 @@ def test_value_rows_and_pair_columns_read_as_mappings_and_sequences():
     scalars, shaped views, missing names absent) and the columns as (a, b, distance) tuples.
     Catches: a missing name still readable, a slot read at the wrong offset, a bad row or
     bad columns accepted."""
-    row = _ValueRow(_LAYOUT_A, np.arange(11.0), ("never",))
+    row = ValueRow(_LAYOUT_A, np.arange(11.0), ("never",))
     assert list(row) == ["late", "s", "v", "m"] and len(row) == 4 and "never" not in row
     assert row["late"] == 0.0 and type(row["s"]) is float and row["s"] == 3.0
     np.testing.assert_array_equal(row["v"], [4.0, 5.0, 6.0])
@@ -330,37 +330,16 @@ def test_value_rows_and_pair_columns_read_as_mappings_and_sequences():
     with pytest.raises(KeyError):
         row["never"]
     with pytest.raises(InvalidInputError):
-        _ValueRow(_LAYOUT_A, np.arange(10.0))
+        ValueRow(_LAYOUT_A, np.arange(10.0))
     with pytest.raises(InvalidInputError):
-        _ValueRow(_LAYOUT_A, np.arange(11, dtype=np.float32))
-    pairs = _PairColumns(["a", "b"], ["c", "d"], np.array([0.5, 0.25]))
+        ValueRow(_LAYOUT_A, np.arange(11, dtype=np.float32))
+    pairs = PairColumns(["a", "b"], ["c", "d"], np.array([0.5, 0.25]))
     assert list(pairs) == [("a", "c", 0.5), ("b", "d", 0.25)] and pairs[1] == ("b", "d", 0.25)
     assert pairs == [("a", "c", 0.5), ("b", "d", 0.25)] and min(pairs, key=lambda p: p[2])[0] == "b"
     with pytest.raises(InvalidInputError):
-        _PairColumns(["a"], ["c", "d"], np.array([0.5, 0.25]))
+        PairColumns(["a"], ["c", "d"], np.array([0.5, 0.25]))
     with pytest.raises(InvalidInputError):
-        _PairColumns(["a", "b"], ["c", "d"], [0.5, 0.25])
-
-
-def test_the_runners_observation_is_the_dataclasss():
-    """The runner builds each tick's Observation without the frozen dataclass's ``__init__``:
-    the same class, attributes (in order), repr and frozenness as ``Observation(...)``, and
-    no ``__post_init__`` it would skip. Catches: a field left out or swapped, a check added to
-    Observation that the runner's construction would bypass."""
-    import dataclasses
-
-    q, qdot, force = np.arange(12.0), -np.arange(12.0), np.ones(3)
-
-    def tare() -> None:
-        pass
-
-    obs = _runner._observation(0.25, q, qdot, force, None, True, tare)
-    expected = Observation(time=0.25, q=q, qdot=qdot, force=force, cloud=None, new_cloud=True, tare_force=tare)
-    assert type(obs) is Observation and not hasattr(Observation, "__post_init__")
-    assert list(vars(obs).items()) == list(vars(expected).items()) and repr(obs) == repr(expected)
-    assert [f.name for f in dataclasses.fields(Observation)] == list(vars(obs))
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        obs.time = 1.0
+        PairColumns(["a", "b"], ["c", "d"], [0.5, 0.25])
 
 
 def test_pair_arrays_cut_at_k_match_a_per_event_loop():
@@ -369,14 +348,14 @@ def test_pair_arrays_cut_at_k_match_a_per_event_loop():
     tick's row; the width is the most events of any logged tick (as before).
     Catches: events of ticks >= k shifted into the table, events placed in the wrong row."""
     rng = np.random.default_rng(9)
-    log = _runner._Log(60, None, False, False)
+    log = EpisodeLog(60, None, False, False)
     names = ["p", "q", "r", "s", "t"]
     events = []
     for k in range(60):
         if k % 7 == 3:
             continue  # a tick without pairs
         n = int(rng.integers(1, 6))
-        pairs = _PairColumns([names[i] for i in rng.integers(0, 5, n)], [names[i] for i in rng.integers(0, 5, n)],
+        pairs = PairColumns([names[i] for i in rng.integers(0, 5, n)], [names[i] for i in rng.integers(0, 5, n)],
                              rng.random(n))
         log.pairs(k, pairs)
         events.extend((k, f"{a}|{b}", d) for a, b, d in pairs)
@@ -396,23 +375,6 @@ def test_pair_arrays_cut_at_k_match_a_per_event_loop():
         np.testing.assert_array_equal(got["collision/active_pair"], index)
         np.testing.assert_array_equal(got["collision/active_distance"], distance)
     assert log.pair_events == [(k, order.index(name), d) for k, name, d in events]
-
-
-def test_the_controllers_command_is_the_dataclasss():
-    """``runner._command`` (the library controller's per-tick Command) equals ``Command(...)``:
-    same class, attributes in order, a fresh task-error dict, no ``__post_init__`` skipped.
-    Catches: a field left out or swapped, a shared task-error dict."""
-    import dataclasses
-
-    qdot, values, pairs = np.arange(12.0), {"v": 1.0}, [("a", "b", 0.1)]
-    got = _runner._command(qdot, "ok", values, pairs, True)
-    expected = Command(qdot=qdot, status="ok", values=values, collision_pairs=pairs, done=True)
-    assert type(got) is Command and not hasattr(Command, "__post_init__")
-    assert list(vars(got)) == [f.name for f in dataclasses.fields(Command)] == list(vars(expected))
-    names = ("qdot", "status", "values", "collision_pairs")
-    assert all(getattr(got, name) is getattr(expected, name) for name in names)
-    assert got.task_errors == {} and got.done is True
-    assert _runner._command(qdot, "ok", values, pairs, False).task_errors is not got.task_errors
 
 
 class _Mixed:
@@ -441,43 +403,25 @@ class _Mixed:
         return Command(qdot=qdot, values=values, collision_pairs=pairs, task_errors={"e": t})
 
 
-def test_fast_command_check_logs_exactly_what_the_full_check_logs(monkeypatch):
-    """Bug caught: a fast path that drops, reshapes or re-rounds a value, a pair or qdot.
-
-    Oracle: the same episode with every command through :func:`runner._as_command`.
-    """
-    calls = []
-    monkeypatch.setattr(runner, "_as_command", lambda out, full=runner._as_command: calls.append(1) or full(out))
-    fast = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
-    assert 0 < len(calls) < 15  # most of the 25 commands took the fast path, some the full check
-    monkeypatch.setattr(runner, "_as_command_fast", runner._as_command)  # the full check for every command
-    full = run_episode(SimRobot(camera=None), _Mixed(), duration=0.05)
-    assert fast.ok and full.ok
-    assert sorted(fast.log) == sorted(full.log)
-    for key in full.log:
-        assert fast.log[key].dtype == full.log[key].dtype, key
-        np.testing.assert_array_equal(fast.log[key], full.log[key], err_msg=key)
-    assert fast.log["value/vec"].shape == (25, 3) and list(fast.log["collision/pair_names"]) == ["a|b", "a|c", "c|d"]
-
-
 @pytest.mark.parametrize(
     ("qdot", "words"),
     [(np.r_[np.zeros(11), np.inf], "finite"), (np.r_[np.zeros(11), np.nan], "finite"),
      (np.full(12, 1e308), None), (np.zeros(12, np.float32), None)],
 )  # fmt: skip
-def test_fast_command_check_rejects_what_the_full_check_rejects(qdot, words):
+def test_command_check_rejects_non_finite_and_passes_huge_finite_speeds(qdot, words):
     """Bug caught: a finiteness test that lets inf/nan through, or rejects huge finite values.
 
-    1e308 * 12 overflows the sum the fast check uses: that command must still pass (clipped
-    by the servo); float32 takes the full check.
+    1e308 * 12 overflows a sum of the speeds: that command must still pass (clipped by the
+    servo); float32 speeds come back as the same float64 values (oracle: the input itself).
     """
     out = Command(qdot=qdot)
     if words is None:
-        cmd = runner._as_command_fast(out)
-        np.testing.assert_array_equal(cmd.qdot, runner._as_command(out).qdot)
+        cmd = runner.as_command(out)
+        assert cmd.qdot.dtype == np.float64
+        np.testing.assert_array_equal(cmd.qdot, qdot.astype(np.float64))
     else:
         with pytest.raises(runner.InvalidInputError, match=words):
-            runner._as_command_fast(out)
+            runner.as_command(out)
 
 
 def test_pair_arrays_match_a_per_event_loop():
@@ -486,7 +430,7 @@ def test_pair_arrays_match_a_per_event_loop():
     Oracle: the plain loop the runner used before (one event at a time into its tick's row).
     """
     rng = np.random.default_rng(4)
-    log = runner._Log(50, None, False, False)
+    log = EpisodeLog(50, None, False, False)
     names = ["p", "q", "r", "s"]
     events = []
     for k in range(50):
