@@ -117,6 +117,8 @@ _HEADER = ["| key | type | default | unit | description |", "|---|---|---|---|--
 
 def config_reference_markdown() -> str:
     """``docs/config.md``: every key of both kinds of file, with type, default, unit and description."""
+    from harvest_qp.config.task_schema import BUILT_IN_LIMIT_ENTRIES, BUILT_IN_TASK_ENTRIES, UserTaskEntry
+
     schema = json_schema()
     defs = schema["$defs"]
     out = [
@@ -148,13 +150,13 @@ def config_reference_markdown() -> str:
         "against the class's `Params` pydantic model, else against its `__init__` signature.",
         "",
     ]
-    for name in ("FrameTwistEntry", "FramePoseEntry", "RelativeFrameEntry", "PostureEntry", "DampingEntry",
-                 "UserTaskEntry"):
+    # Every entry class the schema accepts (a new built-in task or limit appears here by itself).
+    for name in (*(entry.__name__ for entry in BUILT_IN_TASK_ENTRIES.values()), UserTaskEntry.__name__):
         kind = defs[name]["properties"]["type"].get("const", "module.path:ClassName")
         out += [f"### `type: {kind}`", "", _markdown(defs[name].get("description", "")), "", *_HEADER,
                 *[r for r in _rows(defs[name], defs) if not r.startswith("| `type`")], ""]
     out += ["## Limit entries (`limits`, `qp.limits`)", ""]
-    for name in ("JointPositionEntry", "JointVelocityEntry", "JointAccelerationEntry", "CollisionEntry"):
+    for name in (entry.__name__ for entry in BUILT_IN_LIMIT_ENTRIES.values()):
         kind = defs[name]["properties"]["type"]["const"]
         out += [f"### `type: {kind}`", "", _markdown(defs[name].get("description", "")), "", *_HEADER,
                 *[r for r in _rows(defs[name], defs) if not r.startswith("| `type`")], ""]

@@ -187,17 +187,17 @@ class UserTaskEntry(_Entry):
         return value
 
 
-_BUILT_IN_ENTRIES = {
+BUILT_IN_TASK_ENTRIES = {
     "frame_twist": FrameTwistEntry, "frame_pose": FramePoseEntry, "relative_frame": RelativeFrameEntry,
     "posture": PostureEntry, "damping": DampingEntry,
 }
-BUILT_IN_TASKS = tuple(_BUILT_IN_ENTRIES)
+BUILT_IN_TASKS = tuple(BUILT_IN_TASK_ENTRIES)
 
 
 def _task_kind(value: Any) -> str:
     if isinstance(value, dict):
         kind = value.get("type")
-        return kind if kind in _BUILT_IN_ENTRIES else "user"
+        return kind if kind in BUILT_IN_TASK_ENTRIES else "user"
     return getattr(value, "type", "user") if not isinstance(value, UserTaskEntry) else "user"
 
 
@@ -211,7 +211,7 @@ def _check_task_type(value: Any) -> Any:
     if kind is None:
         raise PydanticCustomError("missing_type", "a task entry needs a 'type': one of {valid}, or 'module:Class'",
                                   {"valid": ", ".join(BUILT_IN_TASKS)})
-    if kind not in _BUILT_IN_ENTRIES and not (isinstance(kind, str) and ":" in kind):
+    if kind not in BUILT_IN_TASK_ENTRIES and not (isinstance(kind, str) and ":" in kind):
         raise PydanticCustomError(
             "unknown_type", "unknown task type {kind}{hint}; expected one of: {valid}, or 'module.path:ClassName'",
             {"kind": repr(kind), "hint": suggest(str(kind), list(BUILT_IN_TASKS)), "valid": ", ".join(BUILT_IN_TASKS)},
@@ -220,7 +220,7 @@ def _check_task_type(value: Any) -> Any:
 
 
 TaskEntry = Annotated[
-    Union[tuple(Annotated[model, Tag(name)] for name, model in _BUILT_IN_ENTRIES.items())
+    Union[tuple(Annotated[model, Tag(name)] for name, model in BUILT_IN_TASK_ENTRIES.items())
           + (Annotated[UserTaskEntry, Tag("user")],)],
     Discriminator(_task_kind),
     BeforeValidator(_check_task_type),
@@ -277,11 +277,11 @@ class CollisionEntry(_Entry):
     obstacle_spheres: list[ObstacleSphere] = Field([], description="world-fixed spheres")
 
 
-_LIMIT_ENTRIES = {
+BUILT_IN_LIMIT_ENTRIES = {
     "joint_position": JointPositionEntry, "joint_velocity": JointVelocityEntry,
     "joint_acceleration": JointAccelerationEntry, "collision": CollisionEntry,
 }
-BUILT_IN_LIMITS = tuple(_LIMIT_ENTRIES)
+BUILT_IN_LIMITS = tuple(BUILT_IN_LIMIT_ENTRIES)
 
 
 def _check_limit_type(value: Any) -> Any:
@@ -291,7 +291,7 @@ def _check_limit_type(value: Any) -> Any:
         raise PydanticCustomError("expected", "expected {expected}",
                                   {"expected": "a mapping with a 'type' key (a limit entry)"})
     kind = value.get("type")
-    if kind not in _LIMIT_ENTRIES:
+    if kind not in BUILT_IN_LIMIT_ENTRIES:
         raise PydanticCustomError(
             "unknown_type", "unknown limit type {kind}{hint}; expected one of: {valid}",
             {"kind": repr(kind), "hint": suggest(str(kind), list(BUILT_IN_LIMITS)),
@@ -301,7 +301,7 @@ def _check_limit_type(value: Any) -> Any:
 
 
 LimitEntry = Annotated[
-    Union[tuple(_LIMIT_ENTRIES.values())],
+    Union[tuple(BUILT_IN_LIMIT_ENTRIES.values())],
     Field(discriminator="type"),
     BeforeValidator(_check_limit_type),
 ]

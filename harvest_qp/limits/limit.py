@@ -15,7 +15,6 @@ from harvest_qp.exceptions import DimensionError
 from harvest_qp.validation import as_instances, as_positive_scalar, check_limit_rows
 
 #: Limits defined in this package: their rows' sizes come from the checked model.
-_BUILT_IN_PREFIX = "harvest_qp.limits."
 
 
 def _checked_compute(compute):
@@ -76,10 +75,11 @@ class Limit(ABC):
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
-        # The solver's compiled kernels index G by the model's nv without bounds checks: a
-        # limit defined outside this package gets its rows checked as they are computed.
+        # The solver's compiled kernels index G by the model's nv without bounds checks: every
+        # limit's rows are checked as they are computed (a new limit inside the package too: an
+        # exemption for built-in limits let a wrong width through silently, found by a newcomer).
         own = cls.__dict__.get("compute")
-        if own is not None and not cls.__module__.startswith(_BUILT_IN_PREFIX) and not hasattr(own, "_size_checked"):
+        if own is not None and not hasattr(own, "_size_checked"):
             cls.compute = _checked_compute(own)
 
     def check_configuration(self, configuration: Configuration) -> None:

@@ -23,8 +23,6 @@ from harvest_qp.validation import (
 #: Level of hard tasks: they become equality constraints of every QP in the stack.
 HARD = 0
 
-#: Tasks defined in this package: their ``compute_rows`` sizes come from the checked model.
-_BUILT_IN_PREFIX = "harvest_qp.tasks."
 
 def _checked_compute_rows(compute_rows):
     """Wrap a user override of ``compute_rows`` so its rows are size-checked before the solver's kernels."""
@@ -65,10 +63,10 @@ class Task(ABC):
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
-        # The solver's compiled kernels index by the rows' sizes without bounds checks; a
-        # subclass outside this package that overrides compute_rows gets its rows checked.
+        # The solver's compiled kernels index by the rows' sizes without bounds checks: every
+        # subclass that overrides compute_rows gets its rows checked (built-in ones too).
         own = cls.__dict__.get("compute_rows")
-        if own is not None and not cls.__module__.startswith(_BUILT_IN_PREFIX) and not hasattr(own, "_size_checked"):
+        if own is not None and not hasattr(own, "_size_checked"):
             cls.compute_rows = _checked_compute_rows(own)
 
     def __init__(self, dim: int, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0) -> None:

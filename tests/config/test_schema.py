@@ -300,3 +300,14 @@ def test_defaults_repeated_from_code_match_the_code():
 
     signature = inspect.signature(stem_viewpoint).parameters
     assert Viewpoint().model_dump() == {k: signature[k].default for k in ("distance", "azimuth", "elevation")}
+
+
+def test_every_built_in_task_and_limit_type_is_in_the_reference():
+    """docs/config.md documents every type the schema accepts. Oracle: the schema's own lists of
+    built-in types, not the generator's (a newcomer's new limit type was silently left out of the
+    reference because the generator listed the entry classes by hand)."""
+    from harvest_qp.config.task_schema import BUILT_IN_LIMITS, BUILT_IN_TASKS
+
+    text = (ROOT / "docs" / "config.md").read_text()
+    missing = [kind for kind in (*BUILT_IN_TASKS, *BUILT_IN_LIMITS) if f"### `type: {kind}`" not in text]
+    assert missing == []

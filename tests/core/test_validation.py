@@ -436,3 +436,18 @@ def test_acceleration_limit_built_for_a_smaller_model_is_refused():
     limit = JointAccelerationLimit(small)
     with pytest.raises(DimensionError, match=f"max_acceleration has {small.nv} entries"):
         limit.fill_box(big, 0.002, np.zeros(12), np.empty(12), np.empty(12))
+
+
+def test_a_limit_inside_the_package_is_size_checked_too(dual):
+    """A new limit written inside ``harvest_qp.limits`` (the documented way to add one) gets its rows
+    checked like a user's: found by a newcomer, whose 11-column rows were solved silently because
+    built-in limits were exempt from the check."""
+
+    class InPackage(Limit):
+        __module__ = "harvest_qp.limits.in_package"  # as if written in the package (seen at class creation)
+
+        def compute(self, configuration, dt, previous_qdot=None):
+            return LimitRows(G=np.ones((1, 11)), h=np.ones(1))
+
+    with pytest.raises(DimensionError, match=r"InPackage.*\(1, 11\).*\(m, 12\)"):
+        Solver().solve(dual, [DampingTask(12)], [InPackage()])
