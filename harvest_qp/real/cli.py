@@ -28,7 +28,7 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
     group.add_argument("--camera-arm", metavar="IP", help="the camera arm's address (with --robot ur)")
     group.add_argument("--grasp-arm", metavar="IP", help="the grasping arm's address (with --robot ur)")
     group.add_argument("--camera", choices=("realsense", "none"), default="realsense",
-                       help="the camera of --robot ur (none: arms only, e.g. for a dry run)")
+                       help="the camera of --robot ur (none: arms only, for a dry run)")
     group.add_argument("--serial", default=None, help="the RealSense's serial number (default: the only one)")
     group.add_argument("--cell", type=Path, default=None,
                        help="the cell file (default tasks/real/ur5e.yaml): calibration, F/T, watchdog, camera")
@@ -54,6 +54,9 @@ def run_ur(args: argparse.Namespace, **test_hooks: Any) -> int:
         raise HarvestQPError("--robot ur needs --camera-arm IP and --grasp-arm IP")
     if args.viewer != "none":
         raise HarvestQPError("--viewer is not available with --robot ur (replay the run afterwards: harvest-qp replay)")
+    if args.camera == "none" and not args.dry_run:
+        raise HarvestQPError("--camera none only with --dry-run: the episode needs the camera (the arms would move "
+                             "without perception)")
     result = run_real(args.config, camera_arm=args.camera_arm, grasp_arm=args.grasp_arm,
                       camera=None if args.camera == "none" else args.camera, serial=args.serial, cell_path=args.cell,
                       dry_run=args.dry_run, out=args.out, duration=args.duration, overrides=args.overrides,

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from harvest_qp.config import EpisodeConfig
-from harvest_qp.exceptions import ConfigError
+from harvest_qp.exceptions import ConfigError, HarvestQPError
 from harvest_qp.real.calibration import Calibration, load_calibration
 from harvest_qp.real.cell import CellConfig, load_cell
 from harvest_qp.real.errors import CalibrationError
@@ -174,6 +174,9 @@ def run_real(config: Path, *, camera_arm: str, grasp_arm: str, camera: str | Non
     """What the command line runs for ``--robot ur``: the dry run's report or the episode's metrics."""
     from harvest_qp.config.settings import load_settings
 
+    if camera is None and camera_source is None and not dry_run:
+        raise HarvestQPError("an episode needs the camera (camera 'none' only for a dry run): the arms would move "
+                             "without perception")
     settings = load_settings(config, overrides or [])
     _check_settings(settings)
     cell = load_cell(cell_path)

@@ -113,6 +113,9 @@ class _Arm:
             self.close(stop_acceleration=None)
             raise RobotConnectionError(f"cannot connect to the UR5e {role} at {host}: {' '.join(str(err).split())}; "
                                        "is remote control enabled on the pendant?") from None
+        except BaseException:  # Ctrl-C or any other failure while connecting: leave no script running
+            self.close(stop_acceleration=None)
+            raise
 
     def close(self, stop_acceleration: float | None) -> list[str]:
         """speedStop, stopScript, disconnect; every call tried, failures returned as text."""
@@ -153,6 +156,9 @@ class DualUR5eRobot(RobotInterface):
         self.cell = cell if cell is not None else CellConfig()
         self.control_period = float(self.cell.control_period)
         self.hosts = {"camera arm": str(camera_arm), "grasping arm": str(grasp_arm)}
+        if self.hosts["camera arm"].strip() == self.hosts["grasping arm"].strip():
+            raise InvalidInputError(f"the camera arm and the grasping arm have the same address {camera_arm!r}; "
+                                    "each UR5e has its own controller and address")
         if rtde is None:
             rtde = _ur_rtde()
             for role, host in self.hosts.items():
@@ -175,7 +181,7 @@ class DualUR5eRobot(RobotInterface):
         try:
             for role, prefix, joints in _ARMS:
                 self._arms.append(_Arm(role, prefix, joints, self.hosts[role], rtde, frequency))
-        except RobotConnectionError:
+        except BaseException:  # the first arm connected, the second failed (or Ctrl-C): stop the first
             self.close()
             raise
         self.camera = camera

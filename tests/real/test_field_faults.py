@@ -1,0 +1,50 @@
+"""Faults an independent audit of the field side found, through the public API, on the auditor's own
+ur-rtde fake (tests/real/audit_fake.py, no MuJoCo): each test failed on the code before its fix.
+
+* Ctrl-C or any other failure while the SECOND arm connects: the first arm's control script must
+  still get speedStop and stopScript (the issue: every exit path).
+* The same address for both arms: refused (both arms' commands would go to one robot).
+* An episode without a camera (``--camera none`` outside ``--dry-run``): refused before anything
+  connects (the arms would move with no perception).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from harvest_qp.exceptions import HarvestQPError, InvalidInputError
+from harvest_qp.real.episode import run_real
+from harvest_qp.real.errors import RobotConnectionError
+from harvest_qp.real.ur_rtde_robot import DualUR5eRobot
+from tests.real.audit_fake import FakeCell
+
+A, B = "10.9.0.1", "10.9.0.2"
+PAPER = Path(__file__).resolve().parents[2] / "tasks" / "paper.yaml"
+
+
+@pytest.mark.parametrize("exc", [KeyboardInterrupt(), TimeoutError("timed out"), OSError("no route"),
+                                 ValueError("bad"), RuntimeError("Could not connect")],
+                         ids=lambda e: type(e).__name__)
+def test_a_failure_connecting_the_second_arm_stops_the_first(exc):
+    fake = FakeCell((A, B))
+    fake.fail_connect[B] = exc
+    with pytest.raises(RobotConnectionError if isinstance(exc, RuntimeError) else type(exc)):
+        DualUR5eRobot(A, B, rtde=fake, clock=fake.clock)
+    assert fake.called(A, "speedStop") and fake.called(A, "stopScript"), "camera arm left with its script running"
+
+
+def test_the_same_address_for_both_arms_is_refused():
+    fake = FakeCell((A, B))
+    with pytest.raises(InvalidInputError, match="same address '10.9.0.1'"):
+        DualUR5eRobot(A, A, rtde=fake, clock=fake.clock)
+    assert not fake.called(A, "speedJ")
+
+
+def test_an_episode_without_a_camera_is_refused_before_anything_moves(tmp_path):
+    fake = FakeCell((A, B))
+    with pytest.raises(HarvestQPError, match="needs the camera"):
+        run_real(PAPER, camera_arm=A, grasp_arm=B, camera=None, out=tmp_path, duration=0.05, figures=False,
+                 rtde=fake, clock=fake.clock)
+    assert not fake.called(A, "speedJ") and not fake.called(B, "speedJ")
