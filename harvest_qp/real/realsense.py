@@ -6,8 +6,8 @@ Per frame (:meth:`RealSenseSource.process`):
 2. the image is decimated by the episode's ``camera.downsample`` (the paper's x3): one pixel,
    the centre of each ``k x k`` block, per point, so pixel (i, j) of the cloud is the block
    (i, j) of the 848x480 image, as in the lab's downsampled image;
-3. invalid depth (0) and depth outside [min_depth, max_depth] is dropped (the one-pixel seams that
-   ``rs.align`` leaves are filled first, :func:`seam_filled`);
+3. invalid depth (0) and depth outside [min_depth, max_depth] is dropped, the one-pixel seams that
+   ``rs.align`` leaves included (never filled: a filled seam would be a point nobody measured);
 4. each pixel's ray comes from the colour intrinsics (``rs2_deproject_pixel_to_point``, any
    distortion model), scaled by its depth; world points through the camera pose at the capture
    time: the camera arm's measured flange pose (robot description) times the hand-eye transform
@@ -37,7 +37,7 @@ from harvest_qp.real.errors import CameraError, missing_package
 from harvest_qp.real.stem_detector import StemDetector, load_detector
 from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM, PointCloud
 
-__all__ = ["RealSenseSource", "open_pipeline", "decimation_indices", "seam_filled", "RobotSelfFilter"]
+__all__ = ["RealSenseSource", "open_pipeline", "decimation_indices", "RobotSelfFilter"]
 
 
 def _rs():
@@ -53,36 +53,6 @@ def _rs():
 def decimation_indices(size: int, k: int) -> NDArray[np.int64]:
     """Full-image indices of the ``ceil(size / k)`` decimated pixels: each ``k``-block's centre pixel."""
     return np.minimum(np.arange(-(-size // k)) * k + (k - 1) // 2, size - 1).astype(np.int64)
-
-
-def seam_filled(depth: NDArray, rows: NDArray[np.int64], cols: NDArray[np.int64]) -> NDArray:
-    """The aligned depth at the decimated pixels, one-pixel seams filled.
-
-    ``rs.align`` leaves isolated zero pixels where no depth pixel's footprint rounded onto a
-    colour pixel (every ~11th pixel with equal intrinsics). A decimated pixel that is zero while
-    both its row neighbours (or both its column neighbours) are valid takes their mean (the nearer
-    one across a depth edge); real invalid depth (shadows, no return) spans more than one pixel and
-    stays invalid. Returns depth units as float64.
-    """
-    h, w = depth.shape
-    out = depth[np.ix_(rows, cols)].astype(np.float64)
-    holes_r, holes_c = np.nonzero(out == 0)
-    if len(holes_r) == 0:
-        return out
-    y, x = rows[holes_r], cols[holes_c]
-    candidates = []
-    for dy, dx in ((0, 1), (1, 0)):
-        a = depth[np.clip(y - dy, 0, h - 1), np.clip(x - dx, 0, w - 1)]
-        b = depth[np.clip(y + dy, 0, h - 1), np.clip(x + dx, 0, w - 1)]
-        inside = (y - dy >= 0) & (x - dx >= 0) & (y + dy < h) & (x + dx < w)
-        both = inside & (a > 0) & (b > 0)
-        a, b = a.astype(np.float64), b.astype(np.float64)
-        # On a surface the seam is the neighbours' mean; across an edge (> 2 % apart) the nearer one.
-        smooth = np.abs(a - b) <= 0.02 * np.minimum(a, b)
-        candidates.append(np.where(both, np.where(smooth, 0.5 * (a + b), np.minimum(a, b)), 0.0))
-    row_fill, column_fill = candidates
-    out[holes_r, holes_c] = np.where(row_fill > 0, row_fill, column_fill)
-    return out
 
 
 class RobotSelfFilter:
@@ -231,7 +201,9 @@ class RealSenseSource:
         intrinsics = color_frame.profile.as_video_stream_profile().get_intrinsics()
         rays = self._ray_table(intrinsics)
         rows, cols = decimation_indices(depth.shape[0], self.k), decimation_indices(depth.shape[1], self.k)
-        d = seam_filled(depth, rows, cols).astype(np.float64) * self.depth_scale
+        # Invalid depth (0), the one-pixel seams rs.align leaves included, is dropped below, never filled:
+        # a filled seam would be a point nobody measured.
+        d = depth[np.ix_(rows, cols)].astype(np.float64) * self.depth_scale
         c = rgb[np.ix_(rows, cols)]
         if timestamp is None:
             timestamp = self._robot_time(color_frame)

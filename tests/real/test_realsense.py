@@ -102,6 +102,26 @@ def _frames(rendered, stamp_ms: float) -> tuple[_SoftwareD415, RealSenseSource]:
     return device, source
 
 
+def test_invalid_depth_is_dropped_not_filled(rendered):
+    """A zero depth at a decimated pixel (a speckle, or the thin stem's edge) gives no point: the
+    issue's "invalid depth (0) dropped" (an audit found such pixels filled from their neighbours)."""
+
+    def cloud_pixels(depth_mm):
+        device, source = _frames({**rendered, "depth_mm": depth_mm}, 1000.0e3)
+        frameset = source.wait(2000)
+        assert frameset is not None
+        cloud = source.process(frameset, camera_pose=rendered["pose"], timestamp=1.5, q=rendered["q"])
+        return {(int(r), int(c)) for r, c in cloud.pixels}
+
+    before = cloud_pixels(rendered["depth_mm"])
+    r, c = next((r, c) for r, c in sorted(before) if (r, c + 1) in before and (r, c - 1) in before)
+    depth = rendered["depth_mm"].copy()
+    depth[r * K + (K - 1) // 2, c * K + (K - 1) // 2] = 0  # the block's centre: its decimated pixel
+    after = cloud_pixels(depth)
+    assert (r, c) not in after and {(r, c - 1), (r, c + 1)} <= after
+    assert after == before - {(r, c)}
+
+
 def test_cloud_matches_the_lab_cloud_to_depth_quantisation(rendered):
     device, source = _frames(rendered, 1000.0e3)
     frameset = source.wait(2000)
@@ -112,7 +132,10 @@ def test_cloud_matches_the_lab_cloud_to_depth_quantisation(rendered):
     ours = {tuple(p): i for i, p in enumerate(cloud.pixels)}
     theirs = {tuple(p): i for i, p in enumerate(lab.pixels)}
     common = sorted(set(ours) & set(theirs))
-    assert len(common) >= 0.99 * len(theirs) and len(common) >= 0.99 * len(ours)
+    # Every pixel of ours is one the lab saw too (no invented point: invalid depth, rs.align's one-pixel
+    # seams included, is dropped, not filled); the seams cost some of the lab's pixels.
+    assert len(common) >= 0.99 * len(ours)
+    assert len(common) >= 0.80 * len(theirs), (len(common), len(theirs))
     i, j = [ours[p] for p in common], [theirs[p] for p in common]
     error = np.linalg.norm(cloud.points[i] - lab.points[j], axis=1)
     # 1 mm depth steps: z within 0.5 mm, a little more along a slanted ray; rs.align rounds a few pixels onto
