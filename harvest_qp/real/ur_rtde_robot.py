@@ -200,6 +200,7 @@ class DualUR5eRobot(RobotInterface):
         self._ticks = 0
         self.tripped: str | None = None
         self._camera_error: str | None = None
+        self._last_frame_clock = self.clock()  # a camera that never delivers is stale after camera_timeout
         self.stops = 0
         self._history: deque[tuple[float, float, NDArray[np.float64]]] = deque(maxlen=512)
         reason = self._read()
@@ -253,10 +254,13 @@ class DualUR5eRobot(RobotInterface):
         if self.camera is None:
             return None
         try:
-            return self.camera.latest()
+            cloud = self.camera.latest()
         except CameraError as err:  # ends the episode at the next step, through the watchdog's stop
             self._camera_error = str(err)
             return None
+        if cloud is not None:
+            self._last_frame_clock = self.clock()
+        return cloud
 
     def send_joint_velocities(self, qdot: ArrayLike) -> None:
         qd = np.asarray(qdot, dtype=float)
@@ -274,6 +278,9 @@ class DualUR5eRobot(RobotInterface):
             self._trip(self._camera_error)
         moving = bool(np.any(self._command != 0.0) or np.any(self.watchdog.previous_command != 0.0)
                       or np.max(np.abs(self._qd)) > 1e-3)
+        timeout = self.cell.watchdog.camera_timeout
+        if self.camera is not None and moving and self.clock() - self._last_frame_clock > timeout:
+            self._trip(f"camera: no new frame for more than {timeout:g} s (a stalled stream)")
         elapsed = self.clock() - self._cycle_clock
         # At rest under a zero command a long cycle moves nothing (the first tick loads the kernels).
         reason = (self.watchdog.cycle(elapsed) if moving else None) or self.watchdog.command(self._q, self._command)

@@ -49,6 +49,8 @@ class WatchdogConfig:
         max_joint_acceleration: limit of the change of a joint's command per period [rad/s^2].
         position_margin: keep this far inside the joint position limits [rad].
         stop_acceleration: deceleration of every stop (``speedStop``) [rad/s^2].
+        camera_timeout: longest time [s] without a new camera frame while the arms move (a camera that
+            stops delivering, a USB stall, with no error): the arms stop.
     """
 
     stale_cycles: int = 5
@@ -57,11 +59,13 @@ class WatchdogConfig:
     max_joint_acceleration: float = 10.0
     position_margin: float = 0.02
     stop_acceleration: float = 4.0
+    camera_timeout: float = 1.0
 
     def __post_init__(self) -> None:
         if isinstance(self.stale_cycles, bool) or not isinstance(self.stale_cycles, int) or self.stale_cycles < 1:
             raise ConfigError(f"watchdog.stale_cycles must be an integer >= 1, got {self.stale_cycles!r}")
-        for name in ("max_cycle_periods", "max_joint_speed", "max_joint_acceleration", "stop_acceleration"):
+        for name in ("max_cycle_periods", "max_joint_speed", "max_joint_acceleration", "stop_acceleration",
+                     "camera_timeout"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
                 raise ConfigError(f"watchdog.{name} must be a number > 0, got {value!r}")

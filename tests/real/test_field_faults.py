@@ -6,17 +6,20 @@ ur-rtde fake (tests/real/audit_fake.py, no MuJoCo): each test failed on the code
 * The same address for both arms: refused (both arms' commands would go to one robot).
 * An episode without a camera (``--camera none`` outside ``--dry-run``): refused before anything
   connects (the arms would move with no perception).
+* A camera that stops delivering frames while the arms move: the watchdog stops both arms.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
 from harvest_qp.real.episode import run_real
-from harvest_qp.real.errors import RobotConnectionError
+from harvest_qp.real.errors import RobotConnectionError, WatchdogError
 from harvest_qp.real.ur_rtde_robot import DualUR5eRobot
 from tests.real.audit_fake import FakeCell
 
@@ -48,3 +51,36 @@ def test_an_episode_without_a_camera_is_refused_before_anything_moves(tmp_path):
         run_real(PAPER, camera_arm=A, grasp_arm=B, camera=None, out=tmp_path, duration=0.05, figures=False,
                  rtde=fake, clock=fake.clock)
     assert not fake.called(A, "speedJ") and not fake.called(B, "speedJ")
+
+
+class _SilentFrames:
+    """A RealSense frame source that never delivers a frame and never raises (a USB stall)."""
+
+    def try_wait_for_frames(self, timeout_ms):
+        time.sleep(min(timeout_ms, 50) / 1e3)
+        return False, None
+
+    def stop(self):
+        pass
+
+
+def test_a_camera_that_stops_delivering_stops_the_arms():
+    """No camera frame for more than watchdog.camera_timeout (1 s) while the arms move: both arms
+    stop within the deceleration limit and the reason names the camera (an audit found a stalled
+    stream never noticed: the episode went on with the last cloud)."""
+    from harvest_qp.real.realsense import RealSenseSource
+
+    fake = FakeCell((A, B))
+    robot = DualUR5eRobot(A, B, rtde=fake, clock=fake.clock, camera=RealSenseSource(_SilentFrames()))
+    command = np.zeros(12)
+    try:
+        with pytest.raises(WatchdogError, match="camera: no new frame"):
+            for _ in range(600):  # 1.2 s of robot time
+                assert robot.camera_cloud() is None
+                command = command + np.clip(0.05 - command, -0.004, 0.004)  # ramp within 2 rad/s^2
+                robot.send_joint_velocities(command)
+                robot.step()
+        assert fake.clock() > 1.0  # not before the timeout
+        assert fake.called(A, "speedStop") and fake.called(B, "speedStop")
+    finally:
+        robot.close()
