@@ -100,15 +100,47 @@ def _probe(host: str, role: str, timeout: float) -> None:
                                    "the address, and that the robot is on with remote control enabled") from None
 
 
+class _NoAnswer(Exception):
+    """A ur-rtde constructor still blocked after the connect timeout."""
+
+
+def _within(timeout: float, make: Callable[..., Any], *args: Any) -> Any:
+    """``make(*args)`` in a helper thread, or :class:`_NoAnswer` after ``timeout`` [s]: ur-rtde's constructors
+    block without a limit on an address that accepts TCP and never answers (the daemon thread may stay
+    blocked until the process ends)."""
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            box["value"] = make(*args)
+        except BaseException as err:  # handed to the caller's thread
+            box["error"] = err
+
+    thread = threading.Thread(target=run, name="ur-rtde connect", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    if thread.is_alive():
+        raise _NoAnswer(f"no answer within {timeout} s")
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
 class _Arm:
     """One UR5e's RTDE control and receive interfaces."""
 
-    def __init__(self, role: str, prefix: str, joints: slice, host: str, rtde: Any, frequency: float) -> None:
+    def __init__(self, role: str, prefix: str, joints: slice, host: str, rtde: Any, frequency: float,
+                 connect_timeout: float = 10.0) -> None:
         self.role, self.prefix, self.joints, self.host = role, prefix, joints, host
         self.receive = self.control = None
         try:
-            self.receive = rtde.RTDEReceiveInterface(host, frequency)
-            self.control = rtde.RTDEControlInterface(host, frequency)
+            self.receive = _within(connect_timeout, rtde.RTDEReceiveInterface, host, frequency)
+            self.control = _within(connect_timeout, rtde.RTDEControlInterface, host, frequency)
+        except _NoAnswer:
+            self.close(stop_acceleration=None)
+            raise RobotConnectionError(
+                f"the UR5e {role} at {host} accepted the connection but did not answer within {connect_timeout:g} s "
+                "(a controller still booting, or another device at this address?)") from None
         except RuntimeError as err:
             self.close(stop_acceleration=None)
             raise RobotConnectionError(f"cannot connect to the UR5e {role} at {host}: {' '.join(str(err).split())}; "
@@ -148,11 +180,14 @@ class DualUR5eRobot(RobotInterface):
             (default: ur-rtde's ``rtde_control``/``rtde_receive``); tests pass a stand-in.
         clock: monotonic wall clock [s] for the cycle time (tests pass the stand-in's).
         probe_timeout: seconds to wait for the RTDE port before connecting (None: no probe).
+        connect_timeout: seconds each ur-rtde interface may take to connect (an address that accepts
+            the connection and never answers is then a one-line error naming it, not a hang).
     """
 
     def __init__(self, camera_arm: str, grasp_arm: str, *, cell: CellConfig | None = None,
                  hand_eye: ArrayLike | None = None, camera: CloudSource | None = None, rtde: Any = None,
-                 clock: Callable[[], float] = time.perf_counter, probe_timeout: float | None = 2.0) -> None:
+                 clock: Callable[[], float] = time.perf_counter, probe_timeout: float | None = 2.0,
+                 connect_timeout: float = 10.0) -> None:
         self.cell = cell if cell is not None else CellConfig()
         self.control_period = float(self.cell.control_period)
         self.hosts = {"camera arm": str(camera_arm), "grasping arm": str(grasp_arm)}
@@ -180,7 +215,7 @@ class DualUR5eRobot(RobotInterface):
         frequency = 1.0 / self.control_period
         try:
             for role, prefix, joints in _ARMS:
-                self._arms.append(_Arm(role, prefix, joints, self.hosts[role], rtde, frequency))
+                self._arms.append(_Arm(role, prefix, joints, self.hosts[role], rtde, frequency, connect_timeout))
         except BaseException:  # the first arm connected, the second failed (or Ctrl-C): stop the first
             self.close()
             raise

@@ -84,3 +84,30 @@ def test_a_camera_that_stops_delivering_stops_the_arms():
         assert fake.called(A, "speedStop") and fake.called(B, "speedStop")
     finally:
         robot.close()
+
+
+def test_an_arm_that_never_answers_is_a_one_line_error_within_the_timeout():
+    """An address that accepts the connection but never answers (ur-rtde's constructor blocks without a
+    limit: an audit saw it hang for 200 s) is a RobotConnectionError naming the address after
+    connect_timeout, and the arm that did connect is stopped."""
+    import threading
+
+    fake = FakeCell((A, B))
+    never = threading.Event()
+    real_receive = fake.RTDEReceiveInterface
+
+    def blocking_receive(host, *args):
+        if host == B:
+            never.wait(30)  # released at the end of the test
+        return real_receive(host, *args)
+
+    fake.RTDEReceiveInterface = blocking_receive
+    start = time.monotonic()
+    try:
+        with pytest.raises(RobotConnectionError, match=r"grasping arm at 10\.9\.0\.2 accepted the connection but did "
+                                                       r"not answer within 0\.5 s"):
+            DualUR5eRobot(A, B, rtde=fake, clock=fake.clock, connect_timeout=0.5)
+        assert time.monotonic() - start < 3.0
+        assert fake.called(A, "stopScript")
+    finally:
+        never.set()
