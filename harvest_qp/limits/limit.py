@@ -27,7 +27,9 @@ def _checked_compute(compute):
         rows = compute(self, configuration, dt, previous_qdot)
         if not isinstance(rows, LimitRows):
             raise DimensionError(f"{type(self).__name__}.compute must return LimitRows, got {type(rows).__name__}")
-        nv = as_configuration(configuration, f"{type(self).__name__} configuration").nv
+        if not isinstance(configuration, Configuration):  # the message is built only for an error
+            as_configuration(configuration, f"{type(self).__name__} configuration")
+        nv = configuration.nv
         check_limit_rows(self, rows.G, rows.h, nv)
         for side, value in (("lower", rows.lower), ("upper", rows.upper)):
             if value is not None and getattr(value, "shape", None) != (nv,):

@@ -30,7 +30,9 @@ def _checked_compute_rows(compute_rows):
     @functools.wraps(compute_rows)
     def checked(self: Task, configuration: Configuration, dt: float) -> tuple[np.ndarray | None, np.ndarray]:
         J, v = compute_rows(self, configuration, dt)
-        check_task_rows(self, J, v, as_configuration(configuration, f"{self._label()} configuration").nv)
+        if not isinstance(configuration, Configuration):  # the message is built only for an error
+            as_configuration(configuration, f"{self._label()} configuration")
+        check_task_rows(self, J, v, configuration.nv)
         return J, v
 
     checked._size_checked = True
