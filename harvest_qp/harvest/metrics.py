@@ -33,7 +33,7 @@ from harvest_qp.harvest.environment import environment_capsules_for
 from harvest_qp.harvest.phases import Phase
 from harvest_qp.limits import CollisionAvoidance
 
-__all__ = ["compute_metrics", "controller_metrics", "min_capsule_distance", "SUCCESS_KEYS"]
+__all__ = ["compute_metrics", "controller_metrics", "finite_or_none", "min_capsule_distance", "SUCCESS_KEYS"]
 
 SUCCESS_KEYS = (
     "inside_roi", "centred", "unveiled", "force_settled", "force_below_2fd", "true_tension_settled",
@@ -48,7 +48,8 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b / (na * nb), -1.0, 1.0))))
 
 
-def _finite(x: float) -> float | None:
+def finite_or_none(x: float | None) -> float | None:
+    """``x`` as a float, or None when it is None or not finite (JSON has no NaN)."""
     return float(x) if x is not None and math.isfinite(float(x)) else None
 
 
@@ -122,18 +123,18 @@ def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper
         "episode_status": str(log["episode_status"]),
         "duration": float(n * float(log["control_period"])),
         "phase_reached": "abort" if reached == Phase.ABORT else reached.name.lower(),
-        "t_bimanual_start": _finite(phases.t_switch) if phases.t_switch is not None else None,
-        "t_precut": _finite(phases.t_precut) if phases.t_precut is not None else None,
-        "final_distance_to_estimated_roi_center": _finite(_last_finite(log, "value/roi_distance")),
+        "t_bimanual_start": finite_or_none(phases.t_switch),
+        "t_precut": finite_or_none(phases.t_precut),
+        "final_distance_to_estimated_roi_center": finite_or_none(_last_finite(log, "value/roi_distance")),
         "roi_radius": float(settings.reaching.radius),
-        "final_theta_estimated_roi_deg": _finite(math.degrees(_last_finite(log, "value/theta"))),
+        "final_theta_estimated_roi_deg": finite_or_none(math.degrees(_last_finite(log, "value/theta"))),
         "visible_stem_points_start": start,
         "visible_stem_points_switch": at_switch,
         "visible_stem_points_end": end,
-        "final_position_error": _finite(position_error),
-        "final_alignment_deg": _finite(alignment),
-        "force_mean_last_1s": _finite(force_mean),
-        "force_max": _finite(force_max),
+        "final_position_error": finite_or_none(position_error),
+        "final_alignment_deg": finite_or_none(alignment),
+        "force_mean_last_1s": finite_or_none(force_mean),
+        "force_max": finite_or_none(force_max),
         "f_d": f_d,
         "max_joint_limit_violation": violation,
         "peak_joint_speed": float(np.abs(log["qdot"]).max()),
@@ -141,7 +142,7 @@ def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper
         "qp_backup_solves": int(phases.backup_solves),
         "abort_reason": phases.abort_reason,
         "p_gd_choice": getattr(controller, "target_choice", None),
-        "estimated_stem_length": _finite(st.stem_length),
+        "estimated_stem_length": finite_or_none(st.stem_length),
         "realtime_factor": float(realtime_factor),
     }
     checks = {
@@ -196,7 +197,8 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
         k = int(bimanual[0])
         p_gd = np.asarray(log["value/p_gd"][k], float)
         if np.all(np.isfinite(p_gd)):
-            target_angle = _finite(_angle_deg(p_gd - p_sb_true, np.asarray(log["truth/stem_end"][k]) - p_sb_true))
+            hanging = np.asarray(log["truth/stem_end"][k]) - p_sb_true
+            target_angle = finite_or_none(_angle_deg(p_gd - p_sb_true, hanging))
             target_above = bool(p_gd[2] > p_sb_true[2])
     st = controller.state
     metrics: dict[str, Any] = {
@@ -204,14 +206,14 @@ def compute_metrics(log: dict, robot, controller, settings: EpisodeConfig, *, ma
         **own,
         "final_distance_to_roi_center": distance_true,
         "final_theta_deg": theta_true,
-        "final_cutter_stem_angle_deg": _finite(cutter_angle),
-        "true_tension_mean_last_1s": _finite(tension_mean),
-        "true_tension_max": _finite(tension_max),
-        "min_collision_distance": _finite(min_distance),
+        "final_cutter_stem_angle_deg": finite_or_none(cutter_angle),
+        "true_tension_mean_last_1s": finite_or_none(tension_mean),
+        "true_tension_max": finite_or_none(tension_max),
+        "min_collision_distance": finite_or_none(min_distance),
         "contacts": contacts,
         "contacts_by_kind": {k.removeprefix("truth/contacts_"): int(np.count_nonzero(np.nan_to_num(log[k]) > 0))
                              for k in contact_keys if k in log},
-        "min_vine_distance": (_finite(float(np.nanmin(log["truth/min_vine_distance"])))
+        "min_vine_distance": (finite_or_none(float(np.nanmin(log["truth/min_vine_distance"])))
                               if "truth/min_vine_distance" in log else None),
         "stem_torn": torn,
         "target_angle_off_stem_deg": target_angle,

@@ -40,7 +40,7 @@ def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
     """The episode's metrics that need no ground truth (:func:`~harvest_qp.harvest.metrics.controller_metrics`,
     the lab's names) and the real cell's own: why the robot stopped, the frames received, the closest
     robot-robot / robot-stand capsule distance."""
-    from harvest_qp.harvest.metrics import controller_metrics, min_capsule_distance
+    from harvest_qp.harvest.metrics import controller_metrics, finite_or_none, min_capsule_distance
 
     own, own_checks = controller_metrics(log, controller, settings, mapper=mapper, realtime_factor=realtime_factor)
     error = str(log.get("error", "")).strip()
@@ -48,7 +48,7 @@ def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
         "robot": "ur",
         **own,
         "stop_reason": error.splitlines()[0] if error else None,
-        "min_collision_distance": _finite(min_capsule_distance(log["q"], [])),  # robot-robot and stand only
+        "min_collision_distance": finite_or_none(min_capsule_distance(log["q"], [])),  # robot-robot and stand only
         "camera_frames": int(len(log["frame_time"])),
     }
     checks = {
@@ -60,9 +60,6 @@ def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
     metrics["success"] = bool(all(checks.values()))
     return metrics
 
-
-def _finite(x: float) -> float | None:
-    return float(x) if x is not None and math.isfinite(float(x)) else None
 
 
 def run_real_episode(settings: EpisodeConfig, robot, *, mapper: str | None = None, duration: float | None = None,
