@@ -12,6 +12,8 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import numpy as np
+
 from harvest_qp.sweep.stats import STATUS_OK, wilson_interval
 
 __all__ = ["CLASSES", "MAX_CONTACT_TICKS", "failure_class", "grower_success", "summarise"]
@@ -66,12 +68,8 @@ def failure_class(row: Mapping[str, Any]) -> str:
 
 
 def _percentile(values: Sequence[float], q: float) -> float:
-    if not values:
-        return math.nan
-    ordered = sorted(values)
-    k = (len(ordered) - 1) * q
-    lo, hi = math.floor(k), math.ceil(k)
-    return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
+    """numpy's (linear) percentile, NaN for no values."""
+    return float(np.percentile(values, 100 * q)) if values else math.nan
 
 
 def summarise(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
