@@ -161,6 +161,8 @@ class Grasping(Section):
     swing_clearance: PositiveOrNull = _f(0.02, "[m] beyond the paper: map distance the gripper keeps along its "
                                                "swing to p_gd (null: not checked)")
     swing_stretch: NonNegative = _f(0.03, "[m] the swing check also moves the gripper this far out along n_c")
+    swing_map_bias: NonNegative = _f(0.01, "[m] the obstacle map's cells lie up to this far short of the surface: "
+                                           "added to swing_clearance")
     k_hold: Positive = _f(1.0, "[1/s] the grasping arm holds the crop still during the approach")
     feed_forward: bool = _f(True, "eq:final_vc's feed-forward term on the camera in the bimanual phase")
 
@@ -224,6 +226,8 @@ class Safety(Section):
     stem_lost_timeout: Positive = _f(5.0, "[s] abort when no stem point is seen this long in the bimanual phase")
     no_stem_timeout: Positive = _f(30.0, "[s] abort when no valid stem base is ever found this long")
     max_qp_failures: PositiveInt = _f(25, "abort after this many QP failures in a row")
+    unexecuted_timeout: Positive = _f(10.0, "[s] abort when the gripper's motion along n_c that V_g asks for is "
+                                            "not executed this long (obstacle rows or limits)")
 
 
 class Precut(Section):
@@ -266,7 +270,12 @@ class QPSection(Section):
         "proxsuite", "re-solves a tick the main backend failed (null: none)")
     camera_task: TwistTaskSlot = _f(TwistTaskSlot(level=1, weight=[1.0, 1.0, 1.0, 1.0, 1.0, 0.0]),
                                     "camera twist task (local axes; 5-D: roll about z_c free)")
-    gripper_task: TwistTaskSlot = _f(TwistTaskSlot(level=1, weight=1.0), "gripper twist task")
+    gripper_task: TwistTaskSlot = _f(TwistTaskSlot(level=1, weight=1.0),
+                                     "gripper twist task (its translation only while alignment_task is set)")
+    alignment_task: TaskSlot | None = _f(
+        TaskSlot(level=2, weight=1.0),
+        "the gripper's turn (eq:rot_contr) on its own level below the translation, so force and position "
+        "along n_c win when both cannot be met (null: one 6-D gripper task, the paper's superposition)")
     roll_task: TaskSlot = _f(TaskSlot(level=2, weight=1.0), "camera roll task (section `roll`)")
     posture: TaskSlot = _f(TaskSlot(level=2, weight=1.0e-4), "posture task toward the start configuration")
     damping: TaskSlot = _f(TaskSlot(level=2, weight=1.0e-3), "joint-velocity damping task")

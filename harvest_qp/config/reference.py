@@ -99,9 +99,14 @@ def _rows(model: dict[str, Any], defs: dict[str, Any], prefix: str = "", default
     for name, node in model.get("properties", {}).items():
         path = f"{prefix}{name}"
         default = defaults[name] if isinstance(defaults, dict) and name in defaults else ...
+        optional = next((a for a in node.get("anyOf", ()) if "$ref" in a and _deref(a, defs).get("properties")), None)
         if "$ref" in node and _deref(node, defs).get("properties"):
             inner = node.get("default") if default is ... else default
             rows.extend(_rows(_deref(node, defs), defs, f"{path}.", inner))
+        elif optional is not None:  # a section or null: its own row (what null means), then its keys
+            rows.append(_row(path, node, defs, name in required, default))
+            inner = node.get("default") if default is ... else default
+            rows.extend(_rows(_deref(optional, defs), defs, f"{path}.", inner))
         else:
             rows.append(_row(path, node, defs, name in required, default))
     return rows

@@ -61,7 +61,14 @@ from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit
 from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
 from harvest_qp.perception.cloud_split import LabelledFrame as _Frame  # _State.frame
 from harvest_qp.perception.cloud_split import obstacle_sphere_centres, outside_held_cluster
-from harvest_qp.perception.grasp_target import SWING_CAPSULES, SwingCheck, choose_grasp_target
+from harvest_qp.perception.grasp_target import (
+    ARM_SWING_CAPSULES,
+    SWING_CAPSULES,
+    ArmCapsule,
+    SwingCheck,
+    arm_capsule_motion,
+    choose_grasp_target,
+)
 from harvest_qp.pinv import PseudoInverseMapper
 from harvest_qp.references import (
     GraspFeedForward,
@@ -123,6 +130,7 @@ class _State:
     frame: _Frame | None = None
     hold: HoldPose | None = None  # the grasping arm's hold of its initial pose in the approach
     previous_qdot: np.ndarray = field(default_factory=lambda: np.zeros(12))
+    executed: np.ndarray | None = None  # the gripper's linear velocity [m/s] the last command gives (bimanual)
 
 
 #: Shared read-only values of the per-tick log and references (the runner copies what it logs).
@@ -176,9 +184,18 @@ class HarvestController:
         self.camera_task = FrameTwistTask(
             "camera", weight=qp.camera_task.weight, weight_frame="local", level=qp.camera_task.level
         )
-        self.gripper_task = FrameTwistTask(
-            "gripper", weight=qp.gripper_task.weight, level=qp.gripper_task.level
-        )
+        gripper_weight = np.broadcast_to(np.asarray(qp.gripper_task.weight, float), (6,)).copy()
+        self.alignment_task = None
+        if qp.alignment_task is not None:
+            # eq:rot_contr on its own, lower level: when map rows or limits make V_g infeasible,
+            # the translation (force and position along n_c) wins and the turn takes what is
+            # left. One 6-D task let the turn win on held-out scenes: the gripper dragged 31-86 mm
+            # sideways, the position error never converged (7 of 100 scenes).
+            gripper_weight[3:] = 0.0
+            self.alignment_task = FrameTwistTask(
+                "gripper", weight=[0.0, 0.0, 0.0, *[qp.alignment_task.weight] * 3], level=qp.alignment_task.level
+            )
+        self.gripper_task = FrameTwistTask("gripper", weight=gripper_weight, level=qp.gripper_task.level)
         roll_weight = qp.roll_task.weight if s.roll.enabled else 0.0
         self.roll_task = FrameTwistTask(
             "camera", weight=[0, 0, 0, 0, 0, roll_weight], weight_frame="local", level=qp.roll_task.level
@@ -187,6 +204,8 @@ class HarvestController:
                                         level=qp.posture.level)
         tasks = [self.camera_task, self.gripper_task, self.roll_task, self.posture_task,
                  DampingTask(self.configuration.nv, weight=qp.damping.weight, level=qp.damping.level)]
+        if self.alignment_task is not None:
+            tasks.insert(2, self.alignment_task)
         from harvest_qp.config import build_tasks  # qp.extra_tasks: user tasks at their own level (issue 8)
         tasks += build_tasks([t.model_dump() for t in qp.extra_tasks], self.configuration, where="qp.extra_tasks")
         limits = []
@@ -251,6 +270,7 @@ class HarvestController:
         self.obstacle_map = None
         self.map_feed = None
         self._swing_capsules = []
+        self._arm_swing_capsules = []
         if not m.enabled or self.collision is None or self.mapper_kind != "qp":
             return
         if self.settings.obstacles.enabled:
@@ -269,8 +289,13 @@ class HarvestController:
             (b.link, np.asarray(b.capsule.p0, float), np.asarray(b.capsule.p1, float), float(b.capsule.radius))
             for b in description.collision_bodies() if b.arm and b.name in SWING_CAPSULES
         ]
+        # The rest of the grasping arm, moved with its joints along the swing.
+        self._arm_swing_capsules = [
+            (b.link, np.asarray(b.capsule.p0, float), np.asarray(b.capsule.p1, float), float(b.capsule.radius))
+            for b in description.collision_bodies() if b.arm and b.name in ARM_SWING_CAPSULES
+        ]
         try:
-            self.obstacle_map = ObstacleMap(resolution=m.resolution, clear_rays=m.clear_rays)
+            self.obstacle_map = ObstacleMap(resolution=m.resolution, clear_rays=m.clear_rays, erase_excluded=False)
             self.map_feed = MapCollisionFeed(
                 self.collision, self.obstacle_map, self.configuration, per_capsule=m.per_capsule,
                 min_separation=m.min_separation, margin=m.margin, max_cells=m.max_cells, capsules=capsules,
@@ -285,8 +310,8 @@ class HarvestController:
             raise ConfigError(f"obstacle_map: {err}") from None
 
     def map_exclusions(self, T_g: np.ndarray) -> list:
-        """Regions never mapped at gripper pose ``T_g``: the held cluster and the stem up to the
-        latest p_sb (:func:`~harvest_qp.perception.obstacle_map.held_crop_exclusions`)."""
+        """Regions never mapped at gripper pose ``T_g``: ``[held cluster, stem up to the latest p_sb]``
+        (:func:`~harvest_qp.perception.obstacle_map.held_crop_exclusions`)."""
         from harvest_qp.perception.obstacle_map import held_crop_exclusions
 
         m = self.settings.obstacle_map
@@ -411,12 +436,22 @@ class HarvestController:
         g = self.settings.grasping
         swing = None
         if g.swing_clearance is not None and self.obstacle_map is not None and self._swing_capsules:
+            config = self.configuration
             capsules = []
             for frame, a, b, radius in self._swing_capsules:
-                pose = self.configuration.frame_pose(frame)
+                pose = config.frame_pose(frame)
                 capsules.append((pose.act(a), pose.act(b), radius))
-            swing = SwingCheck(self.obstacle_map, self.configuration.frame_position("gripper"), capsules,
-                               clearance=g.swing_clearance, stretch=g.swing_stretch)
+            joints = config.support_mask("gripper")  # the grasping arm's joints
+            J_g = config.frame_jacobian("gripper")[:, joints]
+            arm = []
+            for frame, a, b, radius in self._arm_swing_capsules:
+                pose = config.frame_pose(frame)
+                ends = (pose.act(a), pose.act(b))
+                motions = [arm_capsule_motion(config.point_jacobian(frame, e)[:, joints], J_g) for e in ends]
+                arm.append(ArmCapsule(*ends, radius, *motions))
+            swing = SwingCheck(self.obstacle_map, config.frame_position("gripper"), capsules,
+                               clearance=g.swing_clearance, stretch=g.swing_stretch, arm=arm,
+                               map_bias=g.swing_map_bias)
         top_of_crop = T_g[:3, 3] - self.settings.perception.grasp_offset * T_g[:3, 1]
         target = choose_grasp_target(free, stem_base, top_of_crop, max_swing_deg=g.max_swing_deg, swing=swing)
         self.target_choice = target.choice
@@ -481,7 +516,14 @@ class HarvestController:
             t0 = clock()
             self._perceive(obs.cloud, T_g)
             if self.obstacle_map is not None:
-                self.obstacle_map.update(obs.cloud, exclude=self.map_exclusions(T_g))
+                cluster, stem = self.map_exclusions(T_g)
+                self.obstacle_map.update(obs.cloud, exclude=(cluster, stem))
+                # Only the stem's cells are forgotten (seen as an obstacle beyond the stem range
+                # before it was recognised). The held cluster's region keeps the crop's points
+                # out but erases nothing: it once erased a petiole's cells (42 -> 16) and, with
+                # the crop turned, the branch cells next to the gripper, whose rows then vanished
+                # (the gripper rested on the branch for ~28 s on a held-out scene).
+                self.obstacle_map.erase((stem,))
             if timing is not None:
                 timing.setdefault("perception", []).append(clock() - t0)
         t_references = clock()
@@ -530,12 +572,14 @@ class HarvestController:
             direction = st.stem_direction if st.stem_direction is not None else T_g[:3, 1]
         else:
             force = obs.force if t > self.phases.t_switch else np.zeros(3)
-            V_g = stretching.update(T_g, force, dt)
+            V_g = stretching.update(T_g, force, dt, executed=st.executed)
             force_nc = stretching.force_along_nc
             if s.grasping.feed_forward:
                 V_c += self.feed_forward(stretching.v_gt, T_c[:3, 3], st.p_sb)
+            top_of_crop = T_g[:3, 3] - s.perception.grasp_offset * T_g[:3, 1]
             self.phases.stretch(t, dt, force_nc, stretching.position_error, stretching.alignment,
-                                force_norm=math.hypot(*force))
+                                force_norm=math.hypot(*force), motion_executed=stretching.motion_executed,
+                                crop_side=float((top_of_crop - st.p_sb) @ stretching.n_c))
             direction = stretching.n_c
         roll, roll_error = roll_reference(T_c, direction, k_roll=s.roll.k_roll)
         return _References(V_c, V_g, roll, roll_error, force_nc, reaching.distance)
@@ -552,12 +596,18 @@ class HarvestController:
         else:
             self.camera_task.set_reference(references.V_c)
             self.gripper_task.set_reference(references.V_g)
+            if self.alignment_task is not None:
+                self.alignment_task.set_reference(references.V_g)
             self.roll_task.set_reference(references.roll)
             if self.map_feed is not None:
                 map_cells = float(self.map_feed.update(q))
             qdot, status, ok = self._solve(q)
             phases.solved(t, ok, status)
         qdot = np.asarray(qdot, float)
+        # The gripper motion this command gives, against which the next V_g checks its own
+        # (StemStretching: the force integral holds, the phase machine aborts after a while).
+        self.state.executed = (self.configuration.frame_jacobian_by_id(self._gripper_id)[:3] @ qdot
+                               if phases.bimanual else None)
         if phases.phase != Phase.ABORT:
             self.qp.previous_qdot = qdot
         self.state.previous_qdot = qdot

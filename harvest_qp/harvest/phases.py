@@ -73,6 +73,7 @@ class PhaseRules:
     stop_after_abort: float  # [s] at rest after an abort (episode.stop_after_abort)
     off_axis_force_limit: float = math.inf  # [N] the wrist force across n_c (safety.off_axis_force_limit; f_d)
     max_force_angle_deg: float = 180.0  # [deg] the force's angle from n_c at pre-cut (precut.max_force_angle_deg)
+    unexecuted_timeout: float = math.inf  # [s] the gripper's motion along n_c not executed (safety.unexecuted_timeout)
 
     @classmethod
     def from_settings(cls, s: dict[str, Any]) -> PhaseRules:
@@ -90,7 +91,7 @@ class PhaseRules:
             hold_time=p.hold_time, force_time_constant=p.force_time_constant,
             end_after_precut=s.episode.end_after_precut, stop_after_abort=s.episode.stop_after_abort,
             off_axis_force_limit=f_d if safety.off_axis_force_limit is None else float(safety.off_axis_force_limit),
-            max_force_angle_deg=p.max_force_angle_deg,
+            max_force_angle_deg=p.max_force_angle_deg, unexecuted_timeout=safety.unexecuted_timeout,
         )
 
 
@@ -122,6 +123,7 @@ class PhaseMachine:
         self.backup_solves = 0
         self.force_filtered: float | None = None
         self.precut_since: float | None = None
+        self.unexecuted_since: float | None = None
         self._camera_window: deque[tuple[float, tuple, tuple]] = deque()  # (t, p_c, z_c)
 
     @property
@@ -183,9 +185,16 @@ class PhaseMachine:
             self.abort(t, f"stem not seen for {timeout} s in the bimanual phase")
 
     def stretch(self, t: float, dt: float, force_nc: float, position_error: float, alignment: float, *,
-                force_norm: float) -> None:
+                force_norm: float, motion_executed: bool = True, crop_side: float = math.inf) -> None:
         """One bimanual tick's grasp state: the wrist force along n_c and its magnitude [N], the
-        projected position error [m] and the alignment angle [rad] of V_g (``eq:superimp_g``).
+        projected position error [m] and the alignment angle [rad] of V_g (``eq:superimp_g``),
+        whether the last command's motion along n_c was executed, and how far the top of the
+        crop lies beyond p_sb along n_c [m].
+
+        Aborts when the crop is not on the target side of p_sb (``crop_side`` < 0: compression
+        would read as stretch along n_c), and when the motion along n_c has not been executed for
+        ``unexecuted_timeout`` (the QP could not move the gripper where V_g asks: obstacles or
+        limits; the reason says so instead of an episode that never converges).
 
         Aborts on what the robot can see (beyond the paper, which compares n_c^T f alone): the force
         along n_c or the force's magnitude above ``force_limit`` (a stem pulled off-axis, or the
@@ -195,6 +204,17 @@ class PhaseMachine:
         that the force lie within ``max_force_angle_deg`` of n_c (a pull held by a branch contact
         across n_c is not a stretched stem)."""
         r = self.rules
+        if crop_side < 0.0:
+            self.abort(t, f"the crop is {-1000 * crop_side:.0f} mm on the wrong side of the stem base along n_c")
+            return
+        if motion_executed:
+            self.unexecuted_since = None
+        elif self.unexecuted_since is None:
+            self.unexecuted_since = t
+        elif t - self.unexecuted_since >= r.unexecuted_timeout:
+            self.abort(t, f"the gripper's motion along n_c not executed for {r.unexecuted_timeout} s "
+                          "(obstacle rows or limits)")
+            return
         if force_nc > r.force_limit:
             self.abort(t, f"stem force {force_nc:.2f} N above the limit {r.force_limit:.2f} N")
             return

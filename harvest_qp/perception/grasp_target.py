@@ -6,11 +6,14 @@ scene and seeds 1 and 5 of the MuJoCo lab:
 
 * p_gd is taken among the free samples within ``max_swing_deg`` of the hanging stem (a p_gd
   48-53 deg off it swung the crop up beside the branch: arm-vine contacts, 6 N at the wrist);
-* with an obstacle map (:class:`SwingCheck`), among those whose swing keeps the gripper and
-  the wrist links next to it ``clearance`` [m] from every mapped cell (on seeds 1 and 5 the
+* with an obstacle map (:class:`SwingCheck`), among those whose swing keeps the grasping arm
+  (the gripper and wrist turning with it, the forearm and upper arm moving with the joints)
+  ``clearance`` plus the map's short bias from every mapped cell (on seeds 1 and 5 the
   gripper otherwise swung the crop into the occluding leaf: a 6 N abort, 19,068 contact
-  ticks); when no free sample swings clear, the hanging direction itself or the least swing
-  of the cone that does, else the most clearance.
+  ticks);
+* when no sample passes, the arm pulls along the stem itself (no swing). Earlier fallbacks
+  (the least swing outside the cone, the most clearance anywhere) picked targets 55-167 deg
+  off the stem on held-out scenes, once 7 cm above p_sb, where compression reads as stretch.
 """
 
 from __future__ import annotations
@@ -25,15 +28,29 @@ from scipy.spatial import cKDTree
 from harvest_qp.perception.free_space import FreeSpace
 from harvest_qp.perception.obstacle_map import ObstacleMap
 
-__all__ = ["SWING_CAPSULES", "SWING_FRACTIONS", "GraspTarget", "SwingCheck", "choose_grasp_target",
-           "rotations_between"]
+__all__ = ["ARM_SWING_CAPSULES", "SWING_CAPSULES", "SWING_FRACTIONS", "ArmCapsule", "GraspTarget", "SwingCheck",
+           "arm_capsule_motion", "choose_grasp_target", "rotations_between"]
 
 #: Capsules of the grasping arm checked along the swing to p_gd: the gripper and the two wrist
 #: links next to it, which move (nearly) rigidly with the gripper while it swings the crop.
 SWING_CAPSULES = ("grasp_gripper", "grasp_wrist_3", "grasp_wrist_2")
 
+#: The rest of the grasping arm, moved with its joints along the swing (:class:`ArmCapsule`): on
+#: held-out scenes the forearm, not the gripper, was what blocked the swing.
+ARM_SWING_CAPSULES = ("grasp_wrist_1", "grasp_forearm", "grasp_upper_arm")
+
 #: Fractions of the swing (hanging stem -> p_gd) at which the gripper is checked against the map.
 SWING_FRACTIONS = (0.25, 0.5, 0.75, 1.0)
+
+
+def _turns(a: NDArray[np.float64], b: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit axes ``(n, 3)`` and angles ``(n,)`` [rad] of the shortest turns from unit ``a`` to each unit ``b[i]``
+    (axis 0 where b is parallel to a)."""
+    axis = np.cross(a, b)
+    sin = np.linalg.norm(axis, axis=1)
+    cos = np.clip(b @ a, -1.0, 1.0)
+    unit = np.where(sin[:, None] > 1e-12, axis / np.maximum(sin, 1e-12)[:, None], 0.0)
+    return unit, np.arctan2(sin, cos)
 
 
 def rotations_between(a: NDArray[np.float64], b: NDArray[np.float64], fractions: ArrayLike) -> NDArray[np.float64]:
@@ -41,11 +58,7 @@ def rotations_between(a: NDArray[np.float64], b: NDArray[np.float64], fractions:
 
     Rodrigues' formula about the axis a x b (a turn of 0 where b is parallel to a).
     """
-    axis = np.cross(a, b)
-    sin = np.linalg.norm(axis, axis=1)
-    cos = np.clip(b @ a, -1.0, 1.0)
-    angle = np.arctan2(sin, cos)
-    unit = np.where(sin[:, None] > 1e-12, axis / np.maximum(sin, 1e-12)[:, None], 0.0)
+    unit, angle = _turns(a, b)
     K = np.zeros((len(b), 3, 3))
     K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -unit[:, 2], unit[:, 1], -unit[:, 0]
     K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = unit[:, 2], -unit[:, 1], unit[:, 0]
@@ -54,17 +67,55 @@ def rotations_between(a: NDArray[np.float64], b: NDArray[np.float64], fractions:
 
 
 @dataclass(frozen=True)
+class ArmCapsule:
+    """A capsule of the grasping arm that does not move rigidly with the gripper (forearm, wrist 1, ...).
+
+    Its ends move with the joints: ``end + motion @ [dp; dtheta]`` for a gripper displacement dp [m]
+    and turn dtheta [rad] (rotation vector), to first order (``motion = J_end J_g^-1`` of the
+    grasping arm's six joints, :func:`arm_capsule_motion`).
+
+    Attributes:
+        p0, p1: the capsule's ends now [m] (world).
+        radius: [m].
+        motion0, motion1: ``(3, 6)`` motion of each end per gripper twist displacement.
+    """
+
+    p0: NDArray[np.float64]
+    p1: NDArray[np.float64]
+    radius: float
+    motion0: NDArray[np.float64]
+    motion1: NDArray[np.float64]
+
+
+def arm_capsule_motion(end_jacobian: NDArray[np.float64], gripper_jacobian: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(3, 6)``: how a point of the arm moves per gripper twist, ``J_end J_g^+`` [m/m, m/rad].
+
+    Args:
+        end_jacobian: ``(3, n)`` linear Jacobian of the point over the arm's joints.
+        gripper_jacobian: ``(6, n)`` the gripper's Jacobian ``[v; w]`` (world-aligned) over the same joints.
+
+    The least-squares inverse (``lstsq``) keeps a gripper near a singularity from giving huge motions.
+    """
+    return end_jacobian @ np.linalg.pinv(gripper_jacobian, rcond=1e-3)
+
+
+@dataclass(frozen=True)
 class SwingCheck:
-    """The gripper's swing to a candidate p_gd, measured on an obstacle map.
+    """The grasping arm's swing to a candidate p_gd, measured on an obstacle map.
 
     Attributes:
         obstacle_map: the map (its occupied cells are the obstacles).
         gripper_position: the gripper point p_g now [m].
-        capsules: the capsules that swing with the gripper, ``(p0, p1, radius)`` in the world
-            frame now [m] (e.g. those of :data:`SWING_CAPSULES`).
+        capsules: the capsules that move rigidly with the gripper, ``(p0, p1, radius)`` in the
+            world frame now [m] (e.g. those of :data:`SWING_CAPSULES`).
         clearance: the clearance [m] a swing must keep from every mapped cell.
         stretch: how far beyond the sphere S(p_sb, l) the gripper moves out along n_c as the
             stem stretches [m] (checked at half and all of it; 0: not checked).
+        arm: the rest of the grasping arm (:class:`ArmCapsule`: forearm, wrist 1, ...), moved
+            with the joints to first order.
+        map_bias: how far the map's cells may lie short of the true surface [m], added to
+            ``clearance`` (a cell 1 cm in front of a branch seen from the far side is 1 cm
+            farther than the wood).
     """
 
     obstacle_map: ObstacleMap
@@ -72,11 +123,18 @@ class SwingCheck:
     capsules: Sequence[tuple[NDArray[np.float64], NDArray[np.float64], float]]
     clearance: float
     stretch: float = 0.0
+    arm: Sequence[ArmCapsule] = ()
+    map_bias: float = 0.0
+
+    @property
+    def needed(self) -> float:
+        """The clearance a swing must keep on the map [m]: ``clearance + map_bias``."""
+        return self.clearance + self.map_bias
 
     @property
     def limit(self) -> float:
-        """Clearances are measured up to this distance [m] (twice ``clearance``)."""
-        return 2.0 * self.clearance
+        """Clearances are measured up to this distance [m] (twice :attr:`needed`)."""
+        return 2.0 * self.needed
 
     def clearances(
         self,
@@ -87,17 +145,18 @@ class SwingCheck:
         fractions: Sequence[float] = SWING_FRACTIONS,
         stretches: Sequence[float] | None = None,
     ) -> NDArray[np.float64]:
-        """Smallest map distance [m] of the capsules along the swing to each of ``(n, 3)`` ``samples``, capped at
-        :attr:`limit`.
+        """Smallest map distance [m] of the arm's capsules along the swing to each of ``(n, 3)`` ``samples``,
+        capped at :attr:`limit`.
 
-        The swing to a sample: the gripper point turns about p_sb with the stem, from the
-        hanging direction ``hanging`` (unit, p_sb -> top of the crop) to the sample's, while
-        the gripper turns by the same rotation about its own point, twice as fast (``k_og`` =
-        2 ``k_pg`` in ``eq:superimp_g``: when the position has done a fraction f of its way,
-        the orientation has done 1 - (1 - f)^2); the capsules move rigidly with it. At the end
-        of the turn the gripper also moves out along n_c by each of ``stretches`` (default:
-        half and all of :attr:`stretch`; measured 22 mm beyond S(p_sb, l) on seed 5 at 3 N).
-        The held cluster and the stem must be kept out of the map by the caller.
+        The swing to a sample, as ``eq:superimp_g`` commands it: the gripper point turns about
+        p_sb with the stem, from the hanging direction ``hanging`` (unit, p_sb -> top of the
+        crop) to the sample's, while the gripper turns by the same rotation about its own
+        point, twice as fast (``k_og`` = 2 ``k_pg``: when the position has done a fraction f of
+        its way, the orientation has done 1 - (1 - f)^2); :attr:`capsules` move rigidly with
+        it, :attr:`arm` with the joints that make that motion (first order). At the end of the
+        turn the gripper also moves out along n_c by each of ``stretches`` (default: half and
+        all of :attr:`stretch`; measured 22 mm beyond S(p_sb, l) on seed 5 at 3 N). The held
+        cluster and the stem must be kept out of the map by the caller.
         """
         if stretches is None:
             stretches = (0.5 * self.stretch, self.stretch) if self.stretch > 0 else ()
@@ -113,14 +172,24 @@ class SwingCheck:
         # the gripper point along the swing
         points = (stem_base + np.einsum("nmij,j->nmi", R_move, p_g - stem_base)
                   + out[None, :, None] * directions[:, None])
-        p0 = np.stack([points + np.einsum("nmij,j->nmi", R_turn, a - p_g) for a, _, _ in self.capsules], axis=2)
-        p1 = np.stack([points + np.einsum("nmij,j->nmi", R_turn, b - p_g) for _, b, _ in self.capsules], axis=2)
+        ends0 = [points + np.einsum("nmij,j->nmi", R_turn, a - p_g) for a, _, _ in self.capsules]
+        ends1 = [points + np.einsum("nmij,j->nmi", R_turn, b - p_g) for _, b, _ in self.capsules]
+        radii = [r for _, _, r in self.capsules]
+        if self.arm:
+            unit, angle = _turns(hanging, directions)
+            # the gripper's displacement and turn (rotation vector) at each step: (n, m, 6)
+            twist = np.concatenate([points - p_g, (angle[:, None] * turn[None, :])[..., None] * unit[:, None]], axis=2)
+            for c in self.arm:
+                ends0.append(c.p0 + twist @ c.motion0.T)
+                ends1.append(c.p1 + twist @ c.motion1.T)
+                radii.append(c.radius)
+        p0, p1 = np.stack(ends0, axis=2), np.stack(ends1, axis=2)
         n, m = R_move.shape[:2]
-        radii = np.tile(np.array([r for _, _, r in self.capsules], float), n * m)
+        radii = np.tile(np.asarray(radii, float), n * m)
         limit = self.limit
         query = self.obstacle_map.closest_cells(p0.reshape(-1, 3), p1.reshape(-1, 3), radii, max_distance=limit,
                                                 per_capsule=1)
-        distance = np.minimum(query.min_distances(), limit).reshape(n, m * len(self.capsules))
+        distance = np.minimum(query.min_distances(), limit).reshape(n, m * p0.shape[2])
         return distance.min(axis=1)
 
 
@@ -140,6 +209,14 @@ class GraspTarget:
     swing_clearance: tuple[NDArray[np.float64], float] | None = None
 
 
+#: :attr:`GraspTarget.choice` of each rule of :func:`choose_grasp_target`.
+CHOICE_PAPER = "eq:attr_point"
+CHOICE_CONE = "eq:attr_point over the free samples in the cone"
+CHOICE_CONE_CLEAR = "free, in the cone, swing clear (eq:attr_point among them)"
+CHOICE_ALONG_STEM = "along the stem: nothing in the cone is free and swing clear (no swing)"
+CHOICE_NO_TARGET = "no target: the crop hangs level with or above the stem base"
+
+
 def choose_grasp_target(
     free: FreeSpace,
     stem_base: NDArray[np.float64],
@@ -156,60 +233,49 @@ def choose_grasp_target(
         top_of_crop: where the stem meets the held crop now [m]; the stem now runs from p_sb
             to it.
         max_swing_deg: the swing bound [deg]; ``None`` (and no ``swing``) keeps the paper's
-            choice ``free.target``.
-        swing: the map check of the swing (``None``: none). In tiers: free, in the cone and
-            clear (then ``eq:attr_point`` among them); free and clear (the least swing); the
-            hanging direction itself or the least swing of the cone that is clear; else the
-            most clearance. "Clear" is ``swing.clearance``, or the gripper's clearance now if
-            that is less (a gripper already close to the branch must not get closer).
+            choice ``free.target`` over the whole hemisphere.
+        swing: the map check of the swing (``None``: none).
+
+    Rules, in order (:attr:`GraspTarget.choice` says which chose):
+
+    1. ``eq:attr_point`` among the samples that are free, within ``max_swing_deg`` of the stem
+       now, below p_sb, and (with ``swing``) swing clear: the arm keeps :attr:`SwingCheck.needed`
+       from every mapped cell, or the gripper's clearance now if that is less (a gripper
+       already close to the branch must not get closer).
+    2. Else the stem's own direction: p_sb + l (top of the crop - p_sb)/|...| -- the arm pulls
+       along the stem without swinging the crop (forcing this on the scenes where earlier
+       fallbacks picked targets 55-167 deg off the stem gave pre-cut in 13-14 s at 3 N true
+       tension, no contact).
+    3. No target (``point`` None: the episode does not switch and says why) when the crop is
+       not below p_sb: a target there would put the crop on the wrong side of the stem base,
+       where compression reads as stretch along n_c.
+
+    The target never leaves the swing bound and never lies above the stem base.
     """
     if max_swing_deg is None and swing is None:
-        return GraspTarget(free.target.copy(), "eq:attr_point")
-    cone_choice = "eq:attr_point over the free samples in the cone"
-    if not np.any(free.free):
-        return GraspTarget(None, cone_choice)
+        return GraspTarget(free.target.copy(), CHOICE_PAPER)
     hanging = top_of_crop - stem_base
     hanging = hanging / float(np.linalg.norm(hanging))
+    if hanging[2] >= 0.0:
+        return GraspTarget(None, CHOICE_NO_TARGET)
     samples = free.samples
     directions = (samples - stem_base) / np.linalg.norm(samples - stem_base, axis=1)[:, None]
     cos_swing = directions @ hanging
     cone = cos_swing >= (np.cos(np.radians(max_swing_deg)) if max_swing_deg is not None else -1.0)
-    in_cone = free.free & cone
-    record = None
-    if swing is not None:
+    candidates = free.free & cone & (directions[:, 2] < 0.0)
+    choice, record = CHOICE_CONE, None
+    if swing is not None and np.any(candidates):
         clearance = swing.clearances(samples, stem_base, hanging)
         now = swing.clearances(top_of_crop[None], stem_base, hanging, fractions=(0.0,), stretches=(0.0,))[0]
-        needed = min(swing.clearance, now)
+        needed = min(swing.needed, now)
         record = (clearance, needed)
-        clear = clearance >= needed - 1e-9
-        if np.any(in_cone & clear):
-            in_cone = in_cone & clear
-            cone_choice = "free, in the cone, swing clear (eq:attr_point among them)"
-        elif np.any(free.free & clear):  # outside the cone: the least swing that is clear
-            pool = np.flatnonzero(free.free & clear)
-            return GraspTarget(samples[pool[np.argmax(cos_swing[pool])]].copy(),
-                               "free, swing clear, outside the cone (least swing)", record)
-        else:
-            # No sample of F swings clear (measured on seeds 1 and 5: F lies on the camera's
-            # side, where the occluding leaf hangs). Leave F.
-            hang_point = stem_base + free.radius * hanging
-            hang_clearance = swing.clearances(hang_point[None], stem_base, hanging)[0]
-            if hang_clearance >= needed - 1e-9:
-                return GraspTarget(hang_point, "no free sample swings clear: the hanging direction (no swing)", record)
-            pool = np.flatnonzero(cone & clear)
-            if pool.size:
-                return GraspTarget(samples[pool[np.argmax(cos_swing[pool])]].copy(),
-                                   "no free sample swings clear: the least clear swing of the cone", record)
-            pool = np.flatnonzero(cone) if np.any(cone) else np.arange(len(samples))
-            best = pool[np.argmax(clearance[pool])]
-            point = samples[best].copy() if clearance[best] > hang_clearance else hang_point
-            return GraspTarget(point, "no sample swings clear: the most clearance", record)
-    if not np.any(in_cone):  # nothing free within the cone: the free sample nearest to it
-        closest = np.flatnonzero(free.free)[np.argmax(cos_swing[free.free])]
-        return GraspTarget(samples[closest].copy(), "nothing free in the cone: the free sample nearest to it", record)
-    candidates = samples[in_cone]
+        candidates &= clearance >= needed - 1e-9
+        choice = CHOICE_CONE_CLEAR
+    if not np.any(candidates):
+        return GraspTarget(stem_base + free.radius * hanging, CHOICE_ALONG_STEM, record)
     obstacles = free.projected_obstacles
     if len(obstacles) == 0:
-        return GraspTarget(candidates[np.argmax(cos_swing[in_cone])].copy(), cone_choice, record)
-    projected_clearance, _ = cKDTree(obstacles).query(candidates)
-    return GraspTarget(candidates[int(np.argmax(projected_clearance))].copy(), cone_choice, record)
+        pool = np.flatnonzero(candidates)
+        return GraspTarget(samples[pool[np.argmax(cos_swing[pool])]].copy(), choice, record)
+    projected_clearance, _ = cKDTree(obstacles).query(samples[candidates])
+    return GraspTarget(samples[candidates][int(np.argmax(projected_clearance))].copy(), choice, record)

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from harvest_qp.perception.grasp_target import CHOICE_NO_TARGET
 from harvest_qp.sweep.stats import STATUS_OK, wilson_interval
 
 __all__ = ["CLASSES", "MAX_CONTACT_TICKS", "failure_class", "grower_success", "summarise"]
@@ -40,8 +41,8 @@ def failure_class(row: Mapping[str, Any]) -> str:
 
     * ``lab``: the episode did not run to its end (an exception, a dead or timed-out process);
     * ``safety``: a torn stem, a true tension above 2 f_d, more than 50 ms of contact, or a force abort;
-    * ``target``: the grasp target came from a fallback rule, not the free cone of ``eq:attr_point``,
-      or lies more than :data:`MAX_TARGET_ANGLE_DEG` off the true hanging stem or above the stem base;
+    * ``target``: no grasp target (the crop level with or above the stem base), or one more than
+      :data:`MAX_TARGET_ANGLE_DEG` off the true hanging stem or above the true stem base;
     * ``priority``: the bimanual phase ran but pre-cut was never reached (position or alignment
       never converged);
     * ``perception``: no stem base found, or the stem lost;
@@ -59,7 +60,7 @@ def failure_class(row: Mapping[str, Any]) -> str:
         return "perception"
     choice = str(row.get("p_gd_choice") or "")
     angle = row.get("target_angle_off_stem_deg")
-    if ((choice and "in the cone" not in choice) or row.get("target_above_stem_base")
+    if (choice == CHOICE_NO_TARGET or row.get("target_above_stem_base")
             or (angle is not None and float(angle) > MAX_TARGET_ANGLE_DEG)):
         return "target"
     if row.get("phase_reached") == "bimanual":

@@ -155,7 +155,7 @@ def test_extra_tasks_join_the_paper_controllers_qp_at_their_level(tmp_path, monk
     extra = [t for t in controller.qp.tasks if type(t).__name__ == "JointTarget"]
     assert len(extra) == 1 and extra[0].level == 3 and float(extra[0].weight[0]) == 0.5
     assert extra[0] in controller.qp_backup.tasks
-    assert len(controller.qp.tasks) == 6  # the paper's five plus this one
+    assert len(controller.qp.tasks) == 7  # the paper episode's six (gripper translation and turn apart) plus this one
     with pytest.raises(ConfigError, match=r"'qp\.extra_tasks\[0\]\.params\.joint' is required"):
         check_settings({"qp": {"extra_tasks": [{"type": f"{module}:JointTarget", "params": {"target": 0.1}}]}})
     with pytest.raises(ConfigError, match=r"qp\.extra_tasks\[0\] \(damping\)"):

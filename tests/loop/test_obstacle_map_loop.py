@@ -271,3 +271,55 @@ def test_controller_exclusions_keep_the_held_cluster_and_the_stem_out_of_the_map
     exclude = controller.map_exclusions(T_g)
     assert touching("berries", exclude, near) == 0
     assert touching("stem", exclude, far) == 0
+
+
+def test_the_held_cluster_region_never_erases_the_wood_next_to_the_tool():
+    """Wood mapped beside the gripper (6 cm along x_g, level with the gripper point: inside the held
+    cluster's exclusion capsule, whose round top reaches 4 cm above the gripper point and 8 cm
+    out, but 1-3 cm beyond the real crop) stays in the map through the controller's frames: the
+    region keeps the crop's points out, it does not forget what is there. Oracle: the wood's own
+    points, placed here. Catches the region erasing mapped cells (held-out scene: a petiole's
+    cells 42 -> 16, the gripper then rested on the branch for ~28 s); planted once
+    (``erase_excluded=True``): this test failed."""
+    from harvest_qp.config.settings import check_settings
+    from harvest_qp.harvest.harvest_controller import HarvestController
+    from harvest_qp.runtime.interface import OBSTACLE, PointCloud
+    from harvest_qp.runtime.runner import Observation
+
+    class _Robot:  # what reset reads
+        control_period = 0.002
+
+        def __init__(self, q):
+            self.q = q
+
+        def joint_positions(self):
+            return self.q
+
+    controller = HarvestController(check_settings({}))
+    q = controller.configuration.q.copy()
+    controller.reset(_Robot(q))
+    T_g = controller.configuration.frame_pose("gripper").homogeneous
+    p_g, x_g, y_g = T_g[:3, 3], T_g[:3, 0], T_g[:3, 1]
+    camera = p_g - 0.4 * T_g[:3, 2]
+
+    def cloud(points):
+        z = (points.mean(axis=0) - camera) / np.linalg.norm(points.mean(axis=0) - camera)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = np.column_stack([x, np.cross(z, x), z]), camera
+        n = len(points)
+        rows, cols = np.divmod(np.arange(n), n)
+        return PointCloud(points, np.full(n, OBSTACLE, np.int8), np.zeros((n, 3), np.uint8), pose, 0.0,
+                          (points - camera) @ z, np.column_stack([rows, cols]).astype(np.int32), (n, n))
+
+    grid = np.linspace(-0.01, 0.01, 5)
+    wood = (p_g + 0.06 * x_g + grid[:, None, None] * y_g + grid[None, :, None] * T_g[:3, 2]).reshape(-1, 3)
+    for _ in range(3):  # mapped before the crop came next to it (as the camera saw it earlier)
+        controller.obstacle_map.update(cloud(wood))
+    assert controller.obstacle_map.is_occupied(wood).all()
+    far = p_g + np.array([0.0, 0.0, 0.5]) + 0.01 * np.arange(5)[:, None]
+    for k in range(3):
+        controller.step(Observation(time=0.002 * k, q=q, qdot=np.zeros(12), force=np.zeros(3), cloud=cloud(far),
+                                    new_cloud=True))
+    assert controller.obstacle_map.is_occupied(wood).mean() > 0.9

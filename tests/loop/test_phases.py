@@ -128,6 +128,38 @@ def test_the_wrist_force_aborts_off_n_c_too(rules, along, norm, reason):
     assert machine.phase == Phase.ABORT and machine.abort_reason == reason
 
 
+def test_motion_not_executed_for_the_timeout_aborts_with_a_reason(rules):
+    """V_g asks for motion along n_c that the QP never gives (map rows or limits): after
+    ``unexecuted_timeout`` of it the machine aborts and says why; executed motion in between
+    restarts the clock. Hand sequence: 1.0 s unexecuted, one executed tick, then 1.5 s.
+    Catches: an episode that never converges and never says why (7 of 100 held-out scenes)."""
+    machine = PhaseMachine(dataclasses.replace(rules, unexecuted_timeout=1.5))
+    machine.switch(0.0)
+    for k in range(500):
+        machine.stretch(0.1 + k * DT, DT, 1.0, 0.02, 0.0, force_norm=1.0, motion_executed=False)
+    machine.stretch(1.2, DT, 1.0, 0.02, 0.0, force_norm=1.0, motion_executed=True)
+    t = 1.2
+    while t < 2.7 - 1e-9:
+        t += DT
+        machine.stretch(t, DT, 1.0, 0.02, 0.0, force_norm=1.0, motion_executed=False)
+        assert machine.phase == Phase.BIMANUAL
+    machine.stretch(2.71, DT, 1.0, 0.02, 0.0, force_norm=1.0, motion_executed=False)
+    assert machine.phase == Phase.ABORT and "not executed for 1.5 s" in machine.abort_reason
+
+
+def test_a_crop_on_the_wrong_side_of_the_stem_base_aborts(rules):
+    """The top of the crop 4 mm beyond p_sb against n_c: compression reads as stretch there (held-out
+    scenes: true tension -1.8 N while n_c^T f read +1.8 N), so the stretch stops. Catches: a stretch
+    that only looks at n_c^T f."""
+    machine = PhaseMachine(rules)
+    machine.switch(0.0)
+    machine.stretch(0.1, DT, 1.8, 0.0, 0.0, force_norm=1.8, crop_side=0.07)
+    assert machine.phase == Phase.BIMANUAL
+    machine.stretch(0.102, DT, 1.8, 0.0, 0.0, force_norm=1.8, crop_side=-0.004)
+    assert machine.phase == Phase.ABORT and machine.abort_reason == (
+        "the crop is 4 mm on the wrong side of the stem base along n_c")
+
+
 def test_precut_only_with_the_force_along_n_c(rules):
     """3 N along n_c but 1.5 N across it (27 deg off, a pull held by a branch contact): every other
     pre-cut test holds, yet pre-cut is never declared; 1.0 N across (18 deg) is. Catches: pre-cut

@@ -138,3 +138,22 @@ def test_bad_input_raises():
     law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
     with pytest.raises(InvalidInputError, match="force"):
         law.update(_pose([0.0, 0.0, 0.0]), [0.0, np.nan, 0.0], 0.01)
+
+
+def test_the_force_integral_holds_while_the_motion_is_not_executed():
+    """The last command asked for v_f along n_c; the QP's answer moved the gripper 0 m/s along n_c
+    (an obstacle row): the integral holds. Executed motion (within 1 mm/s): it integrates. Hand
+    values: e_fg = 1 - 3 = -2 N, dt = 0.01 s, so each integrating step adds -0.02 N s.
+    Catches: the integral winding up on motion that never happened (9 mm/s on held-out scenes)."""
+    law = StemStretching(k_fp=0.001, k_fi=0.0002, f_d=3.0, integration_threshold=None)
+    law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])  # n_c = (0, 0, -1)
+    pose = _pose([0.0, 0.0, 0.9])
+    force = np.array([0.0, 0.0, -1.0])  # 1 N along n_c
+    law.update(pose, force, 0.01)
+    assert law.integral == pytest.approx(-0.02)
+    asked = law.v_gt.copy()
+    assert asked @ law.n_c > 0.002  # the command moves along n_c
+    law.update(pose, force, 0.01, executed=np.zeros(3))
+    assert not law.motion_executed and law.integral == pytest.approx(-0.02)
+    law.update(pose, force, 0.01, executed=law.v_gt + [0.0005, 0.0, 0.0005])
+    assert law.motion_executed and law.integral == pytest.approx(-0.04)

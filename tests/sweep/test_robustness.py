@@ -11,6 +11,7 @@ import math
 
 import pytest
 
+from harvest_qp.perception.grasp_target import CHOICE_ALONG_STEM, CHOICE_NO_TARGET
 from harvest_qp.sweep.robustness import failure_class, grower_success, summarise
 
 GOOD_CHOICE = "free, in the cone, swing clear (eq:attr_point among them)"
@@ -34,8 +35,8 @@ def row(seed, **kw):
      False, "safety"),
     ({"success": False, "abort_reason": "no stem base found within 30 s", "phase_reached": "abort"},
      False, "perception"),
-    ({"success": False, "p_gd_choice": "fallback: the hanging direction", "phase_reached": "bimanual"},
-     False, "target"),
+    ({"success": False, "p_gd_choice": CHOICE_NO_TARGET, "phase_reached": "approach"}, False, "target"),
+    ({"success": False, "p_gd_choice": CHOICE_ALONG_STEM, "phase_reached": "bimanual"}, False, "priority"),
     ({"success": False, "phase_reached": "bimanual", "t_precut": None}, False, "priority"),
     ({"success": False, "phase_reached": "bimanual", "target_angle_off_stem_deg": 164.0}, False, "target"),
     ({"success": False, "phase_reached": "bimanual", "target_above_stem_base": True}, False, "target"),

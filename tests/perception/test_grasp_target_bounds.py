@@ -1,0 +1,148 @@
+"""The grasp target p_gd never leaves the swing bound and never lies above the stem base (issue 20, class "target").
+
+Oracle: plain geometry, computed here: the angle between p_gd - p_sb and the stem now (p_sb ->
+top of the crop), and p_gd's height against p_sb's. Scenes of our own: obstacle points cover
+the sphere S(p_sb, l) around the hanging stem, so F has free samples only far outside the cone
+(the held-out failures: no clear sample in the cone, and fallbacks then picked targets 55-167 deg
+off the stem, once 7 cm above p_sb).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from harvest_qp.configuration import Configuration
+from harvest_qp.perception import compute_free_space
+from harvest_qp.perception.grasp_target import (
+    CHOICE_ALONG_STEM,
+    CHOICE_NO_TARGET,
+    SwingCheck,
+    arm_capsule_motion,
+    choose_grasp_target,
+)
+from harvest_qp.perception.obstacle_map import ObstacleMap
+from harvest_qp.runtime.interface import OBSTACLE, PointCloud
+
+L = 0.08  # [m] stem length
+P_SB = np.array([0.4, -0.1, 1.2])
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+def _cap_obstacles(axis: np.ndarray, half_angle_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """Points of S(p_sb, l) within ``half_angle_deg`` of ``axis`` (dense: every sample there is occupied)."""
+    d = rng.normal(size=(6000, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    return P_SB + L * d[d @ axis > np.cos(np.radians(half_angle_deg))]
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(_unit(a) @ _unit(b), -1.0, 1.0))))
+
+
+def test_nothing_free_in_the_cone_pulls_along_the_stem():
+    """Catches: a fallback that takes the free sample nearest to the cone (here >= 50 deg off the
+    stem: the crop is then swung up beside the branch). Planted back once (the earlier tier
+    "nothing free in the cone: the free sample nearest to it"): the angle was 52 deg."""
+    hanging = np.array([0.0, 0.0, -1.0])
+    free = compute_free_space(_cap_obstacles(hanging, 50.0, np.random.default_rng(0)), P_SB, L,
+                              P_SB + [0.35, 0.0, -0.05], n_samples=500)
+    assert free.valid and not np.any(free.free & ((free.samples - P_SB) @ hanging > L * np.cos(np.radians(45))))
+    target = choose_grasp_target(free, P_SB, P_SB + L * hanging, max_swing_deg=30.0)
+    assert target.choice == CHOICE_ALONG_STEM
+    assert _angle_deg(target.point - P_SB, hanging) < 1e-6
+    assert np.linalg.norm(target.point - P_SB) == pytest.approx(L)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_target_within_the_swing_bound_and_below_the_stem_base(seed):
+    """Random stems (tilted up to 80 deg from the vertical), obstacles and bounds, with and without a
+    map whose cells block part of the sphere: p_gd is within ``max_swing_deg`` of the stem now and
+    below p_sb, or there is none and the choice says why. Catches the earlier fallbacks "least swing
+    outside the cone" and "most clearance" (anywhere on the sphere, once above p_sb)."""
+    rng = np.random.default_rng(seed)
+    tilt = np.radians(rng.uniform(0.0, 80.0))
+    heading = rng.uniform(0.0, 2 * np.pi)
+    hanging = np.array([np.sin(tilt) * np.cos(heading), np.sin(tilt) * np.sin(heading), -np.cos(tilt)])
+    max_swing = float(rng.uniform(10.0, 45.0))
+    free = None
+    while free is None or not free.valid:  # a draw whose F has a free sample (most do)
+        blocked = _unit(hanging + rng.normal(scale=0.5, size=3))
+        obstacles = _cap_obstacles(blocked, float(rng.uniform(20.0, 70.0)), rng)
+        camera = P_SB + 0.35 * _unit(rng.normal(size=3))
+        free = compute_free_space(obstacles, P_SB, L, camera, n_samples=500)
+    top = P_SB + L * hanging
+    swing = None
+    if seed % 2:
+        grid = ObstacleMap(resolution=0.01)
+        cells = obstacles[rng.random(len(obstacles)) < 0.3]
+        z = _unit(cells.mean(axis=0) - camera)
+        x = _unit(np.cross(z, [0.0, 0.0, 1.0]))
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = np.column_stack([x, np.cross(z, x), z]), camera
+        n = len(cells)
+        side = int(np.ceil(np.sqrt(n)))
+        rows, cols = np.divmod(np.arange(n), side)
+        cloud = PointCloud(cells, np.full(n, OBSTACLE, np.int8), np.zeros((n, 3), np.uint8), pose, 0.0,
+                           (cells - camera) @ z, np.column_stack([rows, cols]).astype(np.int32), (side, side))
+        for _ in range(3):
+            grid.update(cloud)
+        gripper = top + 0.015 * _unit(top - P_SB)
+        capsules = [(gripper, gripper + 0.1 * _unit(rng.normal(size=3)), 0.04)]
+        swing = SwingCheck(grid, gripper, capsules, clearance=0.02, stretch=0.03, map_bias=0.01)
+    target = choose_grasp_target(free, P_SB, top, max_swing_deg=max_swing, swing=swing)
+    assert target.point is not None, target.choice
+    assert _angle_deg(target.point - P_SB, hanging) <= max_swing + 1e-6, target.choice
+    assert target.point[2] < P_SB[2], target.choice
+
+
+def test_a_crop_level_with_the_stem_base_gets_no_target():
+    """A crop beside or above p_sb (a wrong p_sb, or a crop flipped up): no target, so the episode
+    does not switch, instead of a stretch where compression reads as stretch along n_c."""
+    hanging = _unit([1.0, 0.0, 0.05])
+    free = compute_free_space(np.empty((0, 3)), P_SB, L, P_SB + [0.0, 0.35, 0.0], n_samples=200)
+    target = choose_grasp_target(free, P_SB, P_SB + L * hanging, max_swing_deg=30.0)
+    assert target.point is None and target.choice == CHOICE_NO_TARGET
+
+
+def test_arm_capsule_motion_matches_the_arm_moved_by_its_joints():
+    """The first-order motion of the forearm and wrist 1 per gripper twist (the swing check's model
+    of the arm, ``J_end J_g^+``) against the arm moved by pinocchio: a small gripper displacement
+    solved for the joints by Newton steps on the gripper pose, the points then placed by forward
+    kinematics. Catches a motion built from the wrong arm's joints or the gripper's Jacobian in the
+    local frame (both planted once: errors of several mm per cm)."""
+    config = Configuration.dual_ur5e()
+    joints = config.support_mask("gripper")
+    J_g = config.frame_jacobian("gripper")[:, joints]
+    frames = ("grasp_forearm_link", "grasp_wrist_1_link")
+    offsets = {f: np.array([0.05, 0.02, 0.1]) for f in frames}
+    points = {f: config.frame_pose(f).act(offsets[f]) for f in frames}
+    motions = {f: arm_capsule_motion(config.point_jacobian(f, points[f])[:, joints], J_g) for f in frames}
+    twist = np.array([0.004, -0.003, 0.005, 0.02, -0.015, 0.01])  # [m; rad]
+    start = config.frame_pose("gripper")
+    goal_p = start.translation + twist[:3]
+    angle = np.linalg.norm(twist[3:])
+    k = twist[3:] / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    goal_R = (np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K) @ start.rotation
+    q = config.q.copy()
+    for _ in range(20):  # Newton on the gripper pose (world-aligned error)
+        config.update(q)
+        pose = config.frame_pose("gripper")
+        R_err = goal_R @ pose.rotation.T
+        w = 0.5 * np.array([R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0], R_err[1, 0] - R_err[0, 1]])
+        error = np.concatenate([goal_p - pose.translation, w])
+        dq = np.zeros(config.nv)
+        dq[joints] = np.linalg.solve(config.frame_jacobian("gripper")[:, joints], error)
+        q = q + dq
+    config.update(q)
+    for f in frames:
+        moved = config.frame_pose(f).act(offsets[f]) - points[f]
+        predicted = motions[f] @ twist
+        # second-order terms of a 7 mm / 1.5 deg motion: well under a millimetre
+        assert np.linalg.norm(moved - predicted) < 5e-4, (f, moved, predicted)
+        assert np.linalg.norm(moved) > 2e-3  # the point does move (the check is not vacuous)
