@@ -31,14 +31,16 @@ Where this differs from the paper (lab measurements):
 * The camera's free roll is used by a lower-priority task that turns the cutter (the
   camera's x axis, along which the blade closes) across the stem.
 * p_gd is map-aware (``grasping.swing_clearance``): among the free samples of
-  ``eq:attr_point``, only those whose swing keeps the gripper and its wrist 2 cm (on the
-  obstacle map) from every mapped cell are used; when none of F does, the hanging direction
-  itself or the least swing that does. Measured before it (283x160): on seeds 1 and 5 the
-  gripper swung the crop into the occluding leaf (``leaf_0``, which hangs on the camera's
-  side, where F is; seed 1 also rubbed the branch): a 6 N force-limit abort on seed 1,
-  19,068 contact ticks on seed 5 (seeds 2 and 3: 14,456 and 19,706 vine-contact ticks in
-  the README's earlier table). After it: success and 0 contacts on the default scene and
-  seeds 1-10 (seeds 6-10 unnamed checks).
+  ``eq:attr_point`` within ``grasping.max_swing_deg`` of the stem and below p_sb, only those
+  whose swing keeps the grasping arm (gripper, wrist, forearm) 2 cm plus the map's short bias
+  from every mapped cell are used; when none does, the arm pulls along the stem itself
+  (:func:`~harvest_qp.perception.grasp_target.choose_grasp_target`). Measured before it
+  (283x160): on seeds 1 and 5 the gripper swung the crop into the occluding leaf; on held-out
+  scenes earlier fallbacks picked targets 55-167 deg off the stem.
+* The gripper's turn (``eq:rot_contr``) is a task one level below its translation
+  (``qp.alignment_task``): force and position along n_c win when V_g cannot be met whole; a
+  motion along n_c the QP does not execute holds the force integral and, after
+  ``safety.unexecuted_timeout``, aborts with that reason.
 * The switch rule uses the camera's mean speeds over ``switch.window`` (0.5 s)
   (:mod:`harvest_qp.harvest.phases`).
 """
