@@ -13,8 +13,13 @@ Kinds of robot contact:
 * ``arm_stand`` -- an arm or tool geom and the pedestal the arms stand on;
 * ``arm_floor`` -- an arm or tool geom and the floor.
 
+Kinds of contact of the held crop (the cluster in the gripper):
+
+* ``crop_wood`` -- the held crop and the branch or cane;
+* ``crop_leaf`` -- the held crop and a leaf, petiole or another cluster (soft: they yield).
+
 The held stem and cluster never collide with the robot (the weld holds the cluster in
-the gripper), so they are neither contacts nor part of ``min_vine_distance``.
+the gripper), so they are not part of ``min_vine_distance``.
 """
 
 from __future__ import annotations
@@ -29,9 +34,9 @@ from numpy.typing import NDArray
 __all__ = ["CONTACT_KINDS", "ContactMonitor", "segment_distances"]
 
 #: Contact kinds counted by :meth:`ContactMonitor.contact_counts`, in this order.
-CONTACT_KINDS = ("arm_arm", "arm_vine", "arm_stand", "arm_floor")
+CONTACT_KINDS = ("arm_arm", "arm_vine", "arm_stand", "arm_floor", "crop_wood", "crop_leaf")
 
-_ARM, _STAND, _VINE, _FLOOR, _OTHER = 1, 2, 3, 4, 0
+_ARM, _STAND, _VINE, _FLOOR, _CROP, _WOOD, _OTHER = 1, 2, 3, 4, 5, 6, 0
 
 
 class ContactMonitor:
@@ -44,6 +49,8 @@ class ContactMonitor:
         vine_geoms: geom ids of the vine the robot must not touch (not the held stem
             and cluster).
         floor_geoms: geom ids of the floor.
+        wood_geoms: which of ``vine_geoms`` are wood (branch, cane).
+        crop_geoms: geom ids of the held crop (berries, rachis).
         max_distance: distances beyond this are reported as this [m] (MuJoCo's
             ``mj_geomDistance`` cut-off).
     """
@@ -56,6 +63,8 @@ class ContactMonitor:
         stand_geoms: NDArray[np.integer],
         vine_geoms: NDArray[np.integer],
         floor_geoms: NDArray[np.integer],
+        wood_geoms: NDArray[np.integer] = (),
+        crop_geoms: NDArray[np.integer] = (),
         max_distance: float = 1.0,
     ) -> None:
         self.model = model
@@ -64,6 +73,8 @@ class ContactMonitor:
         self.kind[np.asarray(stand_geoms, int)] = _STAND
         self.kind[np.asarray(vine_geoms, int)] = _VINE
         self.kind[np.asarray(floor_geoms, int)] = _FLOOR
+        self.kind[np.asarray(wood_geoms, int)] = _WOOD
+        self.kind[np.asarray(crop_geoms, int)] = _CROP
         self.arm_geoms = np.asarray(arm_geoms, dtype=np.int64)
         self.vine_geoms = np.asarray(vine_geoms, dtype=np.int64)
         self.max_distance = float(max_distance)
@@ -194,8 +205,8 @@ def _capsule_search(xpos, xmat, geoms, axis, half, radius, exact, na, max_distan
 
 @njit(cache=True)
 def _count_kinds(kind, geom1, geom2, ncon):
-    """Contacts among the first ``ncon`` of each kind: (arm-arm, arm-vine, arm-stand, arm-floor)."""
-    arm_arm = arm_vine = arm_stand = arm_floor = 0
+    """Contacts among the first ``ncon`` of each kind of :data:`CONTACT_KINDS`."""
+    arm_arm = arm_vine = arm_stand = arm_floor = crop_wood = crop_leaf = 0
     for c in range(ncon):
         k1, k2 = kind[geom1[c]], kind[geom2[c]]
         lo, hi = min(k1, k2), max(k1, k2)
@@ -204,11 +215,15 @@ def _count_kinds(kind, geom1, geom2, ncon):
                 arm_arm += 1
             elif hi == _STAND:
                 arm_stand += 1
-            elif hi == _VINE:
+            elif hi == _VINE or hi == _WOOD:
                 arm_vine += 1
             elif hi == _FLOOR:
                 arm_floor += 1
-    return arm_arm, arm_vine, arm_stand, arm_floor
+        elif lo == _CROP and hi == _WOOD:
+            crop_wood += 1
+        elif lo == _VINE and hi == _CROP:
+            crop_leaf += 1
+    return arm_arm, arm_vine, arm_stand, arm_floor, crop_wood, crop_leaf
 
 
 def _enclosing_capsules(model: mujoco.MjModel, geoms: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:

@@ -190,6 +190,8 @@ class SimRobot(RobotInterface):
             m, arm_geoms=robot_geoms[m.geom_bodyid[robot_geoms] != base],
             stand_geoms=robot_geoms[m.geom_bodyid[robot_geoms] == base], vine_geoms=scene.vine_geoms,
             floor_geoms=np.array(floor, dtype=np.int64),
+            wood_geoms=np.array([m.geom(name).id for name in ("branch", "cane")], dtype=np.int64),
+            crop_geoms=np.flatnonzero(m.geom_bodyid == m.body("cluster").id),
         )  # fmt: skip
         slide = ids["stem_slide"]
         self._slide_dof = int(m.jnt_dofadr[slide])
@@ -425,8 +427,9 @@ class SimRobot(RobotInterface):
             stem_torn: 1.0 once the stem tension exceeded the scene's ``stem_break_force``
                 (the stem tore: its axial spring is released), else 0.0.
             stem_tension_max: largest stem tension since the reset [N].
-            contacts_arm_arm, contacts_arm_vine, contacts_arm_stand, contacts_arm_floor:
-                active robot contacts of each kind now (see :mod:`harvest_qp.sim.contacts`).
+            contacts_arm_arm, contacts_arm_vine, contacts_arm_stand, contacts_arm_floor,
+            contacts_crop_wood, contacts_crop_leaf: active contacts of each kind now, the robot's
+                and the held crop's (see :mod:`harvest_qp.sim.contacts`).
             min_vine_distance: smallest true distance between a robot geom and a vine geom
                 other than the held stem and cluster [m] (negative: penetration), measured
                 every ``vine_distance_every`` ticks.
@@ -448,7 +451,7 @@ class SimRobot(RobotInterface):
         return out
 
     def contact_counts(self) -> dict[str, int]:
-        """Active robot contacts by kind now: ``arm_arm``, ``arm_vine``, ``arm_stand``, ``arm_floor``."""
+        """Active contacts by kind now (:data:`~harvest_qp.sim.contacts.CONTACT_KINDS`): the robot's and the held crop's."""
         return self._contacts.contact_counts(self.data)
 
     def min_vine_distance(self, *, with_pair: bool = False) -> float | tuple[float, str, str]:

@@ -30,10 +30,11 @@ cluster is one rigid body of sphere berries on a ball joint at the stem end. A w
 equality between the ``grasp_tool`` body and the cluster is the grasp (activated by
 :class:`harvest_qp.sim.SimRobot` at the current relative pose).
 
-Contacts: the branch, cane, leaves, petioles and other clusters collide with the robot
-(leaves and berries with a softer contact, as they yield); the robot's own self-collision pairs are explicit
-contact pairs of the robot model. The held stem and cluster do not collide: the cluster
-touching the gripper would fight the weld. The stem tears when its tension exceeds
+Contacts: the branch, cane, leaves, petioles and other clusters collide with the robot and
+with the held cluster (leaves and berries with a softer contact, as they yield); the robot's own
+self-collision pairs are explicit contact pairs of the robot model. The held cluster never
+collides with the robot (touching the gripper would fight the weld) nor with its own stem,
+and the stem collides with nothing. The stem tears when its tension exceeds
 ``stem_break_force`` (:class:`harvest_qp.sim.SimRobot` releases its axial spring).
 
 Randomisation: :meth:`VineSceneParams.sample` draws every scalar uniformly from
@@ -79,6 +80,11 @@ from harvest_qp.sim.vine import (
     _unit,
 )
 from harvest_qp.validation import as_positive_scalar
+
+#: Contact bits (MuJoCo's contype/conaffinity): the robot's geoms have contype 1, the held
+#: crop's contype 2; the vine accepts both (conaffinity 3), the robot and the crop accept none.
+_ROBOT_BIT = 1
+_HELD_CROP_BIT = 2
 
 __all__ = [
     "APPROACH_RADIUS",
@@ -253,7 +259,7 @@ def build_vine_scene(
     b0 = b_axis - 0.03 * b_dir
     b1 = b_axis + p.branch_length * b_dir
     vine = world.add_body(name="vine")
-    wood = dict(contype=0, conaffinity=1, group=1, rgba=list(BRANCH_COLOR))
+    wood = dict(contype=0, conaffinity=_ROBOT_BIT | _HELD_CROP_BIT, group=1, rgba=list(BRANCH_COLOR))
     vine.add_geom(
         name="branch",
         type=mujoco.mjtGeom.mjGEOM_CAPSULE,
@@ -324,7 +330,10 @@ def build_vine_scene(
         damping=[0.002, 0, 0], armature=1e-5,
     )  # fmt: skip
     cluster.add_site(name="stem_end", pos=[0, 0, 0], group=4)
-    soft = dict(contype=0, conaffinity=0, group=1)
+    # The held crop collides with the wood (hard) and the foliage (soft), never with the robot
+    # (it would fight the weld) nor its own stem: its own contact bit, which only the vine accepts.
+    # Without it the crop sat 12-16 mm inside the branch on a held-out scene, uncounted.
+    soft = dict(contype=_HELD_CROP_BIT, conaffinity=0, group=1)
     rachis_mass = 0.01
     cluster.add_geom(
         name="rachis", type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, 0.7 * p.cluster_length],
@@ -345,11 +354,11 @@ def build_vine_scene(
     approach_views, coverage_view = _approach_views(camera_start, stem_base, cluster_axis)
     leaves = _leaf_layout(
         p, rng, stem=stem, cluster_axis=cluster_axis, tool_axis=tool_axis, branch=(b0, b1), cane=cane,
-        coverage_view=coverage_view, approach_views=approach_views,
+        coverage_view=coverage_view, approach_views=approach_views, robot_capsules=home["robot_capsules"],
     )  # fmt: skip
     # Leaves and petioles collide with the robot (not with the stem or the cluster); a soft
     # contact (20 ms time constant instead of MuJoCo's 2*dt) as real leaves yield.
-    foliage = dict(contype=0, conaffinity=1, group=1, solref=list(_FOLIAGE_SOLREF))
+    foliage = dict(contype=0, conaffinity=_ROBOT_BIT | _HELD_CROP_BIT, group=1, solref=list(_FOLIAGE_SOLREF))
     for i, leaf in enumerate(leaves):
         shade = 1.0 + 0.12 * (rng.uniform() - 0.5)
         rgba = [LEAF_COLOR[0] * shade, LEAF_COLOR[1] * shade, LEAF_COLOR[2] * shade, 1.0]

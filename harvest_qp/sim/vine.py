@@ -11,6 +11,8 @@ them into the MuJoCo model.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
+from typing import Any
 from dataclasses import dataclass
 
 import mujoco
@@ -479,8 +481,8 @@ def _occluder_petiole(centre, R, semi, supports, views, samples) -> tuple[NDArra
 # --------------------------------------------------------------------------- builder
 
 
-def _robot_home(spec: mujoco.MjSpec, home_q: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
-    """Poses of the task frames and the joint-space inertia diagonal at ``home_q``."""
+def _robot_home(spec: mujoco.MjSpec, home_q: NDArray[np.float64]) -> dict[str, Any]:
+    """Poses of the task frames, the robot's collision capsules and the joint-space inertia diagonal at ``home_q``."""
     model = spec.compile()
     data = mujoco.MjData(model)
     data.qpos[:12] = home_q
@@ -492,6 +494,13 @@ def _robot_home(spec: mujoco.MjSpec, home_q: NDArray[np.float64]) -> dict[str, N
         T[:3, :3] = data.site_xmat[sid].reshape(3, 3)
         T[:3, 3] = data.site_xpos[sid]
         out[name] = T
+    # The robot's collision capsules at home (world ends [m], radius [m]): no leaf may touch them at
+    # the start (a sampled leaf once lay 0.6 mm inside the grasping arm's forearm from t = 0).
+    capsules = []
+    for g in np.flatnonzero((model.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE) & (model.geom_contype != 0)):
+        axis = data.geom_xmat[g].reshape(3, 3)[:, 2] * model.geom_size[g, 1]
+        capsules.append((data.geom_xpos[g] - axis, data.geom_xpos[g] + axis, float(model.geom_size[g, 0])))
+    out["robot_capsules"] = capsules
     M = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, M)  # MuJoCo 4.0 signature (takes MjData)
     out["inertia"] = np.diag(M)[:12].copy()
@@ -564,6 +573,7 @@ def _leaf_layout(
     cane: tuple[NDArray, NDArray],
     coverage_view: NDArray,
     approach_views: NDArray,
+    robot_capsules: Sequence[tuple[NDArray, NDArray, float]] = (),
 ) -> list[_Leaf]:
     """Leaf poses: an occluder between the approach and the stem, then free leaves around it.
 
@@ -598,6 +608,11 @@ def _leaf_layout(
             return False
         if _segment_distance(petiole[0], petiole[1], *tool_axis) < 0.06:
             return False
+        for a, b, radius in robot_capsules:  # nothing touches the arms at the start
+            if _point_segment_distance(centre, a, b)[0] < reach + radius:
+                return False
+            if _segment_distance(petiole[0], petiole[1], a, b) < radius + 0.01:
+                return False
         semi = np.array([half_length, half_length, _LEAF_THICKNESS]) + _SIGHT_MARGIN
         if np.any(_segment_hits_ellipsoid(sight_from, sight_to, centre, R, semi)):
             return False
