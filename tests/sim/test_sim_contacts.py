@@ -277,3 +277,45 @@ def test_ground_truth_keys_are_numeric_and_fixed():
         assert np.shape(value) == np.shape(first[key]), key
         assert np.all(np.isfinite(np.asarray(value, float))), key
     assert dataclasses.is_dataclass(SensorFaults())
+
+
+def _crop_wood_distance(robot: SimRobot) -> float:
+    """Smallest true distance [m] between the held cluster's geoms and the branch or cane (MuJoCo's
+    ``mj_geomDistance``; negative: penetration)."""
+    m = robot.model
+    crop = [g for g in range(m.ngeom) if m.geom(g).name.startswith("berry_") or m.geom(g).name == "rachis"]
+    return _min_true_distance(robot, crop, [m.geom("branch").id, m.geom("cane").id])
+
+
+def test_held_crop_driven_into_the_branch_is_stopped_and_counted():
+    """The grasping arm swings the held cluster up into the branch: crop-wood contacts, bounded depth.
+
+    The gripper turns at 1 rad/s about its tool axis (world x) and rises at 10 mm/s for 3.4 s
+    (pinocchio Jacobian of the ``gripper`` frame); the cluster swings up beside the stem into the
+    branch while the gripper itself stays clear of the wood (no arm-vine contact). Oracle: the
+    true crop-wood distance from MuJoCo's geometry (``mj_geomDistance``) and MuJoCo's contact list.
+
+    Bug caught: the held cluster not colliding with the wood (its geoms with contype 0, as before
+    issue 20), so the lab let the crop sit inside the branch uncounted. Planted once (the crop
+    geoms' contype set back to 0 in the scene): no crop-wood contact is ever counted and the crop
+    reaches 20.6 mm inside the branch, failing both assertions below; with the contact it stops
+    within 5 mm (the weld's and the contact's compliance under a servo that keeps pushing).
+    """
+    robot = SimRobot(VineSceneParams(leaf_count=0, canopy_leaves=0, other_clusters=0), camera=None)
+    assert robot.contact_counts()["crop_wood"] == 0 and _crop_wood_distance(robot) > 0.03  # clear at reset
+    arm = PinocchioArm()
+    deepest, crop_ticks, arm_vine = np.inf, 0, 0
+    for k in range(1700):
+        _, J = arm.frame(robot.joint_positions(), "gripper")
+        qd = np.zeros(12)
+        qd[6:] = np.linalg.lstsq(J[:, 6:], np.r_[0.0, 0.0, 0.01, 1.0, 0.0, 0.0], rcond=None)[0]
+        robot.send_joint_velocities(qd)
+        robot.step()
+        counts = robot.contact_counts()
+        crop_ticks += counts["crop_wood"] > 0
+        arm_vine += counts["arm_vine"]
+        if k % 5 == 0:
+            deepest = min(deepest, _crop_wood_distance(robot))
+    assert arm_vine == 0  # only the crop touched the wood
+    assert crop_ticks > 100  # the crop rested on the branch for the last ~0.8 s
+    assert deepest > -0.007, deepest  # without the contact: 20 mm deep
