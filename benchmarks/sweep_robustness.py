@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         config = (tasks_dir() / file).resolve()
         out = args.out / name
         result = run_sweep(
-            run_command_episode(config, (out / "episodes").resolve(), overrides),
+            run_command_episode(config, (out / "episodes").resolve(), overrides, figures=False),
             sorted({s for _, seeds in ranges for s in seeds}),
             out_dir=out, workers=args.workers, progress=True, figures=False,
             fingerprint=config_fingerprint(config, overrides), title=f"Robustness: {name}",

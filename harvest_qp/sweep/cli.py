@@ -28,15 +28,17 @@ EpisodeFactory = Callable[[Path, Path, tuple[str, ...]], Callable[[int], Mapping
 
 
 def run_command_episode(
-    config: Path, runs_dir: Path, overrides: tuple[str, ...] = ()
+    config: Path, runs_dir: Path, overrides: tuple[str, ...] = (), *, figures: bool = True
 ) -> Callable[[int], Mapping[str, Any]]:
     """The default episode: ``python -m harvest_qp.cli run CONFIG [--set K=V ...] --seed N --out RUNS_DIR/seed_N``.
 
     One interpreter per episode (its crash or leak stays there); each seed keeps its run folder.
-    ``overrides`` are ``section.key=value`` items passed to every episode as ``--set``.
+    ``overrides`` are ``section.key=value`` items passed to every episode as ``--set``;
+    ``figures=False`` adds ``--no-figures`` (the log and metrics are still written).
     """
     sets = tuple(arg for item in overrides for arg in ("--set", item))
-    return CommandEpisode((sys.executable, "-m", "harvest_qp.cli", "run", str(config), *sets), runs_dir=str(runs_dir))
+    argv = (sys.executable, "-m", "harvest_qp.cli", "run", str(config), *sets, *(() if figures else ("--no-figures",)))
+    return CommandEpisode(argv, runs_dir=str(runs_dir))
 
 
 def config_fingerprint(config: Path, overrides: tuple[str, ...] = ()) -> dict[str, str]:
