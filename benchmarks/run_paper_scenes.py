@@ -23,6 +23,7 @@ if str(_REPO) not in sys.path:
     sys.path.insert(0, str(_REPO))
 
 from harvest_qp.cli import run_paper  # noqa: E402
+from harvest_qp.perception import grasp_target  # noqa: E402
 from harvest_qp.robot.paths import tasks_dir  # noqa: E402
 
 COLUMNS = (
@@ -36,8 +37,16 @@ COLUMNS = (
     ("min_collision_distance", "min dist [mm]"),
     ("min_vine_distance", "min vine dist [mm]"), ("contacts", "contacts"),
     ("stem_torn", "torn"), ("max_joint_limit_violation", "joint lim viol [rad]"),
-    ("peak_joint_speed", "peak qdot [rad/s]"), ("qp_failures", "QP fail"), ("abort_reason", "abort"),
+    ("peak_joint_speed", "peak qdot [rad/s]"), ("qp_failures", "QP fail"), ("p_gd_choice", "p_gd"),
+    ("target_angle_off_stem_deg", "p_gd off stem [deg]"), ("abort_reason", "abort"),
 )
+
+#: Short names of the grasp target's tiers (``harvest_qp.perception.grasp_target``) for the table.
+_CHOICES = {
+    grasp_target.CHOICE_PAPER: "eq:attr_point", grasp_target.CHOICE_CONE: "cone",
+    grasp_target.CHOICE_CONE_CLEAR: "cone, swing clear", grasp_target.CHOICE_ALONG_STEM: "along the stem",
+    grasp_target.CHOICE_NO_TARGET: "none",
+}
 
 
 def _one(args: tuple) -> dict:
@@ -52,6 +61,8 @@ def _one(args: tuple) -> dict:
 def _cell(key: str, value) -> str:
     if value is None:
         return "-"
+    if key == "p_gd_choice":
+        return _CHOICES.get(value, str(value))
     if key == "final_distance_to_roi_center":
         return f"{value / 0.35:.3f}"
     if key in ("final_position_error", "min_collision_distance", "min_vine_distance"):

@@ -226,8 +226,8 @@ class Safety(Section):
     stem_lost_timeout: Positive = _f(5.0, "[s] abort when no stem point is seen this long in the bimanual phase")
     no_stem_timeout: Positive = _f(30.0, "[s] abort when no valid stem base is ever found this long")
     max_qp_failures: PositiveInt = _f(25, "abort after this many QP failures in a row")
-    unexecuted_timeout: Positive = _f(10.0, "[s] abort when the gripper's motion along n_c that V_g asks for is "
-                                            "not executed this long (obstacle rows or limits)")
+    unexecuted_timeout: Positive = _f(10.0, "[s] before pre-cut, abort when the gripper's translation that V_g "
+                                            "asks for is not executed this long (obstacle rows or limits)")
 
 
 class Precut(Section):

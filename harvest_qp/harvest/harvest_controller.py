@@ -39,8 +39,8 @@ Where this differs from the paper (lab measurements):
   scenes earlier fallbacks picked targets 55-167 deg off the stem.
 * The gripper's turn (``eq:rot_contr``) is a task one level below its translation
   (``qp.alignment_task``): force and position along n_c win when V_g cannot be met whole; a
-  motion along n_c the QP does not execute holds the force integral and, after
-  ``safety.unexecuted_timeout``, aborts with that reason.
+  motion along n_c the QP does not execute holds the force integral; a translation it does not
+  execute for ``safety.unexecuted_timeout`` before pre-cut aborts with that reason.
 * The switch rule uses the camera's mean speeds over ``switch.window`` (0.5 s)
   (:mod:`harvest_qp.harvest.phases`).
 """

@@ -73,7 +73,7 @@ class PhaseRules:
     stop_after_abort: float  # [s] at rest after an abort (episode.stop_after_abort)
     off_axis_force_limit: float = math.inf  # [N] the wrist force across n_c (safety.off_axis_force_limit; f_d)
     max_force_angle_deg: float = 180.0  # [deg] the force's angle from n_c at pre-cut (precut.max_force_angle_deg)
-    unexecuted_timeout: float = math.inf  # [s] the gripper's motion along n_c not executed (safety.unexecuted_timeout)
+    unexecuted_timeout: float = math.inf  # [s] the gripper's commanded translation not executed (safety.unexecuted_timeout)
 
     @classmethod
     def from_settings(cls, s: dict[str, Any]) -> PhaseRules:
@@ -123,7 +123,7 @@ class PhaseMachine:
         self.backup_solves = 0
         self.force_filtered: float | None = None
         self.precut_since: float | None = None
-        self.unexecuted_since: float | None = None
+        self.unexecuted_time: float | None = None
         self._camera_window: deque[tuple[float, tuple, tuple]] = deque()  # (t, p_c, z_c)
 
     @property
@@ -185,16 +185,18 @@ class PhaseMachine:
             self.abort(t, f"stem not seen for {timeout} s in the bimanual phase")
 
     def stretch(self, t: float, dt: float, force_nc: float, position_error: float, alignment: float, *,
-                force_norm: float, motion_executed: bool = True, crop_side: float = math.inf) -> None:
+                force_norm: float, motion_executed: bool | None = True, crop_side: float = math.inf) -> None:
         """One bimanual tick's grasp state: the wrist force along n_c and its magnitude [N], the
         projected position error [m] and the alignment angle [rad] of V_g (``eq:superimp_g``),
-        whether the last command's motion along n_c was executed, and how far the top of the
+        whether the last command's translation was executed, and how far the top of the
         crop lies beyond p_sb along n_c [m].
 
         Aborts when the crop is not on the target side of p_sb (``crop_side`` < 0: compression
-        would read as stretch along n_c), and when the motion along n_c has not been executed for
-        ``unexecuted_timeout`` (the QP could not move the gripper where V_g asks: obstacles or
-        limits; the reason says so instead of an episode that never converges).
+        would read as stretch along n_c), on a non-finite force or crop side, and, before pre-cut,
+        when the gripper's commanded translation has not been executed for ``unexecuted_timeout``
+        (the QP could not move the gripper where V_g asks: obstacles or limits; the reason says so
+        instead of an episode that never converges). ``motion_executed`` None (the command asked
+        too little to tell) pauses that clock; True restarts it.
 
         Aborts on what the robot can see (beyond the paper, which compares n_c^T f alone): the force
         along n_c or the force's magnitude above ``force_limit`` (a stem pulled off-axis, or the
@@ -207,14 +209,19 @@ class PhaseMachine:
         if crop_side < 0.0:
             self.abort(t, f"the crop is {-1000 * crop_side:.0f} mm on the wrong side of the stem base along n_c")
             return
-        if motion_executed:
-            self.unexecuted_since = None
-        elif self.unexecuted_since is None:
-            self.unexecuted_since = t
-        elif t - self.unexecuted_since >= r.unexecuted_timeout:
-            self.abort(t, f"the gripper's motion along n_c not executed for {r.unexecuted_timeout} s "
-                          "(obstacle rows or limits)")
+        if math.isnan(force_nc) or math.isnan(force_norm) or math.isnan(crop_side):
+            self.abort(t, f"non-finite grasp state (force along n_c {force_nc}, magnitude {force_norm}, "
+                          f"crop side {crop_side})")
             return
+        if motion_executed:
+            self.unexecuted_time = None
+        elif motion_executed is not None and self.phase == Phase.BIMANUAL:
+            # Time of not-executed ticks since the last executed one; ticks too small to tell pause it.
+            self.unexecuted_time = 0.0 if self.unexecuted_time is None else self.unexecuted_time + dt
+            if self.unexecuted_time >= r.unexecuted_timeout - 1e-9:
+                self.abort(t, f"the gripper's motion not executed for {r.unexecuted_timeout} s "
+                              "(obstacle rows or limits)")
+                return
         if force_nc > r.force_limit:
             self.abort(t, f"stem force {force_nc:.2f} N above the limit {r.force_limit:.2f} N")
             return

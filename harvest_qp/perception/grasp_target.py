@@ -25,6 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.perception._validation import as_point
 from harvest_qp.perception.free_space import FreeSpace
 from harvest_qp.perception.obstacle_map import ObstacleMap
 
@@ -146,7 +148,20 @@ class SwingCheck:
         stretches: Sequence[float] | None = None,
     ) -> NDArray[np.float64]:
         """Smallest map distance [m] of the arm's capsules along the swing to each of ``(n, 3)`` ``samples``,
-        capped at :attr:`limit`.
+        capped at :attr:`limit`: the least over the capsules of :meth:`capsule_clearances`."""
+        return self.capsule_clearances(samples, stem_base, hanging, fractions=fractions, stretches=stretches).min(axis=1)
+
+    def capsule_clearances(
+        self,
+        samples: NDArray[np.float64],
+        stem_base: NDArray[np.float64],
+        hanging: NDArray[np.float64],
+        *,
+        fractions: Sequence[float] = SWING_FRACTIONS,
+        stretches: Sequence[float] | None = None,
+    ) -> NDArray[np.float64]:
+        """``(n, c)``: each capsule's smallest map distance [m] along the swing to each of ``(n, 3)``
+        ``samples`` (capsules: :attr:`capsules`, then :attr:`arm`), capped at :attr:`limit`.
 
         The swing to a sample, as ``eq:superimp_g`` commands it: the gripper point turns about
         p_sb with the stem, from the hanging direction ``hanging`` (unit, p_sb -> top of the
@@ -189,7 +204,7 @@ class SwingCheck:
         limit = self.limit
         query = self.obstacle_map.closest_cells(p0.reshape(-1, 3), p1.reshape(-1, 3), radii, max_distance=limit,
                                                 per_capsule=1)
-        distance = np.minimum(query.min_distances(), limit).reshape(n, m * p0.shape[2])
+        distance = np.minimum(query.min_distances(), limit).reshape(n, m, p0.shape[2])
         return distance.min(axis=1)
 
 
@@ -200,13 +215,13 @@ class GraspTarget:
     Attributes:
         point: p_gd [m], ``None`` when F has no free sample.
         choice: which rule chose it (for metrics.json), e.g. ``"eq:attr_point"``.
-        swing_clearance: ``(per-sample swing clearance [m], the clearance asked [m])`` when
-            the map was checked, else ``None``.
+        swing_clearance: ``(per-sample swing clearance [m] (n, c) of each capsule, the clearance
+            asked of each capsule [m] (c,))`` when the map was checked, else ``None``.
     """
 
     point: NDArray[np.float64] | None
     choice: str
-    swing_clearance: tuple[NDArray[np.float64], float] | None = None
+    swing_clearance: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
 
 
 #: :attr:`GraspTarget.choice` of each rule of :func:`choose_grasp_target`.
@@ -239,9 +254,9 @@ def choose_grasp_target(
     Rules, in order (:attr:`GraspTarget.choice` says which chose):
 
     1. ``eq:attr_point`` among the samples that are free, within ``max_swing_deg`` of the stem
-       now, below p_sb, and (with ``swing``) swing clear: the arm keeps :attr:`SwingCheck.needed`
-       from every mapped cell, or the gripper's clearance now if that is less (a gripper
-       already close to the branch must not get closer).
+       now, below p_sb, and (with ``swing``) swing clear: each capsule of the arm keeps
+       :attr:`SwingCheck.needed` from every mapped cell, or its own clearance now if that is
+       less (a gripper already close to the branch must not get closer).
     2. Else the stem's own direction: p_sb + l (top of the crop - p_sb)/|...| -- the arm pulls
        along the stem without swinging the crop (forcing this on the scenes where earlier
        fallbacks picked targets 55-167 deg off the stem gave pre-cut in 13-14 s at 3 N true
@@ -250,12 +265,26 @@ def choose_grasp_target(
        not below p_sb: a target there would put the crop on the wrong side of the stem base,
        where compression reads as stretch along n_c.
 
-    The target never leaves the swing bound and never lies above the stem base.
+    With a swing bound or a map check, the target never leaves the swing bound and never lies
+    above the stem base; with neither, it is the paper's ``free.target`` as it is.
+
+    Raises:
+        InvalidInputError: a non-finite ``stem_base`` or ``top_of_crop``, a stem of no length
+            (``top_of_crop`` at ``stem_base``), or ``max_swing_deg`` not in (0, 180].
     """
+    stem_base = as_point("stem_base", stem_base)
+    top_of_crop = as_point("top_of_crop", top_of_crop)
+    if max_swing_deg is not None and not (isinstance(max_swing_deg, (int, float, np.floating))
+                                          and 0.0 < float(max_swing_deg) <= 180.0):
+        raise InvalidInputError(f"max_swing_deg must be a number in (0, 180] [deg] or None, got {max_swing_deg!r}")
     if max_swing_deg is None and swing is None:
         return GraspTarget(free.target.copy(), CHOICE_PAPER)
     hanging = top_of_crop - stem_base
-    hanging = hanging / float(np.linalg.norm(hanging))
+    length = float(np.linalg.norm(hanging))
+    if length < 1e-9:
+        raise InvalidInputError(f"top_of_crop must differ from stem_base (the stem now has no direction), "
+                                f"got both {stem_base.tolist()}")
+    hanging = hanging / length
     if hanging[2] >= 0.0:
         return GraspTarget(None, CHOICE_NO_TARGET)
     samples = free.samples
@@ -265,11 +294,14 @@ def choose_grasp_target(
     candidates = free.free & cone & (directions[:, 2] < 0.0)
     choice, record = CHOICE_CONE, None
     if swing is not None and np.any(candidates):
-        clearance = swing.clearances(samples, stem_base, hanging)
-        now = swing.clearances(top_of_crop[None], stem_base, hanging, fractions=(0.0,), stretches=(0.0,))[0]
-        needed = min(swing.needed, now)
+        clearance = swing.capsule_clearances(samples, stem_base, hanging)
+        now = swing.capsule_clearances(top_of_crop[None], stem_base, hanging, fractions=(0.0,), stretches=(0.0,))[0]
+        # Per capsule: one already close to a cell must not get closer, the others keep the full
+        # clearance (an arm-wide minimum let one stray cell at the forearm switch the check off for
+        # the gripper).
+        needed = np.minimum(swing.needed, now)
         record = (clearance, needed)
-        candidates &= clearance >= needed - 1e-9
+        candidates &= np.all(clearance >= needed - 1e-9, axis=1)
         choice = CHOICE_CONE_CLEAR
     if not np.any(candidates):
         return GraspTarget(stem_base + free.radius * hanging, CHOICE_ALONG_STEM, record)

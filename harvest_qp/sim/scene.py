@@ -111,7 +111,11 @@ RACHIS_COLOR = (0.35, 0.45, 0.18, 1.0)
 CAMERA_NAME = "rgbd_camera"
 
 _WELD_SOLREF = (0.004, 1.0)  # stiff grasp: 2 timesteps, critically damped
-_FOLIAGE_SOLREF = (0.02, 1.0)  # leaves yield: a softer contact than the wood's default
+#: Leaves, petioles and other clusters yield: a 50 ms contact time constant against the wood's (and
+#: MuJoCo's default) 20 ms; their solmix makes it the one every contact with them uses (MuJoCo
+#: averages two geoms' solref by solmix weights).
+_FOLIAGE_SOLREF = (0.05, 1.0)
+_FOLIAGE_SOLMIX = 1e3
 
 
 @dataclass(eq=False)
@@ -356,9 +360,10 @@ def build_vine_scene(
         p, rng, stem=stem, cluster_axis=cluster_axis, tool_axis=tool_axis, branch=(b0, b1), cane=cane,
         coverage_view=coverage_view, approach_views=approach_views, robot_capsules=home["robot_capsules"],
     )  # fmt: skip
-    # Leaves and petioles collide with the robot (not with the stem or the cluster); a soft
-    # contact (20 ms time constant instead of MuJoCo's 2*dt) as real leaves yield.
-    foliage = dict(contype=0, conaffinity=_ROBOT_BIT | _HELD_CROP_BIT, group=1, solref=list(_FOLIAGE_SOLREF))
+    # Leaves and petioles collide with the robot and the held crop (not with the stem); a softer
+    # contact than the wood's, as real leaves yield.
+    foliage = dict(contype=0, conaffinity=_ROBOT_BIT | _HELD_CROP_BIT, group=1, solref=list(_FOLIAGE_SOLREF),
+                   solmix=_FOLIAGE_SOLMIX)
     for i, leaf in enumerate(leaves):
         shade = 1.0 + 0.12 * (rng.uniform() - 0.5)
         rgba = [LEAF_COLOR[0] * shade, LEAF_COLOR[1] * shade, LEAF_COLOR[2] * shade, 1.0]

@@ -146,3 +146,71 @@ def test_arm_capsule_motion_matches_the_arm_moved_by_its_joints():
         # second-order terms of a 7 mm / 1.5 deg motion: well under a millimetre
         assert np.linalg.norm(moved - predicted) < 5e-4, (f, moved, predicted)
         assert np.linalg.norm(moved) > 2e-3  # the point does move (the check is not vacuous)
+
+
+def _map_of(points) -> ObstacleMap:
+    """A 5 mm map holding ``points`` as obstacle cells (seen by a camera 1 m in front of them)."""
+    obstacle_map = ObstacleMap(resolution=0.005, bounds=((-1, -1.5, 0), (1, 1, 2)))
+    pts = np.asarray(points, float)
+    n = len(pts)
+    camera = np.eye(4)
+    camera[:3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]
+    camera[:3, 3] = (0, -1, 1)
+    obstacle_map.update(PointCloud(points=pts, labels=np.full(n, OBSTACLE, np.int8),
+                                   colors=np.zeros((n, 3), np.uint8), camera_pose=camera, timestamp=0.0,
+                                   depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(10, 10)))
+    return obstacle_map
+
+
+def test_an_arm_capsule_already_near_a_cell_does_not_switch_the_swing_check_off_for_the_gripper():
+    """One candidate 25 deg off the hanging stem; a map cell 12 mm beside where the gripper ends its
+    swing (hand value: 2 mm of surface clearance for the 10 mm gripper capsule, below the 30 mm
+    asked), and a second cell that a distant, motionless arm capsule already overlaps by ~21 mm.
+
+    Bug caught (found by an independent review): the clearance "now" relaxed the requirement for
+    the whole arm at once (``min(needed, least clearance now over all capsules)``), so the far
+    cell lowered what the gripper had to keep to -21 mm and the swing into the leaf was accepted.
+    Planted back once: the choice was "free, in the cone, swing clear" instead of along the stem.
+    """
+    from harvest_qp.perception.free_space import FreeSpace
+    from harvest_qp.perception.grasp_target import CHOICE_CONE_CLEAR, ArmCapsule
+
+    centre, length = np.array([0.0, 0.0, 1.0]), 0.05
+    hanging = np.array([0.0, 0.0, -1.0])
+    p_g = centre + length * hanging
+    a = np.radians(25.0)
+    candidate = centre + length * np.array([np.sin(a), 0.0, -np.cos(a)])
+    free = FreeSpace(valid=True, reason="", centre=centre, radius=length, samples=candidate[None],
+                     occupied=np.zeros(1, bool), behind_plane=np.zeros(1, bool),
+                     projected_obstacles=np.zeros((0, 3)), plane=None, target=candidate, target_clearance=np.inf)
+    leaf = candidate + [0.012, 0.0, 0.0]
+    far = np.array([0.5, 0.0, 1.0])
+    gripper = [(p_g, p_g + np.array([0.0, 0.0, -0.02]), 0.01)]
+    still_arm = [ArmCapsule(p0=far - [0, 0, 0.05], p1=far + [0, 0, 0.05], radius=0.02,
+                            motion0=np.zeros((3, 6)), motion1=np.zeros((3, 6)))]
+    chosen = {}
+    for name, cells in (("clear", []), ("leaf", [leaf]), ("leaf and far cell", [leaf, far])):
+        swing = SwingCheck(obstacle_map=_map_of(cells or [[0.9, 0.9, 1.9]]), gripper_position=p_g,
+                           capsules=gripper, clearance=0.02, arm=still_arm, map_bias=0.01)
+        chosen[name] = choose_grasp_target(free, centre, centre + 0.03 * hanging, max_swing_deg=30.0,
+                                           swing=swing).choice
+    assert chosen == {"clear": CHOICE_CONE_CLEAR, "leaf": CHOICE_ALONG_STEM, "leaf and far cell": CHOICE_ALONG_STEM}
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(top_of_crop=P_SB), "top_of_crop must differ"),
+    (dict(top_of_crop=[np.nan, 0.0, 1.0]), "top_of_crop"),
+    (dict(stem_base=[0.4, np.inf, 1.2]), "stem_base"),
+    (dict(max_swing_deg=-60.0), "max_swing_deg"),
+    (dict(max_swing_deg=300.0), "max_swing_deg"),
+    (dict(max_swing_deg=float("nan")), "max_swing_deg"),
+])
+def test_bad_input_gets_the_package_error_naming_it(bad, match):
+    """A stem of no length, a non-finite point or a swing bound outside (0, 180] deg: the package's
+    InvalidInputError naming the value (before: a NaN target, or -60/300 deg read as a 60 deg cone)."""
+    from harvest_qp.exceptions import InvalidInputError
+
+    free = compute_free_space(np.zeros((0, 3)), P_SB, L, P_SB + [0.35, 0.0, -0.05], n_samples=100)
+    args = dict(stem_base=P_SB, top_of_crop=P_SB + [0.0, 0.0, -L], max_swing_deg=30.0) | bad
+    with pytest.raises(InvalidInputError, match=match):
+        choose_grasp_target(free, args.pop("stem_base"), args.pop("top_of_crop"), **args)

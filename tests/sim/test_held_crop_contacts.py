@@ -49,6 +49,44 @@ def test_a_crop_turned_into_the_branch_is_a_counted_contact():
     assert robot.ground_truth()["contacts_crop_wood"] == counts["crop_wood"]
 
 
+def _turned_crop_about(robot: SimRobot, axis, angle_deg: float) -> None:
+    """The held cluster (grasp released) turned by ``angle_deg`` about ``axis`` over its stem end."""
+    m, d = robot.model, robot.data
+    robot.set_grasp(False)
+    quat = np.zeros(4)
+    mujoco.mju_axisAngle2Quat(quat, np.asarray(axis, float), np.radians(angle_deg))
+    adr = m.jnt_qposadr[m.joint("cluster_ball").id]
+    d.qpos[adr:adr + 4] = quat
+    mujoco.mj_forward(m, d)
+
+
+def _contact_solrefs(robot: SimRobot, geoms) -> np.ndarray:
+    """MuJoCo's own parameters (``solref`` after its solmix averaging) of the contacts with ``geoms``."""
+    d = robot.data
+    return np.array([d.contact[i].solref for i in range(d.ncon) if {d.contact[i].geom1, d.contact[i].geom2} & geoms])
+
+
+def test_the_held_crop_meets_leaves_with_a_softer_contact_than_the_wood():
+    """The default scene's cluster turned 60 deg about x overlaps a leaf by ~10 mm (8 cm from the
+    branch), turned 180 deg about y it overlaps the branch (``mj_geomDistance``, the oracle). The
+    contacts MuJoCo generates carry a 50 ms time constant with the leaf and 20 ms with the wood.
+    Catches foliage whose "soft" solref equalled MuJoCo's default, i.e. the wood's (as before: both
+    20 ms, while the docs said softer)."""
+    robot = SimRobot(camera=None)
+    m = robot.model
+    berries = [int(g) for g in robot.scene.berry_geoms]
+    leaves = {g for g in range(m.ngeom) if m.geom(g).name.startswith("leaf_")}
+    branch = m.geom("branch").id
+    _turned_crop_about(robot, [1.0, 0.0, 0.0], 60.0)
+    assert min(mujoco.mj_geomDistance(m, robot.data, g, leaf, 0.2, None) for g in berries for leaf in leaves) < -0.005
+    assert min(mujoco.mj_geomDistance(m, robot.data, g, branch, 0.2, None) for g in berries) > 0.05
+    with_leaf = _contact_solrefs(robot, leaves)
+    _turned_crop_about(robot, [0.0, 1.0, 0.0], 180.0)
+    with_wood = _contact_solrefs(robot, {branch})
+    assert len(with_leaf) and len(with_wood)
+    assert np.allclose(with_leaf, [0.05, 1.0], atol=1e-3) and np.allclose(with_wood, [0.02, 1.0])
+
+
 @pytest.fixture(scope="module")
 def short_episode(tmp_path_factory):
     """A 0.5 s episode of the default scene (its log, robot-free metrics inputs and the controller)."""
