@@ -147,19 +147,6 @@ class SwingCheck:
         fractions: Sequence[float] = SWING_FRACTIONS,
         stretches: Sequence[float] | None = None,
     ) -> NDArray[np.float64]:
-        """Smallest map distance [m] of the arm's capsules along the swing to each of ``(n, 3)`` ``samples``,
-        capped at :attr:`limit`: the least over the capsules of :meth:`capsule_clearances`."""
-        return self.capsule_clearances(samples, stem_base, hanging, fractions=fractions, stretches=stretches).min(axis=1)
-
-    def capsule_clearances(
-        self,
-        samples: NDArray[np.float64],
-        stem_base: NDArray[np.float64],
-        hanging: NDArray[np.float64],
-        *,
-        fractions: Sequence[float] = SWING_FRACTIONS,
-        stretches: Sequence[float] | None = None,
-    ) -> NDArray[np.float64]:
         """``(n, c)``: each capsule's smallest map distance [m] along the swing to each of ``(n, 3)``
         ``samples`` (capsules: :attr:`capsules`, then :attr:`arm`), capped at :attr:`limit`.
 
@@ -294,8 +281,8 @@ def choose_grasp_target(
     candidates = free.free & cone & (directions[:, 2] < 0.0)
     choice, record = CHOICE_CONE, None
     if swing is not None and np.any(candidates):
-        clearance = swing.capsule_clearances(samples, stem_base, hanging)
-        now = swing.capsule_clearances(top_of_crop[None], stem_base, hanging, fractions=(0.0,), stretches=(0.0,))[0]
+        clearance = swing.clearances(samples, stem_base, hanging)
+        now = swing.clearances(top_of_crop[None], stem_base, hanging, fractions=(0.0,), stretches=(0.0,))[0]
         # Per capsule: one already close to a cell must not get closer, the others keep the full
         # clearance (an arm-wide minimum let one stray cell at the forearm switch the check off for
         # the gripper).
