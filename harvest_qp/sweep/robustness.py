@@ -23,7 +23,7 @@ __all__ = ["CLASSES", "MAX_CONTACT_TICKS", "failure_class", "grower_success", "s
 MAX_CONTACT_TICKS = 25
 #: A grasp target farther than this from the true hanging stem [deg] (the swing bound, 30, plus 10 of slack).
 MAX_TARGET_ANGLE_DEG = 40.0
-CLASSES = ("lab", "safety", "target", "priority", "perception", "other")
+CLASSES = ("lab", "safety", "target", "priority", "perception", "camera", "other")
 
 
 def grower_success(row: Mapping[str, Any]) -> bool:
@@ -36,6 +36,10 @@ def grower_success(row: Mapping[str, Any]) -> bool:
             and int(row.get("contacts") or 0) <= MAX_CONTACT_TICKS)
 
 
+#: The camera arm's success criteria (``metrics.json`` ``criteria``).
+_CAMERA_CRITERIA = frozenset({"centred", "inside_roi"})
+
+
 def failure_class(row: Mapping[str, Any]) -> str:
     """Why a row failed, in issue 20's classes.
 
@@ -46,6 +50,8 @@ def failure_class(row: Mapping[str, Any]) -> str:
     * ``priority``: the bimanual phase ran but pre-cut was never reached (position or alignment
       never converged);
     * ``perception``: no stem base found, or the stem lost;
+    * ``camera``: pre-cut reached, only the camera arm's criteria failed (outside the ROI or not
+      centred at the end);
     * ``other``: anything else (listed with its reason).
     """
     if row.get("status") != STATUS_OK:
@@ -65,6 +71,9 @@ def failure_class(row: Mapping[str, Any]) -> str:
         return "target"
     if row.get("phase_reached") == "bimanual":
         return "priority"
+    failed = {key.removeprefix("criteria.") for key, value in row.items() if key.startswith("criteria.") and value is False}
+    if row.get("phase_reached") == "precut" and failed and failed <= _CAMERA_CRITERIA:
+        return "camera"
     return "other"
 
 

@@ -41,6 +41,9 @@ def row(seed, **kw):
     ({"success": False, "phase_reached": "bimanual", "target_angle_off_stem_deg": 164.0}, False, "target"),
     ({"success": False, "phase_reached": "bimanual", "target_above_stem_base": True}, False, "target"),
     ({"status": "error", "success": None}, False, "lab"),
+    ({"success": False, "criteria.centred": False, "criteria.inside_roi": False, "criteria.aligned": True},
+     False, "camera"),
+    ({"success": False, "criteria.centred": False, "criteria.aligned": False}, False, "other"),
 ])
 def test_each_row_is_judged_and_classed(kw, grower, cls):
     r = row(1, **kw)
