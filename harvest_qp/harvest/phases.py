@@ -73,7 +73,7 @@ class PhaseRules:
     stop_after_abort: float  # [s] at rest after an abort (episode.stop_after_abort)
     off_axis_force_limit: float = math.inf  # [N] the wrist force across n_c (safety.off_axis_force_limit; f_d)
     max_force_angle_deg: float = 180.0  # [deg] the force's angle from n_c at pre-cut (precut.max_force_angle_deg)
-    unexecuted_timeout: float = math.inf  # [s] the gripper's commanded translation not executed (safety.unexecuted_timeout)
+    unexecuted_timeout: float = math.inf  # [s] commanded translation not executed (safety.unexecuted_timeout)
 
     @classmethod
     def from_settings(cls, s: dict[str, Any]) -> PhaseRules:

@@ -29,6 +29,7 @@ from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.perception._validation import as_point
 from harvest_qp.perception.free_space import FreeSpace
 from harvest_qp.perception.obstacle_map import ObstacleMap
+from harvest_qp.validation import as_positive_scalar
 
 __all__ = ["ARM_SWING_CAPSULES", "SWING_CAPSULES", "SWING_FRACTIONS", "ArmCapsule", "GraspTarget", "SwingCheck",
            "arm_capsule_motion", "choose_grasp_target", "rotations_between"]
@@ -261,9 +262,10 @@ def choose_grasp_target(
     """
     stem_base = as_point("stem_base", stem_base)
     top_of_crop = as_point("top_of_crop", top_of_crop)
-    if max_swing_deg is not None and not (isinstance(max_swing_deg, (int, float, np.floating))
-                                          and 0.0 < float(max_swing_deg) <= 180.0):
-        raise InvalidInputError(f"max_swing_deg must be a number in (0, 180] [deg] or None, got {max_swing_deg!r}")
+    if max_swing_deg is not None:
+        max_swing_deg = as_positive_scalar(max_swing_deg, "max_swing_deg")
+        if max_swing_deg > 180.0:
+            raise InvalidInputError(f"max_swing_deg must be in (0, 180] [deg] or None, got {max_swing_deg!r}")
     if max_swing_deg is None and swing is None:
         return GraspTarget(free.target.copy(), CHOICE_PAPER)
     hanging = top_of_crop - stem_base

@@ -31,6 +31,12 @@ from harvest_qp.references._vec3 import add, cross, dot, norm, scale, sub
 __all__ = ["StemStretching"]
 
 
+def _executed(miss: float, asked: float, tolerance: float) -> bool:
+    """Whether a command of size ``asked`` [m/s] was executed, missed by ``miss`` [m/s]: within
+    ``tolerance`` or half the command, whichever is more."""
+    return miss <= max(tolerance, 0.5 * asked)
+
+
 class StemStretching:
     """Stem-stretching reference V_g of the grasping arm (``eq:superimp_g``).
 
@@ -154,14 +160,13 @@ class StemStretching:
             asked_along = dot(n, asked)
             self.executed_along_nc = dot(n, achieved)
             # The integral holds when the motion along n_c was not executed (the force loop's own axis).
-            self._along_executed = abs(asked_along - self.executed_along_nc) <= max(tolerance, 0.5 * abs(asked_along))
+            self._along_executed = _executed(abs(asked_along - self.executed_along_nc), abs(asked_along), tolerance)
             # The whole translation (along n_c and the projected position) for the phase machine's
             # clock; an ask within the tolerance says nothing either way (None): with 0.2 N of force
             # noise the P-term's ask dithers around 1 mm/s, and counting those ticks as executed reset
             # the clock of a blocked gripper every second.
             miss, size = norm(sub(asked, achieved)), norm(asked)
-            self.motion_executed = (None if size <= tolerance and miss <= tolerance
-                                    else miss <= max(tolerance, 0.5 * size))
+            self.motion_executed = None if size <= tolerance and miss <= tolerance else _executed(miss, size, tolerance)
         (_, y0, _, p0), (_, y1, _, p1), (_, y2, _, p2) = pose[:3].tolist()
         y_g = (y0, y1, y2)
         # eq:gr_pos_contr on the space orthogonal to n_c.

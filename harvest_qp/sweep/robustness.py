@@ -71,7 +71,8 @@ def failure_class(row: Mapping[str, Any]) -> str:
         return "target"
     if row.get("phase_reached") == "bimanual":
         return "priority"
-    failed = {key.removeprefix("criteria.") for key, value in row.items() if key.startswith("criteria.") and value is False}
+    failed = {key.removeprefix("criteria.") for key, value in row.items()
+              if key.startswith("criteria.") and value is False}
     if row.get("phase_reached") == "precut" and failed and failed <= _CAMERA_CRITERIA:
         return "camera"
     return "other"

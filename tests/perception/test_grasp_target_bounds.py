@@ -40,6 +40,24 @@ def _cap_obstacles(axis: np.ndarray, half_angle_deg: float, rng: np.random.Gener
     return P_SB + L * d[d @ axis > np.cos(np.radians(half_angle_deg))]
 
 
+def _map_of(cells: np.ndarray, camera: np.ndarray, obstacle_map: ObstacleMap, *, updates: int = 1) -> ObstacleMap:
+    """``obstacle_map`` after ``updates`` clouds of ``cells`` (obstacle points) seen from ``camera`` [m],
+    the optical axis towards their mean."""
+    cells = np.asarray(cells, float)
+    z = _unit(cells.mean(axis=0) - camera)
+    x = _unit(np.cross(z, [0.0, 0.0, 1.0]))
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = np.column_stack([x, np.cross(z, x), z]), camera
+    n = len(cells)
+    side = int(np.ceil(np.sqrt(n)))
+    rows, cols = np.divmod(np.arange(n), side)
+    cloud = PointCloud(cells, np.full(n, OBSTACLE, np.int8), np.zeros((n, 3), np.uint8), pose, 0.0,
+                       (cells - camera) @ z, np.column_stack([rows, cols]).astype(np.int32), (side, side))
+    for _ in range(updates):
+        obstacle_map.update(cloud)
+    return obstacle_map
+
+
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(_unit(a) @ _unit(b), -1.0, 1.0))))
 
@@ -78,19 +96,7 @@ def test_target_within_the_swing_bound_and_below_the_stem_base(seed):
     top = P_SB + L * hanging
     swing = None
     if seed % 2:
-        grid = ObstacleMap(resolution=0.01)
-        cells = obstacles[rng.random(len(obstacles)) < 0.3]
-        z = _unit(cells.mean(axis=0) - camera)
-        x = _unit(np.cross(z, [0.0, 0.0, 1.0]))
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = np.column_stack([x, np.cross(z, x), z]), camera
-        n = len(cells)
-        side = int(np.ceil(np.sqrt(n)))
-        rows, cols = np.divmod(np.arange(n), side)
-        cloud = PointCloud(cells, np.full(n, OBSTACLE, np.int8), np.zeros((n, 3), np.uint8), pose, 0.0,
-                           (cells - camera) @ z, np.column_stack([rows, cols]).astype(np.int32), (side, side))
-        for _ in range(3):
-            grid.update(cloud)
+        grid = _map_of(obstacles[rng.random(len(obstacles)) < 0.3], camera, ObstacleMap(resolution=0.01), updates=3)
         gripper = top + 0.015 * _unit(top - P_SB)
         capsules = [(gripper, gripper + 0.1 * _unit(rng.normal(size=3)), 0.04)]
         swing = SwingCheck(grid, gripper, capsules, clearance=0.02, stretch=0.03, map_bias=0.01)
@@ -148,20 +154,6 @@ def test_arm_capsule_motion_matches_the_arm_moved_by_its_joints():
         assert np.linalg.norm(moved) > 2e-3  # the point does move (the check is not vacuous)
 
 
-def _map_of(points) -> ObstacleMap:
-    """A 5 mm map holding ``points`` as obstacle cells (seen by a camera 1 m in front of them)."""
-    obstacle_map = ObstacleMap(resolution=0.005, bounds=((-1, -1.5, 0), (1, 1, 2)))
-    pts = np.asarray(points, float)
-    n = len(pts)
-    camera = np.eye(4)
-    camera[:3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]
-    camera[:3, 3] = (0, -1, 1)
-    obstacle_map.update(PointCloud(points=pts, labels=np.full(n, OBSTACLE, np.int8),
-                                   colors=np.zeros((n, 3), np.uint8), camera_pose=camera, timestamp=0.0,
-                                   depth=np.ones(n), pixels=np.zeros((n, 2), np.int32), image_size=(10, 10)))
-    return obstacle_map
-
-
 def test_an_arm_capsule_already_near_a_cell_does_not_switch_the_swing_check_off_for_the_gripper():
     """One candidate 25 deg off the hanging stem; a map cell 12 mm beside where the gripper ends its
     swing (hand value: 2 mm of surface clearance for the 10 mm gripper capsule, below the 30 mm
@@ -190,7 +182,9 @@ def test_an_arm_capsule_already_near_a_cell_does_not_switch_the_swing_check_off_
                             motion0=np.zeros((3, 6)), motion1=np.zeros((3, 6)))]
     chosen = {}
     for name, cells in (("clear", []), ("leaf", [leaf]), ("leaf and far cell", [leaf, far])):
-        swing = SwingCheck(obstacle_map=_map_of(cells or [[0.9, 0.9, 1.9]]), gripper_position=p_g,
+        cell_map = _map_of(cells or [[0.9, 0.9, 1.9]], np.array([0.0, -1.0, 1.0]),
+                           ObstacleMap(resolution=0.005, bounds=((-1, -1.5, 0), (1, 1, 2))))
+        swing = SwingCheck(obstacle_map=cell_map, gripper_position=p_g,
                            capsules=gripper, clearance=0.02, arm=still_arm, map_bias=0.01)
         chosen[name] = choose_grasp_target(free, centre, centre + 0.03 * hanging, max_swing_deg=30.0,
                                            swing=swing).choice

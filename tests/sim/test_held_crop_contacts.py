@@ -9,7 +9,6 @@ berry and the branch, independent of the contact filter and of the monitor that 
 
 from __future__ import annotations
 
-
 import mujoco
 import numpy as np
 import pytest
@@ -19,17 +18,22 @@ from harvest_qp.sim import SimRobot
 from harvest_qp.sim.paper_episode import run_paper_episode
 
 
-def _turned_crop(robot: SimRobot, angle_deg: float) -> float:
-    """Turn the held cluster by ``angle_deg`` about y over its stem end; the berries' smallest gap to the branch [m]."""
+def _turned_crop_about(robot: SimRobot, axis, angle_deg: float) -> None:
+    """The held cluster (grasp released) turned by ``angle_deg`` about ``axis`` over its stem end."""
     m, d = robot.model, robot.data
     robot.set_grasp(False)
     quat = np.zeros(4)
-    mujoco.mju_axisAngle2Quat(quat, np.array([0.0, 1.0, 0.0]), np.radians(angle_deg))
+    mujoco.mju_axisAngle2Quat(quat, np.asarray(axis, float), np.radians(angle_deg))
     adr = m.jnt_qposadr[m.joint("cluster_ball").id]
     d.qpos[adr:adr + 4] = quat
     mujoco.mj_forward(m, d)
-    branch = m.geom("branch").id
-    return min(mujoco.mj_geomDistance(m, d, int(g), branch, 0.2, None) for g in robot.scene.berry_geoms)
+
+
+def _turned_crop(robot: SimRobot, angle_deg: float) -> float:
+    """Turn the held cluster by ``angle_deg`` about y over its stem end; the berries' smallest gap to the branch [m]."""
+    _turned_crop_about(robot, [0.0, 1.0, 0.0], angle_deg)
+    m, branch = robot.model, robot.model.geom("branch").id
+    return min(mujoco.mj_geomDistance(m, robot.data, int(g), branch, 0.2, None) for g in robot.scene.berry_geoms)
 
 
 def test_a_crop_turned_into_the_branch_is_a_counted_contact():
@@ -47,17 +51,6 @@ def test_a_crop_turned_into_the_branch_is_a_counted_contact():
     assert counts["crop_wood"] > 0
     assert counts["arm_vine"] == 0 and counts["arm_arm"] == 0  # the crop's, not the robot's
     assert robot.ground_truth()["contacts_crop_wood"] == counts["crop_wood"]
-
-
-def _turned_crop_about(robot: SimRobot, axis, angle_deg: float) -> None:
-    """The held cluster (grasp released) turned by ``angle_deg`` about ``axis`` over its stem end."""
-    m, d = robot.model, robot.data
-    robot.set_grasp(False)
-    quat = np.zeros(4)
-    mujoco.mju_axisAngle2Quat(quat, np.asarray(axis, float), np.radians(angle_deg))
-    adr = m.jnt_qposadr[m.joint("cluster_ball").id]
-    d.qpos[adr:adr + 4] = quat
-    mujoco.mj_forward(m, d)
 
 
 def _contact_solrefs(robot: SimRobot, geoms) -> np.ndarray:
@@ -91,7 +84,8 @@ def test_the_held_crop_meets_leaves_with_a_softer_contact_than_the_wood():
 def short_episode(tmp_path_factory):
     """A 0.5 s episode of the default scene (its log, robot-free metrics inputs and the controller)."""
     settings = check_settings({"camera": {"downsample": 12}})
-    report = run_paper_episode(settings, seed=0, duration=0.5, figures=False, out_dir=tmp_path_factory.mktemp("episode"))
+    report = run_paper_episode(settings, seed=0, duration=0.5, figures=False,
+                               out_dir=tmp_path_factory.mktemp("episode"))
     return settings, report
 
 
