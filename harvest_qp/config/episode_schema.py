@@ -163,6 +163,9 @@ class Grasping(Section):
     swing_stretch: NonNegative = _f(0.03, "[m] the swing check also moves the gripper this far out along n_c")
     swing_map_bias: NonNegative = _f(0.01, "[m] the obstacle map's cells lie up to this far short of the surface: "
                                            "added to swing_clearance")
+    k_yield: NonNegative = _f(0.004, "[m/(N s)] beyond the paper: the gripper yields to the wrist force across "
+                                     "n_c beyond yield_deadband (0: the paper's pure position control)")
+    yield_deadband: NonNegative = _f(0.5, "[N] force across n_c the gripper does not yield to")
     k_hold: Positive = _f(1.0, "[1/s] the grasping arm holds the crop still during the approach")
     feed_forward: bool = _f(True, "eq:final_vc's feed-forward term on the camera in the bimanual phase")
 

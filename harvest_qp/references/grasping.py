@@ -58,6 +58,14 @@ class StemStretching:
             3.43-3.47 N (14-16 %).
         execution_tolerance: [m/s] the last command's speed along n_c counts as executed within
             this (or half the command, if more) of the speed achieved (see Anti-windup).
+        k_yield: admittance gain across n_c [m/(N s)]; 0 (default) is the paper's law.  Not in
+            the paper: the gripper yields to the part of the wrist force across n_c beyond
+            ``yield_deadband``, v_y = -k_yield (1 - d/|f_perp|) f_perp, so the held crop is not
+            driven into a leaf by v_p.  Measured (lab, dev seeds): without it v_p pressed the crop
+            into a leaf until the contact carried 3-4 N, a third of it along n_c, and the stem's
+            true tension fell to 1.8 N while n_c^T f read 3 N.
+        yield_deadband: [N] the force across n_c the gripper does not yield to (sensor noise, a
+            stem pulling slightly off n_c).
 
     Anti-windup: conditional integration.  When the PI command k_fp e + k_fi I exceeds
     ``max_speed`` and the error would drive it further out, the integral is held; it always
@@ -85,6 +93,8 @@ class StemStretching:
         integral_limit: float | None = None,
         integration_threshold: float | None = 1.0,
         execution_tolerance: float = 0.001,
+        k_yield: float = 0.0,
+        yield_deadband: float = 0.5,
     ) -> None:
         self.k_pg = as_positive_scalar(k_pg, "k_pg")
         self.k_og = as_positive_scalar(k_og, "k_og")
@@ -103,6 +113,8 @@ class StemStretching:
         )
         self.execution_tolerance = float(as_positive_scalar(execution_tolerance, "execution_tolerance",
                                                             allow_zero=True))
+        self.k_yield = float(as_positive_scalar(k_yield, "k_yield", allow_zero=True))
+        self.yield_deadband = float(as_positive_scalar(yield_deadband, "yield_deadband", allow_zero=True))
         self.stem_base: NDArray[np.float64] | None = None
         self.target: NDArray[np.float64] | None = None
         self.n_c = np.full(3, np.nan)
@@ -173,8 +185,14 @@ class StemStretching:
         e_pg = sub((p0, p1, p2), self.target.tolist())
         projected = sub(e_pg, scale(dot(n, e_pg), n))
         v_p = scale(-self.k_pg, projected)
+        # Beyond the paper: yield to the force across n_c above the deadband (see k_yield).
+        f_list = f.tolist()
+        f_across = sub(f_list, scale(dot(n, f_list), n))
+        across = norm(f_across)
+        if self.k_yield > 0.0 and across > self.yield_deadband:
+            v_p = add(v_p, scale(-self.k_yield * (1.0 - self.yield_deadband / across), f_across))
         # eq:gr_forc_contr: PI along n_c with conditional integration.
-        force_along = dot(n, f.tolist())
+        force_along = dot(n, f_list)
         v_f = scale(-self._force_command(force_along, dt), n)
         # eq:rot_contr
         v_gw = scale(-self.k_og, cross(n, y_g))

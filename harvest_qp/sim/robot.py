@@ -451,7 +451,8 @@ class SimRobot(RobotInterface):
         return out
 
     def contact_counts(self) -> dict[str, int]:
-        """Active contacts by kind now (:data:`~harvest_qp.sim.contacts.CONTACT_KINDS`): the robot's and the held crop's."""
+        """Active contacts by kind now (:data:`~harvest_qp.sim.contacts.CONTACT_KINDS`): the robot's and the
+        held crop's."""
         return self._contacts.contact_counts(self.data)
 
     def min_vine_distance(self, *, with_pair: bool = False) -> float | tuple[float, str, str]:

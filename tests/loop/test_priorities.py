@@ -2,8 +2,9 @@
 
 The paper episode's QP (``HarvestController.qp``, built from the settings) is handed, from rest,
 a gripper twist whose turn the acceleration bound cannot give in one 2 ms tick together with its
-translation (0.5 rad/s of turn; each joint may reach 0.02 rad/s: 10 rad/s^2 x 2 ms). Oracle: the gripper twist the answer gives, from pinocchio's own
-frame Jacobian (LOCAL_WORLD_ALIGNED) at the same q, against the translation asked.
+translation (0.5 rad/s of turn; each joint may reach 0.02 rad/s: 10 rad/s^2 x 2 ms). Oracle: the gripper
+twist the answer gives, from pinocchio's own frame Jacobian (LOCAL_WORLD_ALIGNED) at the same q, against the
+translation asked.
 """
 
 from __future__ import annotations

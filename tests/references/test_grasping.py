@@ -157,3 +157,43 @@ def test_the_force_integral_holds_while_the_motion_is_not_executed():
     assert not law.motion_executed and law.integral == pytest.approx(-0.02)
     law.update(pose, force, 0.01, executed=law.v_gt + [0.0005, 0.0, 0.0005])
     assert law.motion_executed and law.integral == pytest.approx(-0.04)
+
+
+def test_the_gripper_yields_to_the_force_across_n_c_beyond_the_deadband():
+    """n_c = (0, 0, -1), the gripper at p_gd, f = (2, 0, -3): 2 N across n_c, 1.5 N beyond the
+    0.5 N deadband, so v_y = -0.004 (1 - 0.5/2) (2, 0, 0) = (-0.006, 0, 0) on top of the paper's
+    V_g (k_yield = 0); 0.4 N across (inside the deadband) adds nothing.
+    Catches: yielding towards the push (sign), yielding to the force along n_c, no deadband."""
+    paper = StemStretching(integration_threshold=None)
+    yielding = StemStretching(integration_threshold=None, k_yield=0.004, yield_deadband=0.5)
+    for law in (paper, yielding):
+        law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
+    pose = _pose([0.0, 0.0, 0.9])
+    difference = yielding.update(pose, [2.0, 0.0, -3.0], 0.01) - paper.update(pose, [2.0, 0.0, -3.0], 0.01)
+    np.testing.assert_allclose(difference, [-0.006, 0.0, 0.0, 0.0, 0.0, 0.0], atol=1e-15)
+    difference = yielding.update(pose, [0.4, 0.0, -3.0], 0.01) - paper.update(pose, [0.4, 0.0, -3.0], 0.01)
+    np.testing.assert_allclose(difference, np.zeros(6), atol=1e-15)
+
+
+def test_a_leaf_beside_the_target_is_not_pressed_beyond_the_deadband():
+    """A stiff leaf (2000 N/m) across n_c whose surface lies 3 mm short of p_gd: the paper's
+    law drives the kinematic gripper onto p_gd and presses the leaf with 6 N; yielding settles
+    where v_p and v_y balance, the leaf carrying under 1 N (hand model: k_pg e = k_yield
+    (2000 (3 mm - e) - 0.5) gives e = 2.70 mm, 0.60 N).  The stem (400 N/m along n_c) is
+    stretched to f_d either way.  Catches: a yield of the wrong sign (presses deeper) or none."""
+
+    def settle(law):
+        law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
+        position, dt = np.array([0.0, 0.0, 0.9]), 0.01
+        for _ in range(8000):
+            stretch = max(0.0, 1.0 - position[2] - 0.05)
+            leaf = 2000.0 * max(0.0, position[0] + 0.003)  # the leaf pushes the crop towards -x
+            force = np.array([leaf, 0.0, -400.0 * stretch])  # what the gripper applies: it holds the push
+            position = position + dt * law.update(_pose(position), force, dt)[:3]
+        return leaf, law.force_along_nc
+
+    leaf_paper, along_paper = settle(StemStretching())
+    leaf_yield, along_yield = settle(StemStretching(k_yield=0.004, yield_deadband=0.5))
+    assert leaf_paper > 5.5
+    assert leaf_yield < 1.0
+    assert abs(along_paper - 3.0) < 0.05 and abs(along_yield - 3.0) < 0.05
