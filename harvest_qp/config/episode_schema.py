@@ -167,7 +167,9 @@ class Grasping(Section):
                                      "n_c beyond yield_deadband (0: the paper's pure position control)")
     yield_deadband: NonNegative = _f(0.5, "[N] force across n_c the gripper does not yield to")
     k_hold: Positive = _f(1.0, "[1/s] the grasping arm holds the crop still during the approach")
-    feed_forward: bool = _f(True, "eq:final_vc's feed-forward term on the camera in the bimanual phase")
+    feed_forward: bool = _f(False, "eq:final_vc's feed-forward term on the camera in the bimanual phase (off: "
+                                   "nothing holds the camera's place on the ROI sphere, so the term drifts it; "
+                                   "docs/references.md)")
 
 
 class Perception(Section):
