@@ -7,6 +7,8 @@
     v_f  = -n_c (k_fp e_fg + k_fi int e_fg),  e_fg = n_c^T f - f_d        (eq:gr_forc_contr)
     v_gw = -k_og (n_c x y_g)                                              (eq:rot_contr)
     V_g  = [v_p + v_f ; v_gw]                                             (eq:superimp_g)
+    v_y  = -k_yield (1 - d / |f_perp|) f_perp,  f_perp = (I - n_c n_c^T) f,  |f_perp| > d
+                                           (beyond the paper, added to v_p; k_yield = 0 by default)
 
 Sign convention of the force f: the force the gripper applies to what it holds (the crop and
 through it the stem), world frame, tared, which is what a gravity-compensated wrist F/T sensor
