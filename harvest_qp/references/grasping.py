@@ -189,12 +189,13 @@ class StemStretching:
         v_p = scale(-self.k_pg, projected)
         # Beyond the paper: yield to the force across n_c above the deadband (see k_yield).
         f_list = f.tolist()
-        f_across = sub(f_list, scale(dot(n, f_list), n))
-        across = norm(f_across)
-        if self.k_yield > 0.0 and across > self.yield_deadband:
-            v_p = add(v_p, scale(-self.k_yield * (1.0 - self.yield_deadband / across), f_across))
-        # eq:gr_forc_contr: PI along n_c with conditional integration.
         force_along = dot(n, f_list)
+        if self.k_yield > 0.0:
+            f_across = sub(f_list, scale(force_along, n))
+            across = norm(f_across)
+            if across > self.yield_deadband:
+                v_p = add(v_p, scale(-self.k_yield * (1.0 - self.yield_deadband / across), f_across))
+        # eq:gr_forc_contr: PI along n_c with conditional integration.
         v_f = scale(-self._force_command(force_along, dt), n)
         # eq:rot_contr
         v_gw = scale(-self.k_og, cross(n, y_g))
