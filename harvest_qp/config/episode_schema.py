@@ -166,6 +166,8 @@ class Grasping(Section):
     k_yield: NonNegative = _f(0.004, "[m/(N s)] beyond the paper: the gripper yields to the wrist force across "
                                      "n_c beyond yield_deadband (0: the paper's pure position control)")
     yield_deadband: NonNegative = _f(0.5, "[N] force across n_c the gripper does not yield to")
+    yield_time_constant: NonNegative = _f(0.1, "[s] low-pass of the wrist force before the yield's deadband "
+                                               "(0: the raw force; sensor noise then moves the gripper)")
     k_hold: Positive = _f(1.0, "[1/s] the grasping arm holds the crop still during the approach")
     feed_forward: bool = _f(False, "eq:final_vc's feed-forward term on the camera in the bimanual phase (off: "
                                    "nothing holds the camera's place on the ROI sphere, so the term drifts it; "
@@ -233,6 +235,10 @@ class Safety(Section):
     max_qp_failures: PositiveInt = _f(25, "abort after this many QP failures in a row")
     unexecuted_timeout: Positive = _f(10.0, "[s] before pre-cut, abort when the gripper's translation that V_g "
                                             "asks for is not executed this long (obstacle rows or limits)")
+    switch_timeout: Positive = _f(40.0, "[s] abort when the switch to the bimanual phase has not come this long "
+                                        "after the start (the longest in 500 sweep scenes: 23 s)")
+    precut_timeout: Positive = _f(30.0, "[s] abort when pre-cut has not come this long after the switch (the "
+                                        "longest in 500 sweep scenes: 21 s); the reason names the failing tests")
 
 
 class Precut(Section):

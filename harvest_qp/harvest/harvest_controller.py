@@ -339,6 +339,7 @@ class HarvestController:
         self.stretching = StemStretching(
             k_pg=g.k_pg, k_og=g.k_og, k_fp=g.k_fp, k_fi=g.k_fi, f_d=g.f_d, max_speed=g.max_speed,
             integration_threshold=g.integration_threshold, k_yield=g.k_yield, yield_deadband=g.yield_deadband,
+            yield_time_constant=g.yield_time_constant,
         )
         self.feed_forward = GraspFeedForward()
 

@@ -12,9 +12,13 @@
 * BIMANUAL -> PRECUT: the low-passed force along n_c within ``force_tolerance`` x f_d of f_d,
   the projected position error and the alignment within their tolerances, for ``hold_time``.
   Control goes on in PRECUT (the same tests keep running; an abort can still follow).
-* -> ABORT: no stem base within ``no_stem_timeout`` of the start, the stem not seen for
-  ``stem_lost_timeout`` after the switch, the force along n_c above ``force_limit``, or
-  ``max_qp_failures`` failed QP steps in a row. The arms then brake to rest (the controller).
+* -> ABORT: no stem base within ``no_stem_timeout`` of the start, no switch within
+  ``switch_timeout`` of the start, no pre-cut within ``precut_timeout`` of the switch, the stem
+  not seen for ``stem_lost_timeout`` after the switch, the force along n_c above ``force_limit``,
+  or ``max_qp_failures`` failed QP steps in a row. The arms then brake to rest (the controller).
+  The two phase timeouts turn an episode that would hold forever (a camera arm that cannot
+  reach the ROI, a gripper held off the line by a steady push across n_c) into an abort whose
+  reason names the test that never passed.
 
 Deviation (lab measurements): the switch uses the camera's mean speeds
 over the window, the angular one from the turn of the optical axis z_c (the free roll left
@@ -74,6 +78,8 @@ class PhaseRules:
     off_axis_force_limit: float = math.inf  # [N] the wrist force across n_c (safety.off_axis_force_limit; f_d)
     max_force_angle_deg: float = 180.0  # [deg] the force's angle from n_c at pre-cut (precut.max_force_angle_deg)
     unexecuted_timeout: float = math.inf  # [s] commanded translation not executed (safety.unexecuted_timeout)
+    switch_timeout: float = math.inf  # [s] from the start, no switch (safety.switch_timeout)
+    precut_timeout: float = math.inf  # [s] from the switch, no pre-cut (safety.precut_timeout)
 
     @classmethod
     def from_settings(cls, s: dict[str, Any]) -> PhaseRules:
@@ -92,6 +98,7 @@ class PhaseRules:
             end_after_precut=s.episode.end_after_precut, stop_after_abort=s.episode.stop_after_abort,
             off_axis_force_limit=f_d if safety.off_axis_force_limit is None else float(safety.off_axis_force_limit),
             max_force_angle_deg=p.max_force_angle_deg, unexecuted_timeout=safety.unexecuted_timeout,
+            switch_timeout=safety.switch_timeout, precut_timeout=safety.precut_timeout,
         )
 
 
@@ -140,13 +147,19 @@ class PhaseMachine:
 
     def approach(self, t: float, camera_pose: np.ndarray, *, stem_base_found: bool, roi_distance: float) -> bool:
         """One approach tick: whether the switch test passes (the caller then looks for p_gd and
-        calls :meth:`switch`). Aborts when no stem base is found within ``no_stem_timeout``.
+        calls :meth:`switch`). Aborts when no stem base is found within ``no_stem_timeout``, and
+        when the switch has not come within ``switch_timeout`` (the reason gives the ROI distance).
 
         ``camera_pose``: {C} ``(4, 4)``; ``roi_distance``: |p_r - p_c| [m].
         """
         r = self.rules
         if not stem_base_found and t > r.no_stem_timeout:
             self.abort(t, f"no stem base found within {r.no_stem_timeout} s")
+            return False
+        if t >= r.switch_timeout - 1e-9:
+            self.abort(t, f"no switch within {r.switch_timeout} s: the camera is {roi_distance:.3f} m from the ROI "
+                          f"centre (switch within {r.switch_distance_factor * r.radius:.3f} m), stem base "
+                          f"{'found' if stem_base_found else 'not found'}")
             return False
         speeds = self._camera_speeds(t, camera_pose)
         if not stem_base_found or speeds is None:
@@ -247,11 +260,29 @@ class PhaseMachine:
         )
         if not within:
             self.precut_since = None
+            if (self.phase == Phase.BIMANUAL and self.t_switch is not None
+                    and t - self.t_switch >= r.precut_timeout - 1e-9):
+                self.abort(t, f"no pre-cut within {r.precut_timeout} s of the switch: "
+                              + self._precut_misses(along, position_error, alignment))
             return
         if self.precut_since is None:
             self.precut_since = t
         if self.phase == Phase.BIMANUAL and t - self.precut_since >= r.hold_time:
             self.phase, self.t_precut = Phase.PRECUT, t
+
+    def _precut_misses(self, along: bool, position_error: float, alignment: float) -> str:
+        """Which of the pre-cut tests fail, with their values (for the abort's reason)."""
+        r, misses = self.rules, []
+        if abs(self.force_filtered - r.f_d) > r.force_tolerance * r.f_d:
+            misses.append(f"force along n_c {self.force_filtered:.2f} N (f_d {r.f_d:.2f} N +- "
+                          f"{100 * r.force_tolerance:.0f} %)")
+        if not along:
+            misses.append(f"force more than {r.max_force_angle_deg:.0f} deg off n_c")
+        if position_error > r.position_tolerance:
+            misses.append(f"position error {1000 * position_error:.1f} mm (> {1000 * r.position_tolerance:.1f} mm)")
+        if math.degrees(alignment) > r.alignment_tolerance_deg:
+            misses.append(f"alignment {math.degrees(alignment):.1f} deg (> {r.alignment_tolerance_deg:.1f} deg)")
+        return ", ".join(misses) or "the tests never held together"
 
     # ------------------------------------------------------------------ every tick
 

@@ -48,10 +48,10 @@ def failure_class(row: Mapping[str, Any]) -> str:
     * ``target``: no grasp target (the crop level with or above the stem base), or one more than
       :data:`MAX_TARGET_ANGLE_DEG` off the true hanging stem or above the true stem base;
     * ``priority``: the bimanual phase ran but pre-cut was never reached (position or alignment
-      never converged);
+      never converged; the pre-cut timeout's abort names the tests that failed);
     * ``perception``: no stem base found, or the stem lost;
     * ``camera``: pre-cut reached, only the camera arm's criteria failed (outside the ROI or not
-      centred at the end);
+      centred at the end), or the camera arm never met the switch test (the switch timeout);
     * ``other``: anything else (listed with its reason).
     """
     if row.get("status") != STATUS_OK:
@@ -59,8 +59,9 @@ def failure_class(row: Mapping[str, Any]) -> str:
     f_d = float(row.get("f_d") or 3.0)
     reason = str(row.get("abort_reason") or "")
     tension = row.get("true_tension_max")
+    force_abort = "force" in reason and "above the limit" in reason  # (a pre-cut timeout names the force too)
     if (row.get("stem_torn") or (tension is not None and float(tension) > 2.0 * f_d)
-            or int(row.get("contacts") or 0) > MAX_CONTACT_TICKS or "force" in reason):
+            or int(row.get("contacts") or 0) > MAX_CONTACT_TICKS or force_abort):
         return "safety"
     if "stem" in reason and ("not seen" in reason or "no stem base" in reason):
         return "perception"
@@ -69,11 +70,12 @@ def failure_class(row: Mapping[str, Any]) -> str:
     if (choice == CHOICE_NO_TARGET or row.get("target_above_stem_base")
             or (angle is not None and float(angle) > MAX_TARGET_ANGLE_DEG)):
         return "target"
-    if row.get("phase_reached") == "bimanual":
+    if row.get("phase_reached") == "bimanual" or reason.startswith(("no pre-cut within", "the gripper's motion")):
         return "priority"
     failed = {key.removeprefix("criteria.") for key, value in row.items()
               if key.startswith("criteria.") and value is False}
-    if row.get("phase_reached") == "precut" and failed and failed <= _CAMERA_CRITERIA:
+    if (row.get("phase_reached") == "precut" and failed and failed <= _CAMERA_CRITERIA) or \
+            reason.startswith("no switch within"):
         return "camera"
     return "other"
 

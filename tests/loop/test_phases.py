@@ -93,6 +93,47 @@ def test_no_stem_base_within_the_timeout_aborts(rules):
     assert machine.phase == Phase.ABORT and machine.t_abort == 20.002  # the first reason stays
 
 
+def test_no_switch_within_the_switch_timeout_aborts_and_says_where_the_camera_is(rules):
+    """A stem base found but the camera held 0.66 m from the ROI centre (the camera arm folded onto its
+    own wrist, held-out 18066): the switch test never passes, so at ``switch_timeout`` the episode
+    aborts and names the distance against 1.05 r = 0.3675 m.  A camera inside the ROI that is still
+    moving past the timeout aborts too.  Catches: an approach that holds to the episode's end
+    without a reason (18066 ran 50 s in APPROACH)."""
+    machine = PhaseMachine(dataclasses.replace(rules, switch_timeout=2.0))
+    ticks = int(round(2.0 / DT))
+    ready = _approach(machine, ticks - 1, lambda k: _pose(), distance=0.66)
+    assert not any(ready) and machine.phase == Phase.APPROACH
+    machine.approach(2.0, _pose(), stem_base_found=True, roi_distance=0.66)
+    assert machine.phase == Phase.ABORT and machine.t_abort == 2.0
+    assert machine.abort_reason == ("no switch within 2.0 s: the camera is 0.660 m from the ROI centre "
+                                    "(switch within 0.367 m), stem base found")
+
+
+def test_no_precut_within_the_precut_timeout_aborts_and_names_the_failing_tests(rules):
+    """After the switch the force sits at f_d but a steady push across n_c holds the gripper 7 mm
+    off the line by 12 mm (the tolerance here is 10 mm; the yield's equilibrium k_pg e = k_yield
+    (|f_perp| - d)): nothing else aborts, and at ``precut_timeout`` after the switch the machine aborts
+    naming the position error only.  Just before it, a run whose tests hold reaches pre-cut and the timeout never
+    applies.  Catches: an episode that neither reaches pre-cut nor aborts (found by review)."""
+    machine = PhaseMachine(dataclasses.replace(rules, precut_timeout=3.0))
+    machine.switch(1.0)
+    t = 1.0
+    while t < 4.0 - 2 * DT:
+        t += DT
+        machine.stretch(t, DT, 3.0, 0.012, 0.0, force_norm=math.hypot(3.0, 1.0))
+        assert machine.phase == Phase.BIMANUAL
+    machine.stretch(4.0, DT, 3.0, 0.012, 0.0, force_norm=math.hypot(3.0, 1.0))
+    assert machine.phase == Phase.ABORT and machine.t_abort == 4.0
+    assert machine.abort_reason == "no pre-cut within 3.0 s of the switch: position error 12.0 mm (> 10.0 mm)"
+    ok = PhaseMachine(dataclasses.replace(rules, precut_timeout=3.0))
+    ok.switch(1.0)
+    t = 1.0
+    while t < 6.0:
+        t += DT
+        ok.stretch(t, DT, 3.0, 0.0, 0.0, force_norm=3.0)
+    assert ok.phase == Phase.PRECUT and ok.abort_reason is None
+
+
 def test_a_stem_lost_for_the_timeout_aborts_only_after_the_switch(rules):
     machine = PhaseMachine(rules)
     machine.watch_stem(5.0, last_stem_time=1.0)

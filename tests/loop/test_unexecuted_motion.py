@@ -11,6 +11,7 @@ ticks within it counted as executed and reset the clock, and a blocked gripper w
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -36,7 +37,9 @@ def _run(*, force_mean: float, offset, moves: bool, seconds: float, seed: int = 
     """Stretch for ``seconds`` with the force ``force_mean`` + 0.2 N noise along n_c, the gripper held
     at ``P_GD + offset`` (``moves``: the QP gives exactly the translation asked, but the pose is held
     so the ask persists)."""
-    rules = dataclasses.replace(PhaseRules.from_settings(check_settings({})), unexecuted_timeout=10.0)
+    # (the held pose never converges: the pre-cut timeout is left out, tested in test_phases.py)
+    rules = dataclasses.replace(PhaseRules.from_settings(check_settings({})), unexecuted_timeout=10.0,
+                                precut_timeout=math.inf)
     machine, law = PhaseMachine(rules), StemStretching(f_d=3.0)
     law.set_target(P_SB, P_GD)
     machine.switch(0.0)

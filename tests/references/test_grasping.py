@@ -163,9 +163,10 @@ def test_the_gripper_yields_to_the_force_across_n_c_beyond_the_deadband():
     """n_c = (0, 0, -1), the gripper at p_gd, f = (2, 0, -3): 2 N across n_c, 1.5 N beyond the
     0.5 N deadband, so v_y = -0.004 (1 - 0.5/2) (2, 0, 0) = (-0.006, 0, 0) on top of the paper's
     V_g (k_yield = 0); 0.4 N across (inside the deadband) adds nothing.
-    Catches: yielding towards the push (sign), yielding to the force along n_c, no deadband."""
+    Catches: yielding towards the push (sign), yielding to the force along n_c, no deadband.
+    (The raw force, yield_time_constant = 0: the low-pass has its own tests below.)"""
     paper = StemStretching(integration_threshold=None)
-    yielding = StemStretching(integration_threshold=None, k_yield=0.004, yield_deadband=0.5)
+    yielding = StemStretching(integration_threshold=None, k_yield=0.004, yield_deadband=0.5, yield_time_constant=0)
     for law in (paper, yielding):
         law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
     pose = _pose([0.0, 0.0, 0.9])
@@ -173,6 +174,50 @@ def test_the_gripper_yields_to_the_force_across_n_c_beyond_the_deadband():
     np.testing.assert_allclose(difference, [-0.006, 0.0, 0.0, 0.0, 0.0, 0.0], atol=1e-15)
     difference = yielding.update(pose, [0.4, 0.0, -3.0], 0.01) - paper.update(pose, [0.4, 0.0, -3.0], 0.01)
     np.testing.assert_allclose(difference, np.zeros(6), atol=1e-15)
+
+
+def _displacement_across(law, steady_across, *, seconds=10.0, dt=0.002, noise=0.2, seed=3):
+    """The kinematic gripper's largest offset [m] across n_c = (0, 0, -1) from p_gd while the wrist reads
+    ``steady_across`` [N] along +x, f_d along n_c and ``noise`` [N] Gaussian per axis (seeded)."""
+    rng = np.random.default_rng(seed)
+    law.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
+    position, worst = np.array([0.0, 0.0, 0.9]), 0.0
+    for _ in range(int(round(seconds / dt))):
+        force = np.array([steady_across, 0.0, -3.0]) + noise * rng.standard_normal(3)
+        position = position + dt * law.update(_pose(position), force, dt)[:3]
+        position[2] = 0.9  # hold the axis: only the offset across n_c is judged
+        worst = max(worst, float(np.hypot(position[0], position[1])))
+    return worst
+
+
+def test_sensor_noise_does_not_lift_a_force_inside_the_deadband_into_a_yield():
+    """0.4 N across n_c (inside the 0.5 N deadband) with 0.2 N of noise per axis: on the raw force
+    the noisy magnitude passes 0.5 N on about a third of the ticks and the gripper creeps (an
+    independent review measured 0.6-2.5 mm).  Low-passed with 0.1 s the noise is ~0.02 N per axis
+    (0.2 sqrt(a / (2 - a)), a = dt / tau = 0.02), five of its deviations below the deadband: the
+    gripper stays put.  Catches: the deadband acting on the raw force (yield_time_constant
+    ignored), which moves it by over 0.5 mm here."""
+    raw = _displacement_across(StemStretching(k_yield=0.004, yield_time_constant=0.0), 0.4)
+    filtered = _displacement_across(StemStretching(k_yield=0.004, yield_time_constant=0.1), 0.4)
+    assert raw > 5e-4  # the hazard is real on the raw force
+    assert filtered < 5e-5
+
+
+def test_the_low_passed_yield_still_gives_way_to_a_steady_push():
+    """A steady 2 N across n_c, no noise: after 1 s (10 time constants) v_y is the raw law's
+    -0.004 (1 - 0.5/2) 2 = -6 mm/s to 1e-4 relative (e^-10).  The filter starts from the tared zero:
+    the first tick's 2 (1 - e^-0.02) = 0.04 N is inside the deadband.
+    Catches: a filter that never converges, or a deadband applied after the yield's scaling."""
+    law = StemStretching(integration_threshold=None, k_yield=0.004, yield_time_constant=0.1)
+    paper = StemStretching(integration_threshold=None)
+    for each in (law, paper):
+        each.set_target([0.0, 0.0, 1.0], [0.0, 0.0, 0.9])
+    pose, force = _pose([0.0, 0.0, 0.9]), [2.0, 0.0, -3.0]
+    first = law.update(pose, force, 0.002) - paper.update(pose, force, 0.002)
+    assert first[0] == 0.0
+    for _ in range(500):
+        last = law.update(pose, force, 0.002) - paper.update(pose, force, 0.002)
+    assert last[0] == pytest.approx(-0.006, rel=1e-4)
 
 
 def test_a_leaf_beside_the_target_is_not_pressed_beyond_the_deadband():

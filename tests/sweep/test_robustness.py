@@ -41,6 +41,11 @@ def row(seed, **kw):
     ({"success": False, "phase_reached": "bimanual", "target_angle_off_stem_deg": 164.0}, False, "target"),
     ({"success": False, "phase_reached": "bimanual", "target_above_stem_base": True}, False, "target"),
     ({"status": "error", "success": None}, False, "lab"),
+    # the phase timeouts: a pre-cut timeout names the force too, yet it is no force abort
+    ({"success": False, "phase_reached": "abort", "abort_reason": "no pre-cut within 30.0 s of the switch: force "
+      "along n_c 2.51 N (f_d 3.00 N +- 10 %), position error 7.2 mm (> 5.0 mm)"}, False, "priority"),
+    ({"success": False, "phase_reached": "abort", "abort_reason": "no switch within 40.0 s: the camera is 0.663 m "
+      "from the ROI centre (switch within 0.368 m), stem base found"}, False, "camera"),
     ({"success": False, "criteria.centred": False, "criteria.inside_roi": False, "criteria.aligned": True},
      False, "camera"),
     ({"success": False, "criteria.centred": False, "criteria.aligned": False}, False, "other"),
