@@ -131,6 +131,7 @@ class PhaseMachine:
         self.force_filtered: float | None = None
         self.precut_since: float | None = None
         self.unexecuted_time: float | None = None
+        self.switch_test_passed_at: float | None = None  # the last approach tick whose switch test passed
         self._camera_window: deque[tuple[float, tuple, tuple]] = deque()  # (t, p_c, z_c)
 
     @property
@@ -148,7 +149,8 @@ class PhaseMachine:
     def approach(self, t: float, camera_pose: np.ndarray, *, stem_base_found: bool, roi_distance: float) -> bool:
         """One approach tick: whether the switch test passes (the caller then looks for p_gd and
         calls :meth:`switch`). Aborts when no stem base is found within ``no_stem_timeout``, and
-        when the switch has not come within ``switch_timeout`` (the reason gives the ROI distance).
+        when the switch has not come within ``switch_timeout``: the reason says whether the switch
+        test ever passed (then the perception found no grasp target there) or gives the ROI distance.
 
         ``camera_pose``: {C} ``(4, 4)``; ``roi_distance``: |p_r - p_c| [m].
         """
@@ -156,16 +158,24 @@ class PhaseMachine:
         if not stem_base_found and t > r.no_stem_timeout:
             self.abort(t, f"no stem base found within {r.no_stem_timeout} s")
             return False
-        if t >= r.switch_timeout - 1e-9:
-            self.abort(t, f"no switch within {r.switch_timeout} s: the camera is {roi_distance:.3f} m from the ROI "
-                          f"centre (switch within {r.switch_distance_factor * r.radius:.3f} m), stem base "
-                          f"{'found' if stem_base_found else 'not found'}")
-            return False
         speeds = self._camera_speeds(t, camera_pose)
-        if not stem_base_found or speeds is None:
+        ready = stem_base_found and speeds is not None and switch_ready(
+            roi_distance, r.radius, *speeds, distance_factor=r.switch_distance_factor,
+            max_linear=r.switch_max_linear, max_angular=r.switch_max_angular)
+        first_pass = ready and self.switch_test_passed_at is None  # p_gd not yet looked for: let it try
+        if ready:
+            self.switch_test_passed_at = t
+        if t >= r.switch_timeout - 1e-9 and not first_pass:
+            if self.switch_test_passed_at is not None:
+                # The camera was ready: the perception found no grasp target (p_sb or p_gd) there.
+                self.abort(t, f"no switch within {r.switch_timeout} s: the switch test passed (last at "
+                              f"{self.switch_test_passed_at:.1f} s) but no grasp target was found")
+            else:
+                self.abort(t, f"no switch within {r.switch_timeout} s: the camera is {roi_distance:.3f} m from the "
+                              f"ROI centre (switch within {r.switch_distance_factor * r.radius:.3f} m), stem base "
+                              f"{'found' if stem_base_found else 'not found'}")
             return False
-        return switch_ready(roi_distance, r.radius, *speeds, distance_factor=r.switch_distance_factor,
-                            max_linear=r.switch_max_linear, max_angular=r.switch_max_angular)
+        return ready
 
     def _camera_speeds(self, t: float, camera_pose: np.ndarray) -> tuple[float, float] | None:
         """The camera's mean speeds over the window: |p_c(t) - p_c(t0)| / (t - t0) [m/s] and the
@@ -222,9 +232,9 @@ class PhaseMachine:
         if crop_side < 0.0:
             self.abort(t, f"the crop is {-1000 * crop_side:.0f} mm on the wrong side of the stem base along n_c")
             return
-        if math.isnan(force_nc) or math.isnan(force_norm) or math.isnan(crop_side):
+        if any(math.isnan(value) for value in (force_nc, force_norm, crop_side, position_error, alignment)):
             self.abort(t, f"non-finite grasp state (force along n_c {force_nc}, magnitude {force_norm}, "
-                          f"crop side {crop_side})")
+                          f"crop side {crop_side}, position error {position_error}, alignment {alignment})")
             return
         if motion_executed:
             self.unexecuted_time = None
@@ -263,20 +273,22 @@ class PhaseMachine:
             if (self.phase == Phase.BIMANUAL and self.t_switch is not None
                     and t - self.t_switch >= r.precut_timeout - 1e-9):
                 self.abort(t, f"no pre-cut within {r.precut_timeout} s of the switch: "
-                              + self._precut_misses(along, position_error, alignment))
+                              + self._precut_misses(force_nc, along, position_error, alignment))
             return
         if self.precut_since is None:
             self.precut_since = t
         if self.phase == Phase.BIMANUAL and t - self.precut_since >= r.hold_time:
             self.phase, self.t_precut = Phase.PRECUT, t
 
-    def _precut_misses(self, along: bool, position_error: float, alignment: float) -> str:
+    def _precut_misses(self, force_nc: float, along: bool, position_error: float, alignment: float) -> str:
         """Which of the pre-cut tests fail, with their values (for the abort's reason)."""
         r, misses = self.rules, []
         if abs(self.force_filtered - r.f_d) > r.force_tolerance * r.f_d:
             misses.append(f"force along n_c {self.force_filtered:.2f} N (f_d {r.f_d:.2f} N +- "
                           f"{100 * r.force_tolerance:.0f} %)")
-        if not along:
+        if force_nc <= 0.0:
+            misses.append(f"no pull along n_c ({force_nc:.2f} N)")
+        elif not along:
             misses.append(f"force more than {r.max_force_angle_deg:.0f} deg off n_c")
         if position_error > r.position_tolerance:
             misses.append(f"position error {1000 * position_error:.1f} mm (> {1000 * r.position_tolerance:.1f} mm)")

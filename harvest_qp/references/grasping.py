@@ -33,6 +33,12 @@ from harvest_qp.references._vec3 import add, cross, dot, norm, scale, sub
 
 __all__ = ["StemStretching"]
 
+#: The yield acts on the raw force across n_c once it exceeds this many deadbands (1.5 N by default):
+#: with 0.2 N of noise per axis the noise alone reaches 1 N on ~1e-6 of ticks, while a stiff contact
+#: (5,000-20,000 N/m) met at 3-6 mm/s rose to 2-6 N during the filter's 0.1 s lag (an independent
+#: review's hand model) against 1.2-2.0 N on the raw force.
+RAW_YIELD_FACTOR = 3.0
+
 
 def _executed(miss: float, asked: float, tolerance: float) -> bool:
     """Whether a command of size ``asked`` [m/s] was executed, missed by ``miss`` [m/s]: within
@@ -72,7 +78,9 @@ class StemStretching:
         yield_time_constant: [s] first-order low-pass of the wrist force (world frame) before the
             deadband; 0: the raw force.  An independent review measured that on the raw force,
             0.2 N of noise per axis lifts a steady 0.3-0.5 N across n_c over the 0.5 N deadband
-            often enough to move the gripper 0.6-2.5 mm; 0.1 s cuts that noise ~10x.
+            often enough to move the gripper 0.6-2.5 mm; 0.1 s cuts that noise ~10x.  Above
+            :data:`RAW_YIELD_FACTOR` deadbands the raw force is used (the filter's lag let a stiff
+            contact's force climb past the off-axis abort).
 
     Anti-windup: conditional integration.  When the PI command k_fp e + k_fi I exceeds
     ``max_speed`` and the error would drive it further out, the integral is held; it always
@@ -201,7 +209,9 @@ class StemStretching:
         force_along = dot(n, f_list)
         if self.k_yield > 0.0:
             f_lp = self._low_passed_force(f_list, dt)
-            f_across = sub(f_lp, scale(dot(n, f_lp), n))
+            f_across, raw_across = sub(f_lp, scale(dot(n, f_lp), n)), sub(f_list, scale(force_along, n))
+            if norm(raw_across) > RAW_YIELD_FACTOR * self.yield_deadband:
+                f_across = raw_across  # a push far above the noise: yield without the filter's lag
             across = norm(f_across)
             if across > self.yield_deadband:
                 v_p = add(v_p, scale(-self.k_yield * (1.0 - self.yield_deadband / across), f_across))

@@ -44,12 +44,14 @@ def failure_class(row: Mapping[str, Any]) -> str:
     """Why a row failed, in issue 20's classes.
 
     * ``lab``: the episode did not run to its end (an exception, a dead or timed-out process);
-    * ``safety``: a torn stem, a true tension above 2 f_d, more than 50 ms of contact, or a force abort;
-    * ``target``: no grasp target (the crop level with or above the stem base), or one more than
+    * ``safety``: a torn stem, a true tension above 2 f_d, more than 50 ms of contact, a force abort
+      or a non-finite sensor reading;
+    * ``target``: no grasp target (the crop level with or above the stem base; or the switch
+      timeout after the switch test had passed), or one more than
       :data:`MAX_TARGET_ANGLE_DEG` off the true hanging stem or above the true stem base;
     * ``priority``: the bimanual phase ran but pre-cut was never reached (position or alignment
       never converged; the pre-cut timeout's abort names the tests that failed);
-    * ``perception``: no stem base found, or the stem lost;
+    * ``perception``: no stem base found (also at the switch timeout), or the stem lost;
     * ``camera``: pre-cut reached, only the camera arm's criteria failed (outside the ROI or not
       centred at the end), or the camera arm never met the switch test (the switch timeout);
     * ``other``: anything else (listed with its reason).
@@ -59,12 +61,15 @@ def failure_class(row: Mapping[str, Any]) -> str:
     f_d = float(row.get("f_d") or 3.0)
     reason = str(row.get("abort_reason") or "")
     tension = row.get("true_tension_max")
-    force_abort = "force" in reason and "above the limit" in reason  # (a pre-cut timeout names the force too)
+    # a force abort or a sensor fault (a pre-cut timeout names the force too, and is none)
+    force_abort = ("force" in reason and "above the limit" in reason) or reason.startswith("non-finite")
     if (row.get("stem_torn") or (tension is not None and float(tension) > 2.0 * f_d)
             or int(row.get("contacts") or 0) > MAX_CONTACT_TICKS or force_abort):
         return "safety"
-    if "stem" in reason and ("not seen" in reason or "no stem base" in reason):
+    if "stem" in reason and ("not seen" in reason or "no stem base" in reason or "stem base not found" in reason):
         return "perception"
+    if reason.startswith("no switch within") and "no grasp target" in reason:
+        return "target"
     choice = str(row.get("p_gd_choice") or "")
     angle = row.get("target_angle_off_stem_deg")
     if (choice == CHOICE_NO_TARGET or row.get("target_above_stem_base")

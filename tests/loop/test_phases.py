@@ -109,6 +109,35 @@ def test_no_switch_within_the_switch_timeout_aborts_and_says_where_the_camera_is
                                     "(switch within 0.367 m), stem base found")
 
 
+def test_a_switch_timeout_after_the_switch_test_passed_blames_the_grasp_target(rules):
+    """The camera is ready (still, 0.3 m from the ROI centre) but the controller never switches (no
+    p_gd found): the reason says the test passed and when, not where the camera is.  A first pass on
+    the timeout's own tick is let through (p_gd not yet looked for).  Catches: "the camera is 0.300 m
+    ... (switch within 0.367 m)", which contradicts itself and was classed as a camera failure."""
+    machine = PhaseMachine(dataclasses.replace(rules, switch_timeout=2.0))
+    ready = _approach(machine, int(round(2.0 / DT)) - 1, lambda k: _pose())
+    assert any(ready) and machine.phase == Phase.APPROACH
+    machine.approach(2.0, _pose(), stem_base_found=True, roi_distance=0.3)
+    assert machine.phase == Phase.ABORT
+    assert machine.abort_reason == ("no switch within 2.0 s: the switch test passed (last at 2.0 s) but no grasp "
+                                    "target was found")
+    late = PhaseMachine(dataclasses.replace(rules, switch_timeout=0.502))
+    assert _approach(late, 251, lambda k: _pose())[-1]  # the first pass, on the timeout's tick: no abort
+    assert late.phase == Phase.APPROACH
+    late.approach(0.504, _pose(), stem_base_found=True, roi_distance=0.3)
+    assert late.phase == Phase.ABORT
+
+
+def test_a_non_finite_position_error_or_alignment_aborts(rules):
+    """Catches: NaN passing every comparison, so the pre-cut timeout would say "the tests never held
+    together" instead of naming the broken input."""
+    for error, alignment in ((math.nan, 0.0), (0.0, math.nan)):
+        machine = PhaseMachine(rules)
+        machine.switch(0.0)
+        machine.stretch(0.1, DT, 3.0, error, alignment, force_norm=3.0)
+        assert machine.phase == Phase.ABORT and machine.abort_reason.startswith("non-finite grasp state")
+
+
 def test_no_precut_within_the_precut_timeout_aborts_and_names_the_failing_tests(rules):
     """After the switch the force sits at f_d but a steady push across n_c holds the gripper 7 mm
     off the line by 12 mm (the tolerance here is 10 mm; the yield's equilibrium k_pg e = k_yield
@@ -125,6 +154,12 @@ def test_no_precut_within_the_precut_timeout_aborts_and_names_the_failing_tests(
     machine.stretch(4.0, DT, 3.0, 0.012, 0.0, force_norm=math.hypot(3.0, 1.0))
     assert machine.phase == Phase.ABORT and machine.t_abort == 4.0
     assert machine.abort_reason == "no pre-cut within 3.0 s of the switch: position error 12.0 mm (> 10.0 mm)"
+    slack = PhaseMachine(dataclasses.replace(rules, precut_timeout=1.0))
+    slack.switch(0.0)
+    for k in range(501):
+        slack.stretch(k * DT, DT, -0.4, 0.0, 0.0, force_norm=0.4)
+    assert slack.abort_reason == ("no pre-cut within 1.0 s of the switch: force along n_c -0.40 N (f_d 3.00 N +- "
+                                  "10 %), no pull along n_c (-0.40 N)")
     ok = PhaseMachine(dataclasses.replace(rules, precut_timeout=3.0))
     ok.switch(1.0)
     t = 1.0

@@ -46,6 +46,12 @@ def row(seed, **kw):
       "along n_c 2.51 N (f_d 3.00 N +- 10 %), position error 7.2 mm (> 5.0 mm)"}, False, "priority"),
     ({"success": False, "phase_reached": "abort", "abort_reason": "no switch within 40.0 s: the camera is 0.663 m "
       "from the ROI centre (switch within 0.368 m), stem base found"}, False, "camera"),
+    ({"success": False, "phase_reached": "abort", "abort_reason": "no switch within 40.0 s: the switch test passed "
+      "(last at 39.9 s) but no grasp target was found"}, False, "target"),
+    ({"success": False, "phase_reached": "abort", "abort_reason": "no switch within 20.0 s: the camera is 0.300 m "
+      "from the ROI centre (switch within 0.368 m), stem base not found"}, False, "perception"),
+    ({"success": False, "phase_reached": "abort", "abort_reason": "non-finite grasp state (force along n_c nan, "
+      "magnitude nan, crop side 0.07, position error 0.0, alignment 0.0)"}, False, "safety"),
     ({"success": False, "criteria.centred": False, "criteria.inside_roi": False, "criteria.aligned": True},
      False, "camera"),
     ({"success": False, "criteria.centred": False, "criteria.aligned": False}, False, "other"),
