@@ -43,8 +43,8 @@ def _f(default: Any, description: str) -> Any:
 class Episode(Section):
     """Length and end of one episode."""
 
-    duration: Positive = _f(50.0, "[s] episode length (the switch comes at ~5-12 s; the paper's force loop "
-                                  "needs ~20-30 s after it)")
+    duration: Positive = _f(50.0, "[s] episode length (the switch comes at ~6-15 s, pre-cut ~6-14 s after it; "
+                                  "the paper's force loop settles ~20 s after the switch)")
     end_after_precut: PositiveOrNull = _f(None, "[s] end this long after 'pre-cut reached' (null: run the full "
                                                 "duration)")
     stop_after_abort: NonNegative = _f(0.5, "[s] the episode ends this long after an abort's safe stop")
