@@ -142,6 +142,7 @@ def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper
         "qp_failures": int(phases.qp_failures),
         "qp_backup_solves": int(phases.backup_solves),
         "abort_reason": phases.abort_reason,
+        "abort_cause": phases.abort_cause,
         "p_gd_choice": getattr(controller, "target_choice", None),
         "estimated_stem_length": finite_or_none(st.stem_length),
         "realtime_factor": float(realtime_factor),

@@ -41,7 +41,16 @@ import numpy as np
 
 from harvest_qp.references import switch_ready
 
-__all__ = ["Phase", "PhaseMachine", "PhaseRules"]
+__all__ = ["ABORT_CAUSES", "Phase", "PhaseMachine", "PhaseRules"]
+
+#: Why the machine aborted, as a name that tools can match (the reason text is for people):
+#: ``force`` (along n_c, its magnitude or its part across n_c above a limit), ``non_finite``
+#: (a NaN grasp input), ``crop_side`` (the crop on the wrong side of p_sb), ``not_executed``
+#: (the gripper's motion), ``no_precut`` (the pre-cut timeout), ``no_stem_base``, ``stem_lost``,
+#: ``no_switch`` (the camera never met the switch test), ``no_grasp_target`` (it did, but no p_gd
+#: was found), ``qp_failures``, and ``external`` (:meth:`PhaseMachine.abort` called from outside).
+ABORT_CAUSES = ("force", "non_finite", "crop_side", "not_executed", "no_precut", "no_stem_base", "stem_lost",
+                "no_switch", "no_grasp_target", "qp_failures", "external")
 
 
 class Phase(IntEnum):
@@ -107,7 +116,8 @@ class PhaseMachine:
 
     Attributes:
         phase: the current :class:`Phase`.
-        abort_reason: why it aborted (``None`` before).
+        abort_reason: why it aborted, in words (``None`` before).
+        abort_cause: the same as one of :data:`ABORT_CAUSES` (``None`` before).
         t_switch, t_precut, t_abort, t_at_rest: when it switched, reached pre-cut, aborted,
             came to rest after the abort [s] (``None`` before).
         qp_failures: failed QP steps so far; backup_solves: steps the backup solver saved.
@@ -121,6 +131,7 @@ class PhaseMachine:
     def reset(self) -> None:
         self.phase = Phase.APPROACH
         self.abort_reason: str | None = None
+        self.abort_cause: str | None = None
         self.t_switch: float | None = None
         self.t_precut: float | None = None
         self.t_abort: float | None = None
@@ -139,10 +150,11 @@ class PhaseMachine:
         """In BIMANUAL or PRECUT (the grasping arm stretches the stem)."""
         return self.phase == Phase.BIMANUAL or self.phase == Phase.PRECUT
 
-    def abort(self, t: float, reason: str) -> None:
-        """Go to ABORT at ``t`` [s] (the first reason is kept)."""
+    def abort(self, t: float, reason: str, cause: str = "external") -> None:
+        """Go to ABORT at ``t`` [s] for ``reason`` (words) and ``cause`` (one of :data:`ABORT_CAUSES`);
+        the first abort's are kept."""
         if self.phase != Phase.ABORT:
-            self.phase, self.abort_reason, self.t_abort = Phase.ABORT, reason, t
+            self.phase, self.abort_reason, self.abort_cause, self.t_abort = Phase.ABORT, reason, cause, t
 
     # ------------------------------------------------------------------ approach
 
@@ -156,7 +168,7 @@ class PhaseMachine:
         """
         r = self.rules
         if not stem_base_found and t > r.no_stem_timeout:
-            self.abort(t, f"no stem base found within {r.no_stem_timeout} s")
+            self.abort(t, f"no stem base found within {r.no_stem_timeout} s", "no_stem_base")
             return False
         speeds = self._camera_speeds(t, camera_pose)
         ready = stem_base_found and speeds is not None and switch_ready(
@@ -169,11 +181,12 @@ class PhaseMachine:
             if self.switch_test_passed_at is not None:
                 # The camera was ready: the perception found no grasp target (p_sb or p_gd) there.
                 self.abort(t, f"no switch within {r.switch_timeout} s: the switch test passed (last at "
-                              f"{self.switch_test_passed_at:.1f} s) but no grasp target was found")
+                              f"{self.switch_test_passed_at:.1f} s) but no grasp target was found", "no_grasp_target")
             else:
                 self.abort(t, f"no switch within {r.switch_timeout} s: the camera is {roi_distance:.3f} m from the "
                               f"ROI centre (switch within {r.switch_distance_factor * r.radius:.3f} m), stem base "
-                              f"{'found' if stem_base_found else 'not found'}")
+                              f"{'found' if stem_base_found else 'not found'}",
+                           "no_switch" if stem_base_found else "no_stem_base")
             return False
         return ready
 
@@ -205,7 +218,7 @@ class PhaseMachine:
         """Abort when the stem was last seen more than ``stem_lost_timeout`` before ``t`` (after the switch)."""
         timeout = self.rules.stem_lost_timeout
         if self.bimanual and t - last_stem_time > timeout:
-            self.abort(t, f"stem not seen for {timeout} s in the bimanual phase")
+            self.abort(t, f"stem not seen for {timeout} s in the bimanual phase", "stem_lost")
 
     def stretch(self, t: float, dt: float, force_nc: float, position_error: float, alignment: float, *,
                 force_norm: float, motion_executed: bool | None = True, crop_side: float = math.inf) -> None:
@@ -230,11 +243,13 @@ class PhaseMachine:
         across n_c is not a stretched stem)."""
         r = self.rules
         if crop_side < 0.0:
-            self.abort(t, f"the crop is {-1000 * crop_side:.0f} mm on the wrong side of the stem base along n_c")
+            self.abort(t, f"the crop is {-1000 * crop_side:.0f} mm on the wrong side of the stem base along n_c",
+                       "crop_side")
             return
         if any(math.isnan(value) for value in (force_nc, force_norm, crop_side, position_error, alignment)):
             self.abort(t, f"non-finite grasp state (force along n_c {force_nc}, magnitude {force_norm}, "
-                          f"crop side {crop_side}, position error {position_error}, alignment {alignment})")
+                          f"crop side {crop_side}, position error {position_error}, alignment {alignment})",
+                       "non_finite")
             return
         if motion_executed:
             self.unexecuted_time = None
@@ -243,18 +258,19 @@ class PhaseMachine:
             self.unexecuted_time = 0.0 if self.unexecuted_time is None else self.unexecuted_time + dt
             if self.unexecuted_time >= r.unexecuted_timeout - 1e-9:
                 self.abort(t, f"the gripper's motion not executed for {r.unexecuted_timeout} s "
-                              "(obstacle rows or limits)")
+                              "(obstacle rows or limits)", "not_executed")
                 return
         if force_nc > r.force_limit:
-            self.abort(t, f"stem force {force_nc:.2f} N above the limit {r.force_limit:.2f} N")
+            self.abort(t, f"stem force {force_nc:.2f} N above the limit {r.force_limit:.2f} N", "force")
             return
         if force_norm > r.force_limit:
             self.abort(t, f"wrist force magnitude {force_norm:.2f} N above the limit {r.force_limit:.2f} N "
-                          f"({force_nc:.2f} N along n_c)")
+                          f"({force_nc:.2f} N along n_c)", "force")
             return
         across = math.sqrt(max(force_norm * force_norm - force_nc * force_nc, 0.0))
         if across > r.off_axis_force_limit:
-            self.abort(t, f"wrist force {across:.2f} N across n_c above the limit {r.off_axis_force_limit:.2f} N")
+            self.abort(t, f"wrist force {across:.2f} N across n_c above the limit {r.off_axis_force_limit:.2f} N",
+                       "force")
             return
         tau = r.force_time_constant
         if self.force_filtered is None or tau == 0:
@@ -273,7 +289,7 @@ class PhaseMachine:
             if (self.phase == Phase.BIMANUAL and self.t_switch is not None
                     and t - self.t_switch >= r.precut_timeout - 1e-9):
                 self.abort(t, f"no pre-cut within {r.precut_timeout} s of the switch: "
-                              + self._precut_misses(force_nc, along, position_error, alignment))
+                              + self._precut_misses(force_nc, along, position_error, alignment), "no_precut")
             return
         if self.precut_since is None:
             self.precut_since = t
@@ -306,7 +322,7 @@ class PhaseMachine:
         self.qp_failures += 1
         self.qp_failures_in_row += 1
         if self.qp_failures_in_row >= self.rules.max_qp_failures:
-            self.abort(t, f"{self.qp_failures_in_row} QP failures in a row ({status})")
+            self.abort(t, f"{self.qp_failures_in_row} QP failures in a row ({status})", "qp_failures")
 
     def braking(self, t: float, at_rest: bool) -> None:
         """An abort tick's safe stop; ``at_rest``: the commanded speeds are all zero."""

@@ -36,6 +36,13 @@ def grower_success(row: Mapping[str, Any]) -> bool:
             and int(row.get("contacts") or 0) <= MAX_CONTACT_TICKS)
 
 
+#: The class of each abort cause (``metrics.json`` ``abort_cause``, :data:`harvest_qp.harvest.phases.ABORT_CAUSES`);
+#: the others (the crop's side, QP failures, an external abort) are classed by the rest of the row.
+_CLASS_OF_ABORT_CAUSE = {
+    "force": "safety", "non_finite": "safety", "no_stem_base": "perception", "stem_lost": "perception",
+    "no_grasp_target": "target", "no_precut": "priority", "not_executed": "priority", "no_switch": "camera",
+}
+
 #: The camera arm's success criteria (``metrics.json`` ``criteria``).
 _CAMERA_CRITERIA = frozenset({"centred", "inside_roi"})
 
@@ -55,32 +62,29 @@ def failure_class(row: Mapping[str, Any]) -> str:
     * ``camera``: pre-cut reached, only the camera arm's criteria failed (outside the ROI or not
       centred at the end), or the camera arm never met the switch test (the switch timeout);
     * ``other``: anything else (listed with its reason).
+
+    Aborts are classed by the episode's ``abort_cause``, never by the words of its reason.
     """
     if row.get("status") != STATUS_OK:
         return "lab"
     f_d = float(row.get("f_d") or 3.0)
-    reason = str(row.get("abort_reason") or "")
     tension = row.get("true_tension_max")
-    # a force abort or a sensor fault (a pre-cut timeout names the force too, and is none)
-    force_abort = ("force" in reason and "above the limit" in reason) or reason.startswith("non-finite")
+    by_cause = _CLASS_OF_ABORT_CAUSE.get(str(row.get("abort_cause") or ""))
     if (row.get("stem_torn") or (tension is not None and float(tension) > 2.0 * f_d)
-            or int(row.get("contacts") or 0) > MAX_CONTACT_TICKS or force_abort):
+            or int(row.get("contacts") or 0) > MAX_CONTACT_TICKS or by_cause == "safety"):
         return "safety"
-    if "stem" in reason and ("not seen" in reason or "no stem base" in reason or "stem base not found" in reason):
-        return "perception"
-    if reason.startswith("no switch within") and "no grasp target" in reason:
-        return "target"
+    if by_cause in ("perception", "target"):
+        return by_cause
     choice = str(row.get("p_gd_choice") or "")
     angle = row.get("target_angle_off_stem_deg")
     if (choice == CHOICE_NO_TARGET or row.get("target_above_stem_base")
             or (angle is not None and float(angle) > MAX_TARGET_ANGLE_DEG)):
         return "target"
-    if row.get("phase_reached") == "bimanual" or reason.startswith(("no pre-cut within", "the gripper's motion")):
+    if row.get("phase_reached") == "bimanual" or by_cause == "priority":
         return "priority"
     failed = {key.removeprefix("criteria.") for key, value in row.items()
               if key.startswith("criteria.") and value is False}
-    if (row.get("phase_reached") == "precut" and failed and failed <= _CAMERA_CRITERIA) or \
-            reason.startswith("no switch within"):
+    if (row.get("phase_reached") == "precut" and failed and failed <= _CAMERA_CRITERIA) or by_cause == "camera":
         return "camera"
     return "other"
 

@@ -88,7 +88,7 @@ def test_no_stem_base_within_the_timeout_aborts(rules):
     assert machine.phase == Phase.APPROACH
     machine.approach(20.002, _pose(), stem_base_found=False, roi_distance=0.3)
     assert machine.phase == Phase.ABORT and machine.t_abort == 20.002
-    assert machine.abort_reason == "no stem base found within 20.0 s"
+    assert machine.abort_reason == "no stem base found within 20.0 s" and machine.abort_cause == "no_stem_base"
     machine.approach(20.004, _pose(), stem_base_found=True, roi_distance=0.3)
     assert machine.phase == Phase.ABORT and machine.t_abort == 20.002  # the first reason stays
 
@@ -107,6 +107,7 @@ def test_no_switch_within_the_switch_timeout_aborts_and_says_where_the_camera_is
     assert machine.phase == Phase.ABORT and machine.t_abort == 2.0
     assert machine.abort_reason == ("no switch within 2.0 s: the camera is 0.660 m from the ROI centre "
                                     "(switch within 0.367 m), stem base found")
+    assert machine.abort_cause == "no_switch"
 
 
 def test_a_switch_timeout_after_the_switch_test_passed_blames_the_grasp_target(rules):
@@ -121,6 +122,7 @@ def test_a_switch_timeout_after_the_switch_test_passed_blames_the_grasp_target(r
     assert machine.phase == Phase.ABORT
     assert machine.abort_reason == ("no switch within 2.0 s: the switch test passed (last at 2.0 s) but no grasp "
                                     "target was found")
+    assert machine.abort_cause == "no_grasp_target"
     late = PhaseMachine(dataclasses.replace(rules, switch_timeout=0.502))
     assert _approach(late, 251, lambda k: _pose())[-1]  # the first pass, on the timeout's tick: no abort
     assert late.phase == Phase.APPROACH
@@ -136,6 +138,7 @@ def test_a_non_finite_position_error_or_alignment_aborts(rules):
         machine.switch(0.0)
         machine.stretch(0.1, DT, 3.0, error, alignment, force_norm=3.0)
         assert machine.phase == Phase.ABORT and machine.abort_reason.startswith("non-finite grasp state")
+        assert machine.abort_cause == "non_finite"
 
 
 def test_no_precut_within_the_precut_timeout_aborts_and_names_the_failing_tests(rules):
@@ -154,6 +157,7 @@ def test_no_precut_within_the_precut_timeout_aborts_and_names_the_failing_tests(
     machine.stretch(4.0, DT, 3.0, 0.012, 0.0, force_norm=math.hypot(3.0, 1.0))
     assert machine.phase == Phase.ABORT and machine.t_abort == 4.0
     assert machine.abort_reason == "no pre-cut within 3.0 s of the switch: position error 12.0 mm (> 10.0 mm)"
+    assert machine.abort_cause == "no_precut"
     slack = PhaseMachine(dataclasses.replace(rules, precut_timeout=1.0))
     slack.switch(0.0)
     for k in range(501):
@@ -187,6 +191,7 @@ def test_force_above_the_limit_aborts(rules):
     assert machine.phase == Phase.BIMANUAL
     machine.stretch(0.102, DT, 6.01, 0.0, 0.0, force_norm=6.01)
     assert machine.phase == Phase.ABORT and machine.abort_reason == "stem force 6.01 N above the limit 6.00 N"
+    assert machine.abort_cause == "force"
 
 
 @pytest.mark.parametrize(("along", "norm", "reason"), [
@@ -202,6 +207,7 @@ def test_the_wrist_force_aborts_off_n_c_too(rules, along, norm, reason):
     machine.switch(0.0)
     machine.stretch(0.1, DT, along, 0.0, 0.0, force_norm=norm)
     assert machine.phase == Phase.ABORT and machine.abort_reason == reason
+    assert machine.abort_cause == "force"
 
 
 def test_motion_not_executed_for_the_timeout_aborts_with_a_reason(rules):

@@ -31,9 +31,11 @@ def row(seed, **kw):
     ({"true_tension_max": 6.5}, False, "safety"),
     ({"contacts": 26}, False, "safety"),
     ({"contacts": 25}, True, None),
-    ({"success": False, "abort_reason": "stem force 6.10 N above the limit 6.00 N", "phase_reached": "abort"},
+    ({"success": False, "abort_reason": "stem force 6.10 N above the limit 6.00 N", "abort_cause": "force",
+      "phase_reached": "abort"},
      False, "safety"),
-    ({"success": False, "abort_reason": "no stem base found within 30 s", "phase_reached": "abort"},
+    ({"success": False, "abort_reason": "no stem base found within 30 s", "abort_cause": "no_stem_base",
+      "phase_reached": "abort"},
      False, "perception"),
     ({"success": False, "p_gd_choice": CHOICE_NO_TARGET, "phase_reached": "approach"}, False, "target"),
     ({"success": False, "p_gd_choice": CHOICE_ALONG_STEM, "phase_reached": "bimanual"}, False, "priority"),
@@ -43,15 +45,19 @@ def row(seed, **kw):
     ({"status": "error", "success": None}, False, "lab"),
     # the phase timeouts: a pre-cut timeout names the force too, yet it is no force abort
     ({"success": False, "phase_reached": "abort", "abort_reason": "no pre-cut within 30.0 s of the switch: force "
-      "along n_c 2.51 N (f_d 3.00 N +- 10 %), position error 7.2 mm (> 5.0 mm)"}, False, "priority"),
+      "along n_c 2.51 N (f_d 3.00 N +- 10 %), position error 7.2 mm (> 5.0 mm)",
+      "abort_cause": "no_precut"}, False, "priority"),
     ({"success": False, "phase_reached": "abort", "abort_reason": "no switch within 40.0 s: the camera is 0.663 m "
-      "from the ROI centre (switch within 0.368 m), stem base found"}, False, "camera"),
+      "from the ROI centre (switch within 0.368 m), stem base found", "abort_cause": "no_switch"}, False, "camera"),
     ({"success": False, "phase_reached": "abort", "abort_reason": "no switch within 40.0 s: the switch test passed "
-      "(last at 39.9 s) but no grasp target was found"}, False, "target"),
+      "(last at 39.9 s) but no grasp target was found",
+      "abort_cause": "no_grasp_target"}, False, "target"),
     ({"success": False, "phase_reached": "abort", "abort_reason": "no switch within 20.0 s: the camera is 0.300 m "
-      "from the ROI centre (switch within 0.368 m), stem base not found"}, False, "perception"),
+      "from the ROI centre (switch within 0.368 m), stem base not found",
+      "abort_cause": "no_stem_base"}, False, "perception"),
     ({"success": False, "phase_reached": "abort", "abort_reason": "non-finite grasp state (force along n_c nan, "
-      "magnitude nan, crop side 0.07, position error 0.0, alignment 0.0)"}, False, "safety"),
+      "magnitude nan, crop side 0.07, position error 0.0, alignment 0.0)",
+      "abort_cause": "non_finite"}, False, "safety"),
     ({"success": False, "criteria.centred": False, "criteria.inside_roi": False, "criteria.aligned": True},
      False, "camera"),
     ({"success": False, "criteria.centred": False, "criteria.aligned": False}, False, "other"),
@@ -61,6 +67,16 @@ def test_each_row_is_judged_and_classed(kw, grower, cls):
     assert grower_success(r) is grower
     if cls is not None:
         assert failure_class(r) == cls
+
+
+def test_aborts_are_classed_by_their_cause_not_by_the_words_of_their_reason():
+    """A pre-cut timeout's reason names the force and "above" a tolerance; classed by text it read as a
+    force abort (safety). Catches: classing on substrings of the reason."""
+    r = row(1, success=False, phase_reached="abort", abort_cause="no_precut",
+            abort_reason="no pre-cut within 30.0 s of the switch: force along n_c above the limit")
+    assert failure_class(r) == "priority"
+    assert failure_class(row(2, success=False, phase_reached="abort", abort_cause="force",
+                             abort_reason="anything")) == "safety"
 
 
 def test_summary_counts_the_growers_success_and_its_interval():
