@@ -18,7 +18,7 @@ import pinocchio as pin
 
 from harvest_qp.exceptions import InvalidInputError, ModelError, UnknownFrameError
 from harvest_qp.qp_kernels import all_finite
-from harvest_qp.validation import as_scalar, as_vector, describe
+from harvest_qp.validation import as_rigid_transform, as_scalar, as_vector, describe
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _FLOAT64 = np.dtype(np.float64)
@@ -58,12 +58,21 @@ class Configuration:
         return cls(pin.buildModelFromUrdf(str(path)), q)
 
     @classmethod
-    def dual_ur5e(cls, q: np.ndarray | Sequence[float] | None = None) -> Configuration:
-        """The shipped dual-UR5e harvester, at ``q`` [rad] or at the home configuration."""
+    def dual_ur5e(cls, q: np.ndarray | Sequence[float] | None = None, *,
+                  camera_in_flange: np.ndarray | Sequence[Sequence[float]] | None = None) -> Configuration:
+        """The shipped dual-UR5e harvester, at ``q`` [rad] or at the home configuration.
+
+        ``camera_in_flange``: the camera optical frame in the camera arm's flange ``cam_flange``
+        (4x4, [m]), e.g. a real cell's hand-eye calibration; None keeps the robot description's mount.
+        The ``camera`` frame then is where the calibrated camera is (:meth:`place_frame`).
+        """
         from harvest_qp.robot.description import HOME_Q
         from harvest_qp.robot.paths import urdf_path
 
-        return cls.from_urdf(urdf_path(), HOME_Q if q is None else q)
+        configuration = cls.from_urdf(urdf_path(), HOME_Q if q is None else q)
+        if camera_in_flange is not None:
+            configuration.place_frame("camera", "cam_flange", camera_in_flange)
+        return configuration
 
     # ------------------------------------------------------------------ state
     @property
@@ -157,6 +166,29 @@ class Configuration:
         if not isinstance(name, str) or name not in self._joint_ids:
             raise UnknownFrameError(f"unknown joint {name!r}; valid joints are: {', '.join(self.joint_names)}")
         return self.model.joints[self._joint_ids[name]].idx_q
+
+    def place_frame(self, name: str, parent: str, pose: np.ndarray | Sequence[Sequence[float]]) -> None:
+        """Move frame ``name`` so that its pose in frame ``parent`` is ``pose`` (4x4 rigid, [m]).
+
+        Both frames must be carried by the same joint (e.g. a tool frame and the flange it is
+        mounted on). Tasks keep working on the moved frame; the kinematics are recomputed.
+
+        Raises:
+            UnknownFrameError: an unknown frame name.
+            InvalidInputError: ``pose`` is not a finite rigid 4x4 transform, or the frames are
+                carried by different joints.
+        """
+        frame_id, parent_id = self.frame_id(name), self.frame_id(parent)
+        T = as_rigid_transform(pose, f"place_frame {name!r} pose")
+        frame, parent_frame = self.model.frames[frame_id], self.model.frames[parent_id]
+        if frame.parentJoint != parent_frame.parentJoint:
+            raise InvalidInputError(
+                f"place_frame: {name!r} and {parent!r} are carried by different joints "
+                f"({self.model.names[frame.parentJoint]!r}, {self.model.names[parent_frame.parentJoint]!r})"
+            )
+        frame.placement = parent_frame.placement * pin.SE3(T[:3, :3], T[:3, 3])
+        self.model.frames[frame_id] = frame  # (pinocchio hands out a copy of the frame)
+        self._set_q(self._q)
 
     def frame_pose(self, name: str) -> pin.SE3:
         """World pose of frame ``name`` (position [m], rotation); a copy, not a live view."""

@@ -175,6 +175,15 @@ def as_rotation(value: np.ndarray | Sequence[Sequence[float]], name: str) -> np.
     return R
 
 
+def as_rigid_transform(value: np.ndarray | Sequence[Sequence[float]], name: str) -> np.ndarray:
+    """A 4x4 rigid transform (rotation per :func:`as_rotation`, last row 0 0 0 1), finite [m]; a copy."""
+    T = as_matrix(value, (4, 4), name)
+    as_rotation(T[:3, :3], f"{name} rotation")
+    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InvalidInputError(f"{name} must end with the row 0 0 0 1, got {T[3].tolist()}")
+    return T
+
+
 def as_name(value: str, name: str) -> str:
     """A non-empty string (a frame or joint name)."""
     if not isinstance(value, str) or not value:

@@ -173,15 +173,18 @@ class HarvestController:
         environment: static capsules of the scene known to the controller (``qp.environment``).
         mapper: ``"qp"`` (the QP of this library) or ``"pinv"`` (the paper's
             ``eq:controlled_system`` on the same references); default from the settings.
+        camera_in_flange: where the camera really is on the camera arm's flange (4x4 [m], a real
+            cell's hand-eye calibration); the camera task and the reference laws then use that
+            frame, the one the cloud is expressed with. None: the robot description's mount.
     """
 
-    def __init__(self, settings: EpisodeConfig | Mapping[str, Any], *, environment=(), mapper: str | None = None
-                 ) -> None:
+    def __init__(self, settings: EpisodeConfig | Mapping[str, Any], *, environment=(), mapper: str | None = None,
+                 camera_in_flange: np.ndarray | None = None) -> None:
         self.settings = s = check_settings(settings)
         self.mapper_kind = mapper or s.mapper.kind
         if self.mapper_kind not in ("qp", "pinv"):
             raise ConfigError(f"mapper must be 'qp' or 'pinv'; got {self.mapper_kind!r}")
-        self.configuration = Configuration.dual_ur5e()
+        self.configuration = Configuration.dual_ur5e(camera_in_flange=camera_in_flange)
         qp = s.qp
         self.camera_task = FrameTwistTask(
             "camera", weight=qp.camera_task.weight, weight_frame="local", level=qp.camera_task.level

@@ -28,9 +28,11 @@ from typing import Any
 
 import numpy as np
 import yaml
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
+from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.real.errors import CalibrationError, missing_package
+from harvest_qp.validation import as_rigid_transform
 
 __all__ = [
     "Board",
@@ -44,6 +46,8 @@ __all__ = [
     "calibrate_folder",
     "flange_poses",
     "pose_error",
+    "check_hand_eye",
+    "MAX_HAND_EYE_DISTANCE",
 ]
 
 FORMAT = "harvest_qp calibration 1"
@@ -74,6 +78,29 @@ def pose_error(A: NDArray, B: NDArray) -> tuple[float, float]:
     dR = A[:3, :3].T @ B[:3, :3]
     angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)))
     return float(np.linalg.norm(A[:3, 3] - B[:3, 3])), float(angle)
+
+
+#: Farthest a camera on the camera arm's flange can sit from it [m] (the description's is 0.08 m away).
+MAX_HAND_EYE_DISTANCE = 0.5
+
+
+def check_hand_eye(hand_eye: ArrayLike) -> NDArray[np.float64]:
+    """``hand_eye`` as a rigid 4x4 transform within :data:`MAX_HAND_EYE_DISTANCE` of the flange.
+
+    Raises:
+        CalibrationError: not a finite rigid transform, or a camera farther from the flange than
+            any mount could put it (e.g. millimetres written as metres).
+    """
+    try:
+        T = as_rigid_transform(hand_eye, "hand_eye")
+    except InvalidInputError as err:
+        raise CalibrationError(str(err)) from None
+    distance = float(np.linalg.norm(T[:3, 3]))
+    if distance > MAX_HAND_EYE_DISTANCE:
+        raise CalibrationError(
+            f"hand_eye puts the camera {distance:.3g} m from the flange (translation {T[:3, 3].tolist()}); a camera "
+            f"on the flange is within {MAX_HAND_EYE_DISTANCE} m: check the calibration's units [m]")
+    return T
 
 
 @dataclass(frozen=True)
@@ -144,7 +171,7 @@ class Calibration:
             ):
                 raise CalibrationError(f"calibration {name} is not a rigid transform (rotation not orthonormal "
                                        f"or last row not 0 0 0 1): {T.tolist()}")
-            setattr(self, name, T)
+            setattr(self, name, check_hand_eye(T) if name == "hand_eye" else T)
 
     def base_discrepancy(self) -> tuple[float, float] | None:
         """(position [m], angle [deg]) between the calibrated and the described grasping-arm base

@@ -35,12 +35,16 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
     group.add_argument("--dry-run", action="store_true",
                        help="with --robot ur: connect, read and print the state (joints, force, one cloud, the "
                        "calibration); moves nothing")
+    group.add_argument("--no-warmup", action="store_true",
+                       help="with --robot ur: skip running the lab episode first (it loads the compiled kernels, "
+                       "whose first calls would otherwise come mid-episode and trip the watchdog)")
 
 
 def check_sim_run(args: argparse.Namespace) -> None:
     """The real-robot options are errors on the lab (``--robot sim``), not silently ignored."""
     given = [name for name, value in (("--camera-arm", args.camera_arm), ("--grasp-arm", args.grasp_arm),
-                                      ("--serial", args.serial), ("--cell", args.cell), ("--dry-run", args.dry_run))
+                                      ("--serial", args.serial), ("--cell", args.cell), ("--dry-run", args.dry_run),
+                                      ("--no-warmup", getattr(args, "no_warmup", False)))
              if value]
     if given:
         raise HarvestQPError(f"{', '.join(given)} only apply with --robot ur (the lab is --robot sim, the default)")
@@ -60,7 +64,8 @@ def run_ur(args: argparse.Namespace, **test_hooks: Any) -> int:
     result = run_real(args.config, camera_arm=args.camera_arm, grasp_arm=args.grasp_arm,
                       camera=None if args.camera == "none" else args.camera, serial=args.serial, cell_path=args.cell,
                       dry_run=args.dry_run, out=args.out, duration=args.duration, overrides=args.overrides,
-                      mapper=args.mapper, figures=not args.no_figures, **test_hooks)
+                      mapper=args.mapper, figures=not args.no_figures,
+                      **{"warmup": not getattr(args, "no_warmup", False), **test_hooks})
     if args.dry_run:
         print(f"harvest_qp dry run (nothing moved): camera arm {args.camera_arm}, grasping arm {args.grasp_arm}")
         for key, value in result.items():

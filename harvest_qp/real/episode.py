@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import signal
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -26,7 +27,7 @@ from harvest_qp.real.cell import CellConfig, load_cell
 from harvest_qp.real.errors import CalibrationError
 from harvest_qp.runtime.interface import ROBOT, STEM
 
-__all__ = ["run_real_episode", "real_metrics", "dry_run_report", "open_real_robot", "run_real"]
+__all__ = ["run_real_episode", "real_metrics", "dry_run_report", "open_real_robot", "run_real", "warm_up"]
 
 
 def _check_settings(settings: EpisodeConfig) -> None:
@@ -62,11 +63,37 @@ def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
 
 
 
+def warm_up(settings: EpisodeConfig, *, seed: int = 0, max_duration: float = 30.0) -> float:
+    """Run the lab's paper episode on ``settings`` (headless, no figures, discarded) so that every
+    compiled kernel the controller calls is loaded in this process before the arms move; returns
+    the wall time it took [s].
+
+    numba loads a kernel from its on-disk cache at the kernel's first call in each process
+    (measured: 50-170 ms for the stem fit's or the grasp target's kernels on a warm cache, 8 s on a
+    cold one), and the first calls come mid-episode: the first stem fit, the switch. Inside the
+    control loop, with the arms moving, a cycle that long stops them (``watchdog.max_cycle_periods``,
+    20 ms). The lab episode (approach, switch, stretch, pre-cut) makes those first calls here instead.
+    """
+    import tempfile
+
+    from harvest_qp.sim.paper_episode import run_paper_episode
+
+    wall0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="harvest_qp_warm_up_") as out:
+        run_paper_episode(settings, seed=seed, duration=min(float(settings.episode.duration), max_duration),
+                          out_dir=out, figures=False)
+    return time.perf_counter() - wall0
+
+
 def run_real_episode(settings: EpisodeConfig, robot, *, mapper: str | None = None, duration: float | None = None,
                      out_dir: str | Path = "runs/real", config_name: str = "paper", figures: bool = True,
                      metadata: dict | None = None) -> dict[str, Any]:
     """Run the paper episode on ``robot`` (any RobotInterface without ground truth); write the
-    log, ``metrics.json`` and the figures to ``out_dir``; return the metrics."""
+    log, ``metrics.json`` and the figures to ``out_dir``; return the metrics.
+
+    A robot with a ``hand_eye`` (:class:`~harvest_qp.real.ur_rtde_robot.DualUR5eRobot`: the calibrated
+    camera in the flange, the frame its clouds are expressed with) hands it to the controller, whose
+    camera task and reference laws then use the same camera frame."""
     from harvest_qp.harvest.harvest_controller import HarvestController, Phase
     from harvest_qp.runtime.runner import run_episode, write_npz
 
@@ -75,7 +102,8 @@ def run_real_episode(settings: EpisodeConfig, robot, *, mapper: str | None = Non
     duration = float(duration if duration is not None else settings.episode.duration)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    controller = HarvestController(settings, environment=(), mapper=mapper)
+    controller = HarvestController(settings, environment=(), mapper=mapper,
+                                   camera_in_flange=getattr(robot, "hand_eye", None))
     wall0 = time.perf_counter()
     result = run_episode(
         robot, controller, duration=duration, log_timing=True,
@@ -106,7 +134,7 @@ def dry_run_report(robot, calibration: Calibration | None, calibration_path: Pat
         "grasping arm joints [rad]": np.round(q[6:], 4).tolist(),
         "joint speeds max [rad/s]": float(np.abs(robot.joint_velocities()).max()),
         "wrist force, world, untared [N]": np.round(force, 3).tolist(),
-        "calibration": str(calibration_path) if calibration_path else "none (identity hand-eye)",
+        "calibration": str(calibration_path) if calibration_path else "none (the robot description's camera mount)",
     }
     if calibration is not None:
         he = calibration.hand_eye
@@ -167,8 +195,11 @@ def run_real(config: Path, *, camera_arm: str, grasp_arm: str, camera: str | Non
              serial: str | None = None, cell_path: Path | None = None, dry_run: bool = False,
              out: Path | None = None, duration: float | None = None, overrides: list[str] | None = None,
              mapper: str | None = None, figures: bool = True, rtde: Any = None, camera_source: Any = None,
-             clock: Callable[[], float] | None = None) -> dict[str, Any]:
-    """What the command line runs for ``--robot ur``: the dry run's report or the episode's metrics."""
+             clock: Callable[[], float] | None = None, warmup: bool = True) -> dict[str, Any]:
+    """What the command line runs for ``--robot ur``: the dry run's report or the episode's metrics.
+
+    Before an episode (not a dry run) and before connecting, :func:`warm_up` runs the lab episode on
+    the same settings (``warmup=False``: skipped, e.g. when this process already ran it)."""
     from harvest_qp.config.settings import load_settings
 
     if camera is None and camera_source is None and not dry_run:
@@ -188,6 +219,10 @@ def run_real(config: Path, *, camera_arm: str, grasp_arm: str, camera: str | Non
             f"the calibrated grasping-arm base is {1e3 * discrepancy[0]:.1f} mm / {discrepancy[1]:.2f} deg from the "
             f"robot description's (limit {1e3 * cell.max_base_discrepancy[0]:.0f} mm / "
             f"{cell.max_base_discrepancy[1]:g} deg): update MOUNTS in harvest_qp/robot/description.py or re-calibrate")
+    if warmup and not dry_run:
+        print("harvest-qp: loading the controller's compiled kernels on the lab episode before the arms move "
+              "(--no-warmup skips it)", file=sys.stderr)
+        print(f"harvest-qp: warm-up done in {warm_up(settings):.1f} s", file=sys.stderr)
     previous = signal.getsignal(signal.SIGTERM)
 
     def on_term(signum, frame):

@@ -35,10 +35,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.real.calibration import check_hand_eye
 from harvest_qp.real.cell import CellConfig
 from harvest_qp.real.errors import CameraError, RobotConnectionError, WatchdogError, missing_package
 from harvest_qp.real.watchdog import Watchdog
-from harvest_qp.robot.description import CAMERA_ARM, GRASP_ARM, joint_names, mount_transform
+from harvest_qp.robot.description import CAMERA_ARM, GRASP_ARM, camera_mount, joint_names, mount_transform
 from harvest_qp.runtime.interface import N_JOINTS, PointCloud, RobotInterface
 
 __all__ = ["DualUR5eRobot", "CloudSource", "tool_wrench", "RTDE_PORT", "GRAVITY"]
@@ -174,7 +175,10 @@ class DualUR5eRobot(RobotInterface):
     Args:
         camera_arm, grasp_arm: the arms' IP addresses.
         cell: the cell file's settings (:func:`harvest_qp.real.cell.load_cell`).
-        hand_eye: the camera optical frame in the camera arm's flange (4x4, from the calibration).
+        hand_eye: the camera optical frame in the camera arm's flange (4x4 [m], from the calibration;
+            None: the robot description's mount, :func:`~harvest_qp.robot.description.camera_mount`).
+            The clouds are expressed with it, and :func:`~harvest_qp.real.episode.run_real_episode`
+            hands it to the controller, whose camera task then drives the same frame.
         camera: where :meth:`camera_cloud` gets its clouds (None: no camera).
         rtde: a module-like object with ``RTDEControlInterface`` and ``RTDEReceiveInterface``
             (default: ur-rtde's ``rtde_control``/``rtde_receive``); tests pass a stand-in.
@@ -200,9 +204,7 @@ class DualUR5eRobot(RobotInterface):
                 if probe_timeout is not None:
                     _probe(host, role, probe_timeout)
         self.clock = clock
-        self.hand_eye = np.eye(4) if hand_eye is None else np.asarray(hand_eye, float)
-        if self.hand_eye.shape != (4, 4):
-            raise InvalidInputError(f"hand_eye must be a 4x4 transform, got shape {self.hand_eye.shape}")
+        self.hand_eye = camera_mount() if hand_eye is None else check_hand_eye(hand_eye)
         self._configuration = Configuration.dual_ur5e()
         self._camera_configuration = Configuration.dual_ur5e()  # used by the camera's thread only
         self._camera_lock = threading.Lock()

@@ -48,7 +48,8 @@ class WatchdogConfig:
         max_joint_speed: joint speed limit of a command [rad/s] (the QP's own limit is 1.0).
         max_joint_acceleration: limit of the change of a joint's command per period [rad/s^2].
         position_margin: keep this far inside the joint position limits [rad].
-        stop_acceleration: deceleration of every stop (``speedStop``) [rad/s^2].
+        stop_acceleration: deceleration of every stop (``speedStop``) [rad/s^2], at most
+            ``max_joint_acceleration``.
         camera_timeout: longest time [s] without a new camera frame while the arms move (a camera that
             stops delivering, a USB stall, with no error): the arms stop.
     """
@@ -71,6 +72,10 @@ class WatchdogConfig:
                 raise ConfigError(f"watchdog.{name} must be a number > 0, got {value!r}")
         if self.max_cycle_periods < 1:
             raise ConfigError(f"watchdog.max_cycle_periods must be >= 1, got {self.max_cycle_periods!r}")
+        if self.stop_acceleration > self.max_joint_acceleration:
+            # a stop is a command too: braking harder than the cell allows any command to change
+            raise ConfigError(f"watchdog.stop_acceleration ({self.stop_acceleration!r} rad/s^2) must not exceed "
+                              f"watchdog.max_joint_acceleration ({self.max_joint_acceleration!r} rad/s^2)")
         m = self.position_margin
         if isinstance(m, bool) or not isinstance(m, (int, float)) or not np.isfinite(m) or m < 0:
             raise ConfigError(f"watchdog.position_margin must be a number >= 0 [rad], got {m!r}")

@@ -113,6 +113,15 @@ TOOLS = {CAMERA_ARM: CAMERA_TOOL, GRASP_ARM: GRASP_TOOL}
 HOME_Q = np.array([0.311, -1.613, 2.576, -4.104, -1.882, 0.0, 0.359, -1.317, 2.288, -4.112, -1.93, 0.0])
 
 
+def camera_mount() -> np.ndarray:
+    """The description's camera optical frame in the camera arm's flange ``cam_flange`` (4x4, [m]):
+    what a hand-eye calibration replaces."""
+    frame = next(f for f in CAMERA_TOOL.frames if f.name == "camera")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = np.asarray(frame.rotation, float), frame.position
+    return T
+
+
 def joint_names() -> list[str]:
     """All 12 actuated joint names, camera arm first (the paper's q = [q_c; q_g])."""
     return [p + j for p in ARM_PREFIXES for j in ur5e.JOINT_NAMES]

@@ -35,7 +35,8 @@ def scene_lab():
 
 def _hooks(lab) -> tuple[LabCell, dict]:
     cell = LabCell(lab, (CAMERA_HOST, GRASP_HOST))
-    return cell, {"rtde": cell, "camera_source": LabCamera(lab), "clock": cell.clock}
+    # warmup=False: this process has run lab episodes already (test_warm_up.py checks the warm-up itself)
+    return cell, {"rtde": cell, "camera_source": LabCamera(lab), "clock": cell.clock, "warmup": False}
 
 
 def _closed_both(cell: LabCell) -> bool:

@@ -1,0 +1,68 @@
+"""The real episode loads no compiled kernel inside its control loop after ``warm_up``.
+
+numba loads each kernel from its on-disk cache at the kernel's first call in a process (50-170 ms
+a batch on a warm cache, seconds on a cold one). Without the warm-up those first calls came in the
+real episode's control loop, mid-approach and at the switch, while the arms moved: cycles far
+beyond the watchdog's 20 ms, which stop the arms. Oracle: numba's own record of the signatures
+each dispatcher has loaded, in a fresh interpreter (this process has run lab episodes already).
+
+Bug it catches (planted once: ``warm=False`` below): the real episode then loads the stem fit's,
+the map's, the collision rows' and the grasp target's kernels (29 dispatchers) inside the loop.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+SCRIPT = r"""
+import json, sys, tempfile
+from numba.core.registry import CPUDispatcher
+from harvest_qp.config.settings import load_settings
+from harvest_qp.real.episode import run_real, warm_up
+from harvest_qp.sim.paper_episode import build_robot
+from tests.real.conftest import CAMERA_HOST, GRASP_HOST
+from tests.real.standin import LabCamera, LabCell
+from tests.real.test_episode import OVERRIDES, PAPER
+
+def loaded():
+    counts = {}
+    for name, module in list(sys.modules.items()):
+        if name.startswith("harvest_qp"):
+            for obj in list(vars(module).values()):
+                if isinstance(obj, CPUDispatcher):
+                    counts[f"{obj.py_func.__module__}.{obj.py_func.__qualname__}"] = len(obj.signatures)
+    return counts
+
+settings = load_settings(PAPER, OVERRIDES)
+if WARM:
+    warm_up(settings)
+lab = build_robot(settings, 0)
+cell = LabCell(lab, (CAMERA_HOST, GRASP_HOST))
+before = loaded()
+with tempfile.TemporaryDirectory() as out:
+    metrics = run_real(PAPER, camera_arm=CAMERA_HOST, grasp_arm=GRASP_HOST, overrides=OVERRIDES, out=out,
+                       figures=False, rtde=cell, camera_source=LabCamera(lab), clock=cell.clock, warmup=False)
+after = loaded()
+print(json.dumps({"phase": metrics["phase_reached"],
+                  "new": sorted(k for k, n in after.items() if n > before.get(k, 0))}))
+"""
+
+
+def _run(warm: bool) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "NUMBA_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", f"WARM = {warm}\n" + SCRIPT], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_after_the_warm_up_the_real_episode_loads_no_kernel_in_its_loop():
+    result = _run(warm=True)
+    assert result["phase"] == "precut"  # the episode went through the switch and the stretch
+    assert result["new"] == [], f"kernels first called inside the real episode: {result['new']}"
