@@ -73,15 +73,30 @@ def warm_up(settings: EpisodeConfig, *, seed: int = 0, max_duration: float = 30.
     cold one), and the first calls come mid-episode: the first stem fit, the switch. Inside the
     control loop, with the arms moving, a cycle that long stops them (``watchdog.max_cycle_periods``,
     20 ms). The lab episode (approach, switch, stretch, pre-cut) makes those first calls here instead.
+    The QP backends a failed step falls back on are imported and solve once too (proxsuite's import
+    alone takes ~140 ms, at whichever tick daqp and quadprog first fail).
     """
     import tempfile
 
+    from harvest_qp.backends import make_backend
+    from harvest_qp.exceptions import SolverNotAvailableError
     from harvest_qp.sim.paper_episode import run_paper_episode
+    from harvest_qp.solver import DEFAULT_FALLBACK_BACKENDS, QPProblem
 
     wall0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="harvest_qp_warm_up_") as out:
         run_paper_episode(settings, seed=seed, duration=min(float(settings.episode.duration), max_duration),
                           out_dir=out, figures=False)
+    n = 12
+    problem = QPProblem(H=np.eye(n), f=-np.ones(n), lower=-np.ones(n), upper=np.ones(n), A=np.zeros((0, n)),
+                        b=np.zeros(0), G=np.eye(1, n), h=np.full(1, 0.5))
+    for name in dict.fromkeys([settings.qp.solver, settings.qp.backup_solver, *DEFAULT_FALLBACK_BACKENDS]):
+        if name is None:
+            continue
+        try:
+            make_backend(name).solve(problem)
+        except SolverNotAvailableError:  # not installed: the solver skips it at run time too
+            continue
     return time.perf_counter() - wall0
 
 

@@ -7,7 +7,8 @@ beyond the watchdog's 20 ms, which stop the arms. Oracle: numba's own record of 
 each dispatcher has loaded, in a fresh interpreter (this process has run lab episodes already).
 
 Bug it catches (planted once: ``warm=False`` below): the real episode then loads the stem fit's,
-the map's, the collision rows' and the grasp target's kernels (29 dispatchers) inside the loop.
+the map's, the collision rows' and the grasp target's kernels (29 dispatchers) inside the loop; with
+the fallback backends left out of the warm-up, the step that reaches proxsuite imports it.
 """
 
 from __future__ import annotations
@@ -49,8 +50,33 @@ with tempfile.TemporaryDirectory() as out:
     metrics = run_real(PAPER, camera_arm=CAMERA_HOST, grasp_arm=GRASP_HOST, overrides=OVERRIDES, out=out,
                        figures=False, rtde=cell, camera_source=LabCamera(lab), clock=cell.clock, warmup=False)
 after = loaded()
+
+# A step whose daqp and quadprog both fail: the solver's last fallback (proxsuite) answers.
+import numpy as np
+from harvest_qp import Configuration
+from harvest_qp.backends import make_backend
+from harvest_qp.backends.base import SolverCyclingError
+from harvest_qp.limits import JointVelocityLimit
+from harvest_qp.solver import Solver
+from harvest_qp.tasks import DampingTask, FrameTwistTask
+
+class Failing:
+    def __init__(self, name):
+        self.name = name
+    def solve(self, problem):
+        raise SolverCyclingError("planted", problem=problem, backend=self.name)
+
+configuration = Configuration.dual_ur5e()
+task = FrameTwistTask("camera")
+task.set_reference(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))
+solver = Solver(backend_factory=lambda name, level: Failing(name) if name in ("daqp", "quadprog")
+                else make_backend(name))
+modules = set(sys.modules)
+solution = solver.solve(configuration, [task, DampingTask(12)], [JointVelocityLimit(configuration)], 0.002)
 print(json.dumps({"phase": metrics["phase_reached"],
-                  "new": sorted(k for k, n in after.items() if n > before.get(k, 0))}))
+                  "new": sorted(k for k, n in after.items() if n > before.get(k, 0)),
+                  "fallback_retries": solution.retries,
+                  "fallback_imports": sorted(m for m in set(sys.modules) - modules if "." not in m)}))
 """
 
 
@@ -66,3 +92,6 @@ def test_after_the_warm_up_the_real_episode_loads_no_kernel_in_its_loop():
     result = _run(warm=True)
     assert result["phase"] == "precut"  # the episode went through the switch and the stretch
     assert result["new"] == [], f"kernels first called inside the real episode: {result['new']}"
+    # the last fallback backend answered a step without importing anything (proxsuite: ~140 ms)
+    assert result["fallback_retries"] == ["daqp: SolverCyclingError", "quadprog: SolverCyclingError"]
+    assert result["fallback_imports"] == []
