@@ -106,6 +106,45 @@ def test_target_within_the_swing_bound_and_below_the_stem_base(seed):
     assert target.point[2] < P_SB[2], target.choice
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_the_target_equals_the_rule_applied_to_every_samples_swing(seed):
+    """The swing is checked for the candidates only (free, in the cone, below p_sb): the chosen p_gd
+    and the candidates' clearances equal a brute-force reference that checks every sample's swing
+    (SwingCheck.clearances on all 500) and applies the documented rule 1 in the test (the most
+    projected clearance among the clear candidates; the stem's direction when none is clear)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(100 + seed)
+    hanging = _unit([rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), -1.0])
+    max_swing = float(rng.uniform(25.0, 45.0))
+    free, cone = None, np.cos(np.radians(max_swing))
+    while free is None or not np.any(free.free & ((free.samples - P_SB) @ hanging >= L * cone)):
+        blocked = _unit(hanging + rng.normal(scale=0.5, size=3))  # a draw with free samples in the cone
+        obstacles = _cap_obstacles(blocked, float(rng.uniform(10.0, 25.0)), rng)
+        camera = P_SB + 0.35 * _unit([1.0, rng.uniform(-0.3, 0.3), -0.2])
+        free = compute_free_space(obstacles, P_SB, L, camera, n_samples=500)
+    top = P_SB + L * hanging
+    grid = _map_of(obstacles[rng.random(len(obstacles)) < 0.3], camera, ObstacleMap(resolution=0.01), updates=3)
+    gripper = top + 0.015 * hanging
+    swing = SwingCheck(grid, gripper, [(gripper, gripper + 0.1 * _unit(rng.normal(size=3)), 0.02)],
+                       clearance=0.01, stretch=0.03, map_bias=0.005)
+    target = choose_grasp_target(free, P_SB, top, max_swing_deg=max_swing, swing=swing)
+
+    directions = (free.samples - P_SB) / np.linalg.norm(free.samples - P_SB, axis=1)[:, None]
+    candidates = free.free & (directions @ hanging >= np.cos(np.radians(max_swing))) & (directions[:, 2] < 0)
+    every = swing.clearances(free.samples, P_SB, hanging)
+    now = swing.clearances(top[None], P_SB, hanging, fractions=(0.0,), stretches=(0.0,))[0]
+    clear = candidates & np.all(every >= np.minimum(swing.needed, now) - 1e-9, axis=1)
+    assert 0 < candidates.sum() < len(free.samples) / 2  # the candidates are a small part of the sphere
+    np.testing.assert_allclose(target.swing_clearance[0][candidates], every[candidates], atol=1e-12)
+    assert np.all(np.isnan(target.swing_clearance[0][~candidates]))
+    if not clear.any():
+        np.testing.assert_allclose(target.point, P_SB + L * hanging, atol=1e-12)
+    else:
+        projected, _ = cKDTree(free.projected_obstacles).query(free.samples[clear])
+        np.testing.assert_allclose(target.point, free.samples[clear][np.argmax(projected)], atol=1e-12)
+
+
 def test_a_crop_level_with_the_stem_base_gets_no_target():
     """A crop beside or above p_sb (a wrong p_sb, or a crop flipped up): no target, so the episode
     does not switch, instead of a stretch where compression reads as stretch along n_c."""
