@@ -75,6 +75,15 @@ def _last_finite(log: dict, key: str) -> float:
     return float(finite_values[-1]) if len(finite_values) else math.nan
 
 
+def _end_reason(phases, reached: Phase, duration: float) -> str | None:
+    """Why an episode that ended in the bimanual phase without an abort had not reached pre-cut (the
+    pre-cut timeout cannot fire when the switch came late), else None."""
+    if reached != Phase.BIMANUAL or phases.abort_reason is not None or phases.t_switch is None:
+        return None
+    misses = phases.precut_misses() or "no bimanual tick"
+    return f"no pre-cut when the episode ended {duration - phases.t_switch:.1f} s after the switch: {misses}"
+
+
 def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
                        realtime_factor: float) -> tuple[dict[str, Any], dict[str, bool]]:
     """The metrics that need no ground truth, and their success checks (``unveiled``, the force, the
@@ -143,6 +152,7 @@ def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper
         "qp_backup_solves": int(phases.backup_solves),
         "abort_reason": phases.abort_reason,
         "abort_cause": phases.abort_cause,
+        "end_reason": _end_reason(phases, reached, float(n * float(log["control_period"]))),
         "p_gd_choice": getattr(controller, "target_choice", None),
         "estimated_stem_length": finite_or_none(st.stem_length),
         "realtime_factor": float(realtime_factor),

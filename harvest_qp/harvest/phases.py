@@ -143,6 +143,7 @@ class PhaseMachine:
         self.precut_since: float | None = None
         self.unexecuted_time: float | None = None
         self.switch_test_passed_at: float | None = None  # the last approach tick whose switch test passed
+        self._grasp_state: tuple[float, bool, float, float] | None = None  # the last pre-cut test's inputs
         self._camera_window: deque[tuple[float, tuple, tuple]] = deque()  # (t, p_c, z_c)
 
     @property
@@ -278,6 +279,7 @@ class PhaseMachine:
         else:
             self.force_filtered += -math.expm1(-dt / tau) * (force_nc - self.force_filtered)
         along = force_nc > 0.0 and math.degrees(math.atan2(across, force_nc)) <= r.max_force_angle_deg
+        self._grasp_state = (force_nc, along, position_error, alignment)
         within = (
             along
             and abs(self.force_filtered - r.f_d) <= r.force_tolerance * r.f_d
@@ -295,6 +297,11 @@ class PhaseMachine:
             self.precut_since = t
         if self.phase == Phase.BIMANUAL and t - self.precut_since >= r.hold_time:
             self.phase, self.t_precut = Phase.PRECUT, t
+
+    def precut_misses(self) -> str | None:
+        """The pre-cut tests that failed on the last bimanual tick, with their values (None before the
+        first one): why an episode that ended in the bimanual phase had not reached pre-cut."""
+        return None if self._grasp_state is None else self._precut_misses(*self._grasp_state)
 
     def _precut_misses(self, force_nc: float, along: bool, position_error: float, alignment: float) -> str:
         """Which of the pre-cut tests fail, with their values (for the abort's reason)."""

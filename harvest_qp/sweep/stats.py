@@ -64,7 +64,8 @@ def is_success(row: Mapping[str, Any]) -> bool:
 def failure_reason(row: Mapping[str, Any]) -> str | None:
     """Why an episode failed (``None`` for a success).
 
-    The episode's ``abort_reason`` when it returned metrics; ``"error: <ExceptionType>"``
+    The episode's ``abort_reason`` (or its ``end_reason``: the pre-cut tests that failed when it ended
+    in the bimanual phase) when it returned metrics; ``"error: <ExceptionType>"``
     when it raised (the message is in the row; grouping by type keeps seeds apart from the count);
     ``"worker died"`` / ``"timeout"`` when its process was lost.
     """
@@ -78,7 +79,7 @@ def failure_reason(row: Mapping[str, Any]) -> str | None:
         return "worker died"
     if status == STATUS_TIMEOUT:
         return "timeout"
-    reason = row.get("abort_reason")
+    reason = row.get("abort_reason") or row.get("end_reason")
     if reason is None or reason == "":
         return "no abort_reason (success false)" if "success" in row else "no success metric"
     return str(reason)
