@@ -171,7 +171,9 @@ class Configuration:
         """Move frame ``name`` so that its pose in frame ``parent`` is ``pose`` (4x4 rigid, [m]).
 
         Both frames must be carried by the same joint (e.g. a tool frame and the flange it is
-        mounted on). Tasks keep working on the moved frame; the kinematics are recomputed.
+        mounted on). The pose is absolute (calling again replaces it); frames placed relative to
+        ``name`` in the URDF do not follow it. Tasks keep working on the moved frame; the
+        kinematics are recomputed.
 
         Raises:
             UnknownFrameError: an unknown frame name.
@@ -179,6 +181,8 @@ class Configuration:
                 carried by different joints.
         """
         frame_id, parent_id = self.frame_id(name), self.frame_id(parent)
+        if frame_id == parent_id:  # the pose would compose with the frame's own, moved again at each call
+            raise InvalidInputError(f"place_frame: the parent must be another frame than {name!r}")
         T = as_rigid_transform(pose, f"place_frame {name!r} pose")
         frame, parent_frame = self.model.frames[frame_id], self.model.frames[parent_id]
         if frame.parentJoint != parent_frame.parentJoint:

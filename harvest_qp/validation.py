@@ -176,11 +176,13 @@ def as_rotation(value: np.ndarray | Sequence[Sequence[float]], name: str) -> np.
 
 
 def as_rigid_transform(value: np.ndarray | Sequence[Sequence[float]], name: str) -> np.ndarray:
-    """A 4x4 rigid transform (rotation per :func:`as_rotation`, last row 0 0 0 1), finite [m]; a copy."""
+    """A 4x4 rigid transform (rotation per :func:`as_rotation`, last row 0 0 0 1 to the same tolerance,
+    then set exactly), finite [m]; a copy."""
     T = as_matrix(value, (4, 4), name)
     as_rotation(T[:3, :3], f"{name} rotation")
-    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=ROTATION_TOLERANCE):
         raise InvalidInputError(f"{name} must end with the row 0 0 0 1, got {T[3].tolist()}")
+    T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
 
 

@@ -98,7 +98,7 @@ def check_hand_eye(hand_eye: ArrayLike) -> NDArray[np.float64]:
     distance = float(np.linalg.norm(T[:3, 3]))
     if distance > MAX_HAND_EYE_DISTANCE:
         raise CalibrationError(
-            f"hand_eye puts the camera {distance:.3g} m from the flange (translation {T[:3, 3].tolist()}); a camera "
+            f"hand_eye puts the camera {distance:.6g} m from the flange (translation {T[:3, 3].tolist()}); a camera "
             f"on the flange is within {MAX_HAND_EYE_DISTANCE} m: check the calibration's units [m]")
     return T
 

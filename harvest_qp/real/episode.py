@@ -63,10 +63,14 @@ def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
 
 
 
-def warm_up(settings: EpisodeConfig, *, seed: int = 0, max_duration: float = 30.0) -> float:
-    """Run the lab's paper episode on ``settings`` (headless, no figures, discarded) so that every
-    compiled kernel the controller calls is loaded in this process before the arms move; returns
-    the wall time it took [s].
+def warm_up(settings: EpisodeConfig, *, mapper: str | None = None, seed: int = 0,
+            duration: float = 30.0) -> dict[str, Any]:
+    """Run the lab's paper episode on ``settings`` with ``mapper`` (headless, no figures, discarded) so
+    that every compiled kernel the controller calls is loaded in this process before the arms move.
+
+    Returns ``{"wall_time": [s], "phase_reached": ...}``: a lab episode that did not reach pre-cut
+    (within ``duration`` [s] of simulated time, whatever the settings' own ``episode.duration``)
+    has left the later phases' first calls to the real episode.
 
     numba loads a kernel from its on-disk cache at the kernel's first call in each process
     (measured: 50-170 ms for the stem fit's or the grasp target's kernels on a warm cache, 8 s on a
@@ -84,9 +88,10 @@ def warm_up(settings: EpisodeConfig, *, seed: int = 0, max_duration: float = 30.
     from harvest_qp.solver import DEFAULT_FALLBACK_BACKENDS, QPProblem
 
     wall0 = time.perf_counter()
+    # ends 1 s after pre-cut (the stretch's kernels have run by then), whatever the settings say
+    lab = settings.model_copy(update={"episode": settings.episode.model_copy(update={"end_after_precut": 1.0})})
     with tempfile.TemporaryDirectory(prefix="harvest_qp_warm_up_") as out:
-        run_paper_episode(settings, seed=seed, duration=min(float(settings.episode.duration), max_duration),
-                          out_dir=out, figures=False)
+        report = run_paper_episode(lab, seed=seed, mapper=mapper, duration=duration, out_dir=out, figures=False)
     n = 12
     problem = QPProblem(H=np.eye(n), f=-np.ones(n), lower=-np.ones(n), upper=np.ones(n), A=np.zeros((0, n)),
                         b=np.zeros(0), G=np.eye(1, n), h=np.full(1, 0.5))
@@ -97,7 +102,7 @@ def warm_up(settings: EpisodeConfig, *, seed: int = 0, max_duration: float = 30.
             make_backend(name).solve(problem)
         except SolverNotAvailableError:  # not installed: the solver skips it at run time too
             continue
-    return time.perf_counter() - wall0
+    return {"wall_time": time.perf_counter() - wall0, "phase_reached": report.metrics["phase_reached"]}
 
 
 def run_real_episode(settings: EpisodeConfig, robot, *, mapper: str | None = None, duration: float | None = None,
@@ -237,7 +242,12 @@ def run_real(config: Path, *, camera_arm: str, grasp_arm: str, camera: str | Non
     if warmup and not dry_run:
         print("harvest-qp: loading the controller's compiled kernels on the lab episode before the arms move "
               "(--no-warmup skips it)", file=sys.stderr)
-        print(f"harvest-qp: warm-up done in {warm_up(settings):.1f} s", file=sys.stderr)
+        warm = warm_up(settings, mapper=mapper)
+        print(f"harvest-qp: warm-up done in {warm['wall_time']:.1f} s (the lab episode reached "
+              f"{warm['phase_reached']})", file=sys.stderr)
+        if warm["phase_reached"] != "precut":
+            print("harvest-qp: warning: the warm-up's lab episode did not reach pre-cut: the later phases' kernels "
+                  "load on their first call in the real episode, where a long cycle stops the arms", file=sys.stderr)
     previous = signal.getsignal(signal.SIGTERM)
 
     def on_term(signum, frame):

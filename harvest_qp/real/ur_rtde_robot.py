@@ -186,6 +186,11 @@ class DualUR5eRobot(RobotInterface):
         probe_timeout: seconds to wait for the RTDE port before connecting (None: no probe).
         connect_timeout: seconds each ur-rtde interface may take to connect (an address that accepts
             the connection and never answers is then a one-line error naming it, not a hang).
+
+    Raises:
+        CalibrationError: ``hand_eye`` not a rigid 4x4 transform within 0.5 m of the flange.
+        InvalidInputError: the same address for both arms.
+        RobotConnectionError: an arm that cannot be reached or is not ready.
     """
 
     def __init__(self, camera_arm: str, grasp_arm: str, *, cell: CellConfig | None = None,

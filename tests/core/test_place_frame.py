@@ -94,3 +94,18 @@ def test_frames_on_different_joints_or_unknown_names_are_refused():
         configuration.place_frame("camera", "gripper", np.eye(4))
     with pytest.raises(UnknownFrameError, match="camara"):
         configuration.place_frame("camara", "cam_flange", np.eye(4))
+    with pytest.raises(InvalidInputError, match="another frame than 'camera'"):
+        configuration.place_frame("camera", "camera", np.eye(4))
+
+
+def test_placing_again_replaces_the_pose_and_a_last_row_within_round_off_is_taken():
+    configuration = Configuration.dual_ur5e()
+    X = camera_mount()
+    X[:3, 3] += (0.0, 0.0, 0.01)
+    configuration.place_frame("camera", "cam_flange", X)
+    configuration.place_frame("camera", "cam_flange", X)
+    flange = configuration.frame_pose("cam_flange").homogeneous
+    np.testing.assert_allclose(configuration.frame_pose("camera").homogeneous, flange @ X, atol=1e-12)
+    X[3, 3] += 1e-9  # a file's round-off
+    configuration.place_frame("camera", "cam_flange", X)
+    np.testing.assert_allclose(configuration.frame_pose("camera").homogeneous[3], [0, 0, 0, 1], atol=0)

@@ -95,3 +95,42 @@ def test_after_the_warm_up_the_real_episode_loads_no_kernel_in_its_loop():
     # the last fallback backend answered a step without importing anything (proxsuite: ~140 ms)
     assert result["fallback_retries"] == ["daqp: SolverCyclingError", "quadprog: SolverCyclingError"]
     assert result["fallback_imports"] == []
+
+
+def test_run_real_warms_up_with_the_mapper_and_settings_the_episode_runs(monkeypatch, tmp_path, lab):
+    """Bug caught (an independent review): the warm-up ran the settings' mapper.kind while the episode
+    ran ``--mapper``; with mapper.kind pinv and --mapper qp, 18 kernels (the map's, the QP's) were
+    first called inside the real loop."""
+    from harvest_qp.real import episode
+    from tests.real.conftest import CAMERA_HOST, GRASP_HOST
+    from tests.real.standin import LabCell
+
+    seen = {}
+
+    def recording_warm_up(settings, *, mapper=None, **kwargs):
+        seen.update(mapper=mapper, kind=settings.mapper.kind, environment=list(settings.qp.environment))
+        return {"wall_time": 0.0, "phase_reached": "precut"}
+
+    monkeypatch.setattr(episode, "warm_up", recording_warm_up)
+    lab.reset()
+    cell = LabCell(lab, (CAMERA_HOST, GRASP_HOST))
+    from harvest_qp.robot.paths import tasks_dir
+
+    episode.run_real(tasks_dir() / "paper.yaml", camera_arm=CAMERA_HOST, grasp_arm=GRASP_HOST, camera=None,
+                     dry_run=False, out=tmp_path, duration=0.02, figures=False, mapper="qp",
+                     overrides=["mapper.kind=pinv", "qp.environment=[]"], rtde=cell, clock=cell.clock,
+                     camera_source=_NoFrames())
+    assert seen == {"mapper": "qp", "kind": "pinv", "environment": []}
+
+
+class _NoFrames:
+    """A camera that delivers nothing (the 0.02 s episode needs none)."""
+
+    def attach(self, robot):
+        pass
+
+    def latest(self):
+        return None
+
+    def close(self):
+        pass
