@@ -588,20 +588,10 @@ class HarvestController:
                                 force_norm=math.hypot(*force), motion_executed=stretching.motion_executed,
                                 crop_side=float((top_of_crop - st.p_sb) @ stretching.n_c))
             direction = stretching.n_c
-        roll, roll_error = roll_reference(self._blade_pose(T_c), direction, k_roll=s.roll.k_roll)
+        # the blade is fixed to the tool: with a calibrated camera (camera_in_flange) x_c is off it
+        blade_y = self.configuration.data.oMf[self._blade_id].rotation[:, 1]
+        roll, roll_error = roll_reference(T_c, direction, k_roll=s.roll.k_roll, blade_y=blade_y)
         return _References(V_c, V_g, roll, roll_error, force_nc, reaching.distance)
-
-    def _blade_pose(self, T_c: np.ndarray) -> np.ndarray:
-        """The camera pose with y turned to the blade's y axis about z_c (the roll law turns that y along the
-        stem, so the blade closes across it). The same as ``T_c`` for the description's camera mount;
-        with a calibrated camera (``camera_in_flange``) x_c is off the blade by the mount's error."""
-        z = T_c[:3, 2]
-        y_blade = self.configuration.data.oMf[self._blade_id].rotation[:, 1]
-        y = y_blade - (y_blade @ z) * z
-        T = T_c.copy()
-        T[:3, 1] = y / np.linalg.norm(y)
-        T[:3, 0] = np.cross(T[:3, 1], z)
-        return T
 
     def _joint_speeds(self, t: float, q: np.ndarray, references: _References) -> tuple[np.ndarray, str, float | None]:
         """(qdot [rad/s], status, map cells fed or None): the safe stop after an abort, else the

@@ -18,6 +18,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar
 from harvest_qp.references._vec3 import cross, dot, norm, scale, sub
 
@@ -33,9 +34,13 @@ def wrap_half_turn(angle: float) -> float:
 
 
 def roll_reference(
-    camera_pose: ArrayLike, direction: ArrayLike, *, k_roll: float
+    camera_pose: ArrayLike, direction: ArrayLike, *, k_roll: float, blade_y: ArrayLike | None = None
 ) -> tuple[NDArray[np.float64], float]:
     """(V_rol ``(6,)`` [m/s; rad/s] world frame, phi [rad]) for the stem ``direction`` u (world).
+
+    ``blade_y``: the blade's own y axis (world) when the camera is not mounted square to it (a
+    calibrated camera): it replaces y_c, projected onto the image plane (the roll is still about
+    z_c). None: y_c, as in the robot description's mount.
 
     phi is NaN and V_rol zero where u is along the optical axis (|d| < 1e-6).
     """
@@ -44,6 +49,13 @@ def roll_reference(
     k_roll = as_positive_scalar(k_roll, "k_roll", allow_zero=True)
     (_, y0, z0, _), (_, y1, z1, _), (_, y2, z2, _) = pose[:3].tolist()
     y, z = (y0, y1, y2), (z0, z1, z2)
+    if blade_y is not None:
+        b = as_position(blade_y, "blade_y").tolist()
+        y = sub(b, scale(dot(b, z), z))
+        length = norm(y)
+        if length < _MIN_PROJECTION:
+            raise InvalidInputError(f"blade_y must not lie along the optical axis, got {b}")
+        y = scale(1.0 / length, y)
     d = sub(u, scale(dot(u, z), z))
     if norm(d) < _MIN_PROJECTION:
         return np.zeros(6), math.nan

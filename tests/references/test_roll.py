@@ -56,3 +56,18 @@ def test_roll_reference_refuses_bad_input_naming_it():
         roll_reference(np.eye(4), [0.0, np.nan, 1.0], k_roll=1.0)
     with pytest.raises(InvalidInputError, match="camera_pose"):
         roll_reference(2 * np.eye(4), [0.0, 1.0, 0.0], k_roll=1.0)
+
+
+def test_a_blade_turned_against_the_camera_is_what_the_roll_turns_across_the_stem():
+    """Camera with world axes; the blade's y axis turned 10 deg about z_c and tilted 5 deg out of the
+    image plane (a calibrated camera mounted off square): a stem along world y is then -10 deg from the
+    blade's y seen in the image plane (hand value), not 0 as from y_c. Catches: the camera's y_c used
+    for the blade."""
+    a, tilt = np.radians(10.0), np.radians(5.0)
+    blade_y = np.array([-np.sin(a) * np.cos(tilt), np.cos(a) * np.cos(tilt), np.sin(tilt)])
+    twist, angle = roll_reference(np.eye(4), [0.0, 1.0, 0.0], k_roll=1.0, blade_y=blade_y)
+    assert angle == pytest.approx(-a, abs=1e-12)
+    np.testing.assert_allclose(twist, [0, 0, 0, 0, 0, -a], atol=1e-12)
+    assert roll_reference(np.eye(4), [0.0, 1.0, 0.0], k_roll=1.0)[1] == pytest.approx(0.0)
+    with pytest.raises(InvalidInputError, match="blade_y must not lie along the optical axis"):
+        roll_reference(np.eye(4), [0.0, 1.0, 0.0], k_roll=1.0, blade_y=[0.0, 0.0, 1.0])
