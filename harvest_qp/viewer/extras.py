@@ -15,7 +15,7 @@ import numpy as np
 
 __all__ = ["paper_episode_extras"]
 
-_VECTORS = (("p_r", "p_r"), ("p_sb", "p_sb"), ("p_gd", "p_gd"), ("v_c", "V_c"), ("v_g", "V_g"))
+_VECTORS = (("p_r", "p_r"), ("p_sb", "p_sb"), ("p_gd", "p_gd"), ("p_c", "p_c"), ("v_c", "V_c"), ("v_g", "V_g"))
 
 
 def paper_episode_extras(
@@ -56,6 +56,8 @@ def paper_episode_extras(
         values = command.values
         out: dict[str, Any] = {"phase": Phase(int(values["phase"])).name.lower(), "theta": float(values["theta"])}
         for field, key in _VECTORS:
+            if field == "p_c" and key not in values:  # a controller that does not log its camera position
+                continue
             value = np.array(values[key], dtype=float)  # a copy: the viewer draws it later, on its thread
             if np.all(np.isfinite(value)):  # NaN: not known yet (p_gd before the switch)
                 out[field] = value

@@ -37,6 +37,8 @@ class ViewerFrame:
         camera_pose: (4, 4) camera optical frame {C} of the cloud (frustum).
         roi_center, roi_radius: region of interest sphere [m].
         p_r, p_sb, p_gd: reference point, stem base and grasp/attraction point (3,) [m].
+        p_c: the camera position the controller drove (3,) [m] (a calibrated camera on the real cell
+            is not the robot description's): the v_c arrow starts there (None: the description's).
         stem_segments: (k, 2, 3) stem model segments, start and end points [m].
         samples_kept, samples_removed: (m, 3) Fibonacci samples of the free space [m].
         v_c, v_g: camera / gripper reference velocity, (3,) linear or (6,) twist
@@ -63,6 +65,7 @@ class ViewerFrame:
     p_r: NDArray[np.float64] | None = None
     p_sb: NDArray[np.float64] | None = None
     p_gd: NDArray[np.float64] | None = None
+    p_c: NDArray[np.float64] | None = None
     stem_segments: NDArray[np.float64] | None = None
     samples_kept: NDArray[np.float64] | None = None
     samples_removed: NDArray[np.float64] | None = None
@@ -80,7 +83,8 @@ class ViewerFrame:
         if q.shape != (N_JOINTS,) or not np.all(np.isfinite(q)):
             raise InvalidInputError(f"ViewerFrame.q must be {N_JOINTS} finite joint positions [rad], got {self.q!r}")
         self.q = q
-        for name, shape in (("force", (3,)), ("p_r", (3,)), ("p_sb", (3,)), ("p_gd", (3,)), ("roi_center", (3,)),
+        for name, shape in (("force", (3,)), ("p_r", (3,)), ("p_sb", (3,)), ("p_gd", (3,)), ("p_c", (3,)),
+                            ("roi_center", (3,)),
                             ("camera_pose", (4, 4)), ("closest_pair", (2, 3))):  # fmt: skip
             value = getattr(self, name)
             if value is not None:
@@ -168,6 +172,7 @@ LOG_KEYS: dict[str, tuple[str, ...]] = {
     "p_r": ("p_r",),
     "p_sb": ("p_sb",),
     "p_gd": ("p_gd",),
+    "p_c": ("p_c",),
     "v_c": ("V_c", "v_c"),
     "v_g": ("V_g", "v_g"),
     "roi_center": ("roi_center", "p_roi"),

@@ -463,7 +463,7 @@ class MeshcatViewer:
             self._visible(b, f"{m}/closest_pair", False)
         camera = poses["camera"] if "camera" in poses else self._frame_world("camera")
         gripper = self._frame_world("gripper")
-        self._arrow(b, "v_c", camera[:3, 3], frame.v_c, self.velocity_scale)
+        self._arrow(b, "v_c", camera[:3, 3] if frame.p_c is None else frame.p_c, frame.v_c, self.velocity_scale)
         self._arrow(b, "v_g", gripper[:3, 3], frame.v_g, self.velocity_scale)
         self._arrow(b, "force", gripper[:3, 3], frame.force, self.force_scale)
         if frame.camera_pose is not None:

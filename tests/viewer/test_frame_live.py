@@ -71,12 +71,14 @@ def test_richer_log_keys_are_picked_up():
         "t": 0.002 * np.arange(n), "q": np.tile(HOME_Q, (n, 1)),
         "phase": np.array(["approach"] * 3 + ["grasp"] * 2), "loop/p_r": np.tile([0.5, 0.0, 1.2], (n, 1)),
         "V_c": np.tile([0.1, 0, 0, 0, 0, 0.2], (n, 1)), "theta": np.full(n, np.nan),
+        "value/p_c": np.tile([0.3, 0.5, 1.1], (n, 1)),
         "meta/scene_sample_seed": np.array(7),
     }  # fmt: skip
     frames = frames_from_log(log, fps=500.0)
     assert [f.phase for f in frames] == ["approach"] * 3 + ["grasp"] * 2
     np.testing.assert_array_equal(frames[0].p_r, [0.5, 0.0, 1.2])
     np.testing.assert_array_equal(frames[0].v_c, [0.1, 0.0, 0.0])  # linear part of the twist
+    np.testing.assert_array_equal(frames[0].p_c, [0.3, 0.5, 1.1])
     assert frames[0].theta is None  # NaN means "not defined at this tick"
     assert vine_params_from_log(log) == VineSceneParams.sample(7)
 

@@ -117,6 +117,18 @@ def test_arrows_have_the_right_length_and_direction(viewer):
     assert rec.last("set_property", f"{ROOT}/markers/force")[0][2]["value"] is False
 
 
+def test_the_v_c_arrow_starts_at_the_camera_the_controller_drove(viewer):
+    """A real run's camera is where its hand-eye calibration puts it (the logged p_c), not where the
+    robot description does: the arrow starts at p_c when the frame has it. Catches: the description's
+    camera frame used for a calibrated run (15 mm off here)."""
+    conf = Configuration.dual_ur5e(HOME_Q)
+    p_c = conf.frame_position("camera") + np.array([0.01, -0.008, 0.008])
+    with Recorder(viewer) as rec:
+        viewer.draw(ViewerFrame(time=0.0, q=HOME_Q, v_c=np.array([0.0, 0.3, 0.4]), p_c=p_c))
+    shaft = matrix(rec.last("set_transform", f"{ROOT}/markers/v_c/shaft")[0])
+    np.testing.assert_allclose(shaft[:3, 3], p_c, atol=1e-12)
+
+
 def test_markers_hidden_when_absent_and_visibility_sent_once(viewer):
     p = np.array([0.5, 0.0, 1.2])
     with Recorder(viewer) as rec:
