@@ -258,7 +258,10 @@ def test_ctrl_c_keeps_finished_rows_and_leaves_no_process(tmp_path):
         f"run_sweep(hanging_episode, [0, 1, {HANGING_SEED}, 3], out_dir={str(out_dir)!r}, workers=2, progress=False)\n"
     )
     env = {**os.environ, "HARVEST_QP_TEST_TOKEN": token, "PYTHONPATH": os.pathsep.join(sys.path)}
-    proc = subprocess.Popen([sys.executable, "-c", script], env=env, start_new_session=True)
+    # preexec_fn: Ctrl-C as in a terminal, also when pytest runs with SIGINT ignored (a background job of
+    # a non-interactive shell, whose children inherit the ignored SIGINT)
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline and proc.poll() is None:

@@ -124,6 +124,12 @@ PARENT = textwrap.dedent(
 )
 
 
+def _terminal_sigint() -> None:
+    """Ctrl-C as in a terminal, also when pytest itself was started with SIGINT ignored (a job put in
+    the background by a non-interactive shell): Python then leaves SIGINT ignored in its children."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("mode", ["exit", "raise", "SIGINT", "SIGTERM", "SIGKILL"])
 def test_no_orphan_server(mode):
     """Whatever ends the program (normal exit, an exception, Ctrl-C, SIGTERM, SIGKILL), the
@@ -138,6 +144,7 @@ def test_no_orphan_server(mode):
     parent = subprocess.Popen(
         [sys.executable, "-c", PARENT, str(port), "wait" if wait else mode],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)},
+        preexec_fn=_terminal_sigint,
     )  # fmt: skip
     try:
         line = parent.stdout.readline().decode().strip()
