@@ -116,6 +116,24 @@ class Reaching(Section):
     k_keep_out: Positive = _f(2.0, "[1/s] gain of that outward term")
 
 
+class LookAround(Section):
+    """Beyond the paper: for the first seconds of the approach the optical axis sweeps a cone about the ROI
+    direction (the camera keeps reaching), so the obstacle map knows more of the camera arm's surroundings
+    (harvest_qp/references/look_around.py)."""
+
+    enabled: bool = _f(True, "sweep at the start of the approach (false: the paper's approach alone)")
+    cone_deg: Positive = _f(25.0, "[deg] half-angle of the cone the optical axis sweeps (below 90)")
+    period: Positive = _f(2.5, "[s] time of the one turn around the cone; the switch waits for its end")
+    gain: Positive = _f(3.0, "[1/s] gain that pulls the optical axis onto the cone")
+
+    @field_validator("cone_deg", mode="after")
+    @classmethod
+    def _half_angle(cls, value: float) -> float:
+        if not value < 90.0:
+            raise PydanticCustomError("cone_deg", "must be below 90 deg (a half-angle), got {value}", {"value": value})
+        return value
+
+
 class Unveiling(Section):
     """Unveiling law of the camera arm, eq:nearest .. eq:v_c2."""
 
@@ -326,6 +344,7 @@ class EpisodeConfig(Section):
     camera: Camera = _f(Camera(), Camera.__doc__)
     force_sensor: ForceSensor = _f(ForceSensor(), ForceSensor.__doc__)
     reaching: Reaching = _f(Reaching(), Reaching.__doc__)
+    look_around: LookAround = _f(LookAround(), LookAround.__doc__)
     unveiling: Unveiling = _f(Unveiling(), Unveiling.__doc__)
     switch: Switch = _f(Switch(), Switch.__doc__)
     grasping: Grasping = _f(Grasping(), Grasping.__doc__)

@@ -75,6 +75,7 @@ from harvest_qp.pinv import PseudoInverseMapper
 from harvest_qp.references import (
     GraspFeedForward,
     HoldPose,
+    LookAround,
     ReachingCentering,
     StemStretching,
     Unveiling,
@@ -346,6 +347,9 @@ class HarvestController:
             yield_time_constant=g.yield_time_constant,
         )
         self.feed_forward = GraspFeedForward()
+        look = s.look_around
+        self.look_around = (LookAround(cone=math.radians(look.cone_deg), period=look.period, gain=look.gain)
+                            if look.enabled else None)
 
     def reset(self, robot: RobotInterface) -> None:
         """Read the initial state (joints, control period); no robot handle is kept."""
@@ -364,6 +368,8 @@ class HarvestController:
         self.reaching.reset(self.configuration.frame_position("gripper"))
         self.unveiling.reset()
         self.stretching.reset()
+        if self.look_around is not None:
+            self.look_around.reset()
         self.snapshots = {}
         self.switch_snapshot = None
         self.target_choice = None
@@ -552,10 +558,16 @@ class HarvestController:
         if phases.phase == Phase.APPROACH:
             ready = phases.approach(t, T_c, stem_base_found=st.p_sb is not None,
                                     roi_distance=math.dist(self.reaching.roi_centre.tolist(), T_c[:3, 3].tolist()))
-            if ready and self._try_switch(t, obs, T_g):
+            if ready and not self.looking_around(t) and self._try_switch(t, obs, T_g):
                 phases.switch(t)
         elif phases.bimanual:
             phases.watch_stem(t, st.last_stem_time)
+
+    def looking_around(self, t: float) -> bool:
+        """Whether the camera arm sweeps its surroundings at ``t`` [s] (:class:`~harvest_qp.references.LookAround`,
+        before the approach; the switch waits for its end)."""
+        look = self.look_around
+        return look is not None and self.phases.phase == Phase.APPROACH and not look.done(t)
 
     def _references(self, t: float, obs: Observation, T_c: np.ndarray, T_g: np.ndarray) -> _References:
         """The tick's task references (advances the laws' filters and the grasp's phase tests).
@@ -573,6 +585,11 @@ class HarvestController:
                                  gain=r.k_keep_out)
         if s.unveiling.enabled:
             V_c += self.unveiling.update(dt)
+        if self.looking_around(t):  # the sweep turns the camera; the translation stays the laws'
+            look = self.look_around
+            if not look.started:
+                look.start(t, T_c, reaching.roi_centre)
+            V_c[3:] = look.angular_velocity(t, T_c)
         force_nc = math.nan
         if self.phases.phase == Phase.APPROACH:
             V_g = st.hold.update(T_g)

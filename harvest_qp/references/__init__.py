@@ -8,6 +8,7 @@
 * :mod:`.keep_out` -- an outward speed near the ROI centre (beyond the paper).
 * :mod:`.roll` -- the camera's roll that turns the cutter across the stem (beyond the paper).
 * :mod:`.hold` -- the grasping arm's hold of the crop during the approach (beyond the paper).
+* :mod:`.look_around` -- the camera's sweep of its surroundings before the approach (beyond the paper).
 
 All vectors are world-frame float64; twists are [v (m/s); w (rad/s)]; poses (4, 4).
 The ray/obstacle geometry (``eq:nearest``) stays in :mod:`harvest_qp.perception.unveiling`.
@@ -17,6 +18,7 @@ from harvest_qp.references.coordination import GraspFeedForward, switch_ready
 from harvest_qp.references.grasping import StemStretching
 from harvest_qp.references.hold import HoldPose
 from harvest_qp.references.keep_out import keep_out_velocity
+from harvest_qp.references.look_around import LookAround
 from harvest_qp.references.reaching import ReachingCentering, minimum_rotation
 from harvest_qp.references.roll import roll_reference, wrap_half_turn
 from harvest_qp.references.unveiling import (
@@ -32,6 +34,7 @@ from harvest_qp.references.unveiling import (
 __all__ = [
     "GraspFeedForward",
     "HoldPose",
+    "LookAround",
     "ReachingCentering",
     "StemStretching",
     "Unveiling",

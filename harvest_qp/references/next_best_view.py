@@ -272,10 +272,16 @@ class NextBestView:
         """The twist ``(6,)`` [m/s; rad/s] of one frame (unsaturated)."""
         # A depth frame has far more points than 1 cm voxels need (~1.4 mm apart at 0.35 m and
         # 283x160): a stride keeps at most _MAX_MEMORY_INPUT of them, whatever the resolution.
-        stride = -(-obstacles.shape[0] // _MAX_MEMORY_INPUT)
-        sample = obstacles[::stride] if stride > 1 else obstacles
-        gap = sample - centre
-        self.memory.add(sample[np.einsum("ij,ij->i", gap, gap) < self.memory_radius**2], time)
+        # A frame without a single point is a blind view (a leaf closer than the camera's range), not
+        # a clear one: the memory does not age on it and the current view counts as blocked. On a
+        # lab scene the camera came to rest against the leaf hiding the stem, its memory expired
+        # 5 s later, and the empty view then read as "the stem is clear" for good.
+        blind = obstacles.shape[0] == 0
+        if not blind:
+            stride = -(-obstacles.shape[0] // _MAX_MEMORY_INPUT)
+            sample = obstacles[::stride] if stride > 1 else obstacles
+            gap = sample - centre
+            self.memory.add(sample[np.einsum("ij,ij->i", gap, gap) < self.memory_radius**2], time)
         offset = camera - centre
         distance = float(np.linalg.norm(offset))
         if distance < 1e-6:
@@ -293,6 +299,8 @@ class NextBestView:
         )
         blockers, target_fraction = all_blockers[:-1], float(np.mean(all_blockers[-1] == 0))
         fraction = np.mean(blockers == 0, axis=1)
+        if blind:
+            fraction[0] = 0.0
         self.clear_fraction = float(fraction[0])
 
         if self.target is not None:

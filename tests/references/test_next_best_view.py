@@ -178,3 +178,24 @@ def test_voxel_memory_forgets_what_it_no_longer_sees():
     np.testing.assert_allclose(memory.points, [[0.105, 0.005, 0.005]])
     memory.add(np.zeros((0, 3)), 8.1)
     assert memory.points.shape == (0, 3)
+
+
+def test_a_blind_view_is_not_a_clear_one():
+    """A frame without a single point (a leaf closer than the camera's range) neither ages the memory
+    nor reads as a clear view: after the leaf was seen, 6 s of empty frames (past the 5 s lifetime)
+    keep its voxels, the clear fraction stays 0 and the camera keeps moving sideways; the first frame
+    with points again (a side view, leaf not in it) ages the memory as before. Catches the lab failure
+    this rule fixes: the camera at rest against the leaf hiding the stem, its memory expired, and the
+    empty view then read as "the stem is clear" (it stopped for good)."""
+    leaf = _leaf([0.08, 0.0, 0.03], [1.0, 0.0, 0.0], 0.05)
+    camera = ROI + np.array([0.35, 0.0, 0.0])
+    law = Unveiling(time_constant=0.0, stall_time=100.0)
+    law.observe(camera, [], leaf, predicted_stem_points=STEM, roi_centre=ROI, timestamp=0.0)
+    remembered = law.next_best_view.memory.points.shape[0]
+    assert remembered > 0 and law.clear_fraction == 0.0
+    for k in range(1, 61):
+        law.observe(camera, [], np.zeros((0, 3)), predicted_stem_points=STEM, roi_centre=ROI, timestamp=0.1 * k)
+        assert law.clear_fraction == 0.0 and np.linalg.norm(law.raw[:3]) > 0.0
+    assert law.next_best_view.memory.points.shape[0] == remembered
+    law.observe(camera, [], [[0.5, 0.5, 0.5]], predicted_stem_points=STEM, roi_centre=ROI, timestamp=6.2)
+    assert law.next_best_view.memory.points.shape[0] < remembered  # expired on a frame that saw something

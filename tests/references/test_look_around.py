@@ -1,0 +1,115 @@
+"""The look-around sweep (references/look_around.py), integrated in closed loop against the cone's geometry.
+
+Oracle: the camera's orientation is integrated here with the exact rotation exp([w] dt) (Rodrigues) of
+the commanded angular velocity, and the optical axis compared with the cone computed in the test
+(its angle from the ROI direction and its azimuth about it), not with the law's own direction.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from harvest_qp.exceptions import InvalidInputError
+from harvest_qp.references import LookAround
+
+
+def _rotation(w: np.ndarray, dt: float) -> np.ndarray:
+    angle = np.linalg.norm(w) * dt
+    if angle == 0.0:
+        return np.eye(3)
+    k = w / np.linalg.norm(w)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def _look_at(position, direction) -> np.ndarray:
+    z = np.asarray(direction, float) / np.linalg.norm(direction)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = position
+    return T
+
+
+def _sweep(look: LookAround, T: np.ndarray, roi: np.ndarray, *, dt=0.002):
+    """Integrate the camera's orientation under the law for one period; the optical axes, one per tick."""
+    look.start(0.0, T, roi)
+    axes, t = [], 0.0
+    while t < look.period - 1e-12:
+        w = look.angular_velocity(t, T)
+        T = T.copy()
+        T[:3, :3] = _rotation(w, dt) @ T[:3, :3]
+        axes.append(T[:3, 2].copy())
+        t += dt
+    return np.array(axes)
+
+
+def _cone_frame(p0, roi):
+    a = (roi - p0) / np.linalg.norm(roi - p0)
+    e1 = np.cross(a, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    return a, e1, np.cross(a, e1)
+
+
+def test_the_optical_axis_sweeps_the_whole_cone_once():
+    """Started on the cone, z_c stays within 0.5 deg of the 25 deg cone about the ROI direction and its
+    azimuth about that direction turns one full turn, one way, in one period; then the law is zero.
+    Catches: a feed-forward about the wrong axis or of the wrong sign (z_c leaves the cone or turns
+    back), a period that is not one turn, a sweep that does not end."""
+    cone, period = math.radians(25.0), 2.5
+    p0, roi = np.array([0.3, 0.5, 1.1]), np.array([0.6, 0.1, 1.0])
+    a, e1, e2 = _cone_frame(p0, roi)
+    look = LookAround(cone=cone, period=period, gain=3.0)
+    z = _sweep(look, _look_at(p0, math.cos(cone) * a + math.sin(cone) * e1), roi)
+    off_axis = np.degrees(np.arccos(np.clip(z @ a, -1, 1)))
+    assert np.max(np.abs(off_axis - 25.0)) < 0.5
+    azimuth = np.unwrap(np.arctan2(z @ e2, z @ e1))
+    assert azimuth[-1] - azimuth[0] == pytest.approx(2 * math.pi, abs=0.05)
+    assert np.all(np.diff(azimuth) > 0)
+    assert look.done(period) and not look.done(0.99 * period)
+    np.testing.assert_array_equal(look.angular_velocity(period, np.eye(4)), 0.0)
+
+
+def test_started_off_the_cone_the_axis_is_pulled_onto_it():
+    """From z_c along the ROI direction (25 deg inside the cone), the axis is on the cone within 1 deg
+    from 1.5 s on (gain 3/s). Catches: a pull of the wrong sign or about the wrong axis."""
+    p0, roi = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 1.0])
+    look = LookAround(cone=math.radians(25.0), period=2.5, gain=3.0)
+    z = _sweep(look, _look_at(p0, roi - p0), roi)
+    off_axis = np.degrees(np.arccos(np.clip(z[:, 0], -1, 1)))
+    assert off_axis[0] < 1.0
+    assert np.max(np.abs(off_axis[750:] - 25.0)) < 1.0
+
+
+def test_the_angular_velocity_by_hand():
+    """On the cone at the start the law is the feed-forward (2 pi / T) a alone: a = y, T = 2 s gives
+    (0, pi, 0); 10 deg inside the cone (z_c towards a) the pull adds k 10 deg about z_c x d."""
+    p0, roi = np.array([0.0, 0.0, 1.0]), np.array([0.0, 2.0, 1.0])
+    cone = math.radians(30.0)
+    a, e1, _ = _cone_frame(p0, roi)  # e1 = a x z = (1, 0, 0)
+    on_cone = _look_at(p0, math.cos(cone) * a + math.sin(cone) * e1)
+    look = LookAround(cone=cone, period=2.0, gain=2.0)
+    look.start(5.0, on_cone, roi)
+    np.testing.assert_allclose(look.angular_velocity(5.0, on_cone), [0, math.pi, 0], atol=1e-12)
+    inside = _look_at(p0, math.cos(math.radians(20)) * a + math.sin(math.radians(20)) * e1)
+    pull = look.angular_velocity(5.0, inside) - [0, math.pi, 0]
+    np.testing.assert_allclose(pull, 2.0 * math.radians(10) * np.array([0, 0, -1.0]), atol=1e-12)
+    np.testing.assert_allclose(look.direction(5.0), on_cone[:3, 2], atol=1e-12)
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(InvalidInputError, match="cone"):
+        LookAround(cone=math.pi / 2)
+    with pytest.raises(InvalidInputError, match="period"):
+        LookAround(period=0.0)
+    look = LookAround()
+    with pytest.raises(InvalidInputError, match="start"):
+        look.angular_velocity(0.0, np.eye(4))
+    with pytest.raises(InvalidInputError, match="ROI centre"):
+        look.start(0.0, np.eye(4), [0.0, 0.0, 0.0])
+    with pytest.raises(InvalidInputError, match="finite"):
+        look.start(float("nan"), np.eye(4), [1.0, 0.0, 0.0])
