@@ -94,7 +94,7 @@ class MomentRecorder:
 
     def _moment(self, obs, command, cloud) -> tuple[ViewerFrame, np.ndarray]:
         values = command.values
-        radius = float(self.controller.settings["reaching"]["radius"])
+        radius = float(self.controller.settings.reaching.radius)
         kw = dict(time=float(obs.time), q=np.asarray(obs.q, float).copy(), force=np.asarray(obs.force, float).copy())
         if "phase" in values:
             kw["phase"] = Phase(int(values["phase"])).name.lower()

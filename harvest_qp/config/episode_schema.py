@@ -122,16 +122,12 @@ class LookAround(Section):
     (harvest_qp/references/look_around.py)."""
 
     enabled: bool = _f(True, "sweep at the start of the approach (false: the paper's approach alone)")
-    cone_deg: Positive = _f(25.0, "[deg] half-angle of the cone the optical axis sweeps (below 90)")
-    period: Positive = _f(2.5, "[s] time of the one turn around the cone; the switch waits for its end")
+    cone_deg: expect(float, "a number in (0, 90) [deg]", gt=0, lt=90) = _f(
+        25.0, "[deg] half-angle of the cone the optical axis sweeps")
+    period: expect(float, "a number >= 0.5 [s]", ge=0.5) = _f(
+        2.5, "[s] time of the one turn around the cone (the arm's 1 rad/s joints need >= ~2 s); the switch waits "
+             "for its end")
     gain: Positive = _f(3.0, "[1/s] gain that pulls the optical axis onto the cone")
-
-    @field_validator("cone_deg", mode="after")
-    @classmethod
-    def _half_angle(cls, value: float) -> float:
-        if not value < 90.0:
-            raise PydanticCustomError("cone_deg", "must be below 90 deg (a half-angle), got {value}", {"value": value})
-        return value
 
 
 class Unveiling(Section):

@@ -9,13 +9,15 @@ axis z_c turns once around a cone of half-angle ``alpha`` about the direction a 
 start to the ROI centre; the composition keeps the translation of V_cr + V_cu meanwhile::
 
     d(phi)  = cos(alpha) a + sin(alpha) (cos(phi) e_1 + sin(phi) e_2),   phi = phi_0 + 2 pi s / T
-    w_look  = (2 pi / T) a + k theta k_d
+    w_look  = (2 pi / T) (a - (a^T z_c) z_c) + k theta k_d
 
 with (e_1, e_2) an orthonormal pair normal to a, phi_0 the cone direction nearest to z_c at the
 start, s the time since the start, T the ``period``, and theta, k_d the angle and axis of the
 minimum rotation taking z_c onto d (:func:`~harvest_qp.references.minimum_rotation`). The first
-term turns the frame with the cone (feed-forward; its roll about z_c is free in the camera task),
-the second pulls z_c onto the cone. With the D415's 40 x 65 deg field of view a 25 deg cone sees
+term turns z_c with the cone (the feed-forward (2 pi / T) a without its roll about z_c, which does
+not move z_c: the QP's camera task leaves that roll free, but the pseudo-inverse mapper follows
+all six components and rolled the camera by 293 deg over the sweep with it), the second pulls z_c
+onto the cone. With the D415's 40 x 65 deg field of view a 25 deg cone sees
 up to ~45 deg off a. The obstacle map keeps what the sweep saw, so the collision rows know those
 leaves later in the approach (on the scene above: 35 cells within 5 cm of the leaf after 6 s,
 none without the sweep; the map held 4,065 cells against 2,919).
@@ -90,6 +92,8 @@ class LookAround:
 
     def done(self, time: float) -> bool:
         """Whether the sweep is over at ``time`` [s] (one period after the start)."""
+        if not math.isfinite(time):
+            raise InvalidInputError(f"LookAround.done: time must be finite [s], got {time!r}")
         return self._start is not None and time - self._start[0] >= self.period
 
     def direction(self, time: float) -> NDArray[np.float64]:
@@ -98,14 +102,20 @@ class LookAround:
         return np.array(self._direction(time - t0, a, e1, e2, phi0))
 
     def angular_velocity(self, time: float, camera_pose: ArrayLike) -> NDArray[np.float64]:
-        """w_look ``(3,)`` [rad/s], world frame, at ``time`` [s]; zero after the period."""
+        """w_look ``(3,)`` [rad/s], world frame, at ``time`` [s]; zero after the period (before the
+        start: the pull onto the first cone direction alone)."""
         t0, a, e1, e2, phi0 = self._started()
+        if not math.isfinite(time):
+            raise InvalidInputError(f"LookAround.angular_velocity: time must be finite [s], got {time!r}")
         if time - t0 >= self.period:
             return np.zeros(3)
         pose = as_pose(camera_pose, "camera_pose")
+        z = tuple(pose[:3, 2].tolist())
         d = self._direction(time - t0, a, e1, e2, phi0)
-        theta, axis = _minimum_rotation(tuple(pose[:3, 2].tolist()), d)
-        return np.array(add(scale(2.0 * math.pi / self.period, a), scale(self.gain * theta, axis)))
+        theta, axis = _minimum_rotation(z, d)
+        rate = 2.0 * math.pi / self.period if time >= t0 else 0.0
+        feed_forward = scale(rate, sub(a, scale(dot(a, z), z)))  # no roll about z_c
+        return np.array(add(feed_forward, scale(self.gain * theta, axis)))
 
     def _direction(self, elapsed: float, a: Vec3, e1: Vec3, e2: Vec3, phi0: float) -> Vec3:
         phi = phi0 + 2.0 * math.pi * min(max(elapsed, 0.0), self.period) / self.period

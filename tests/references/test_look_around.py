@@ -86,19 +86,39 @@ def test_started_off_the_cone_the_axis_is_pulled_onto_it():
 
 
 def test_the_angular_velocity_by_hand():
-    """On the cone at the start the law is the feed-forward (2 pi / T) a alone: a = y, T = 2 s gives
-    (0, pi, 0); 10 deg inside the cone (z_c towards a) the pull adds k 10 deg about z_c x d."""
+    """On the cone at the start the law is the feed-forward alone, (2 pi / T) (a - (a.z) z): a = y,
+    e_1 = a x z = x, alpha = 30 deg, z_c = (sin 30, cos 30, 0), T = 2 s gives
+    pi (-sin 30 cos 30, sin^2 30, 0); 10 deg inside the cone (z_c at 20 deg) the pull adds
+    k 10 deg about z_c x d = -z."""
     p0, roi = np.array([0.0, 0.0, 1.0]), np.array([0.0, 2.0, 1.0])
     cone = math.radians(30.0)
     a, e1, _ = _cone_frame(p0, roi)  # e1 = a x z = (1, 0, 0)
     on_cone = _look_at(p0, math.cos(cone) * a + math.sin(cone) * e1)
     look = LookAround(cone=cone, period=2.0, gain=2.0)
     look.start(5.0, on_cone, roi)
-    np.testing.assert_allclose(look.angular_velocity(5.0, on_cone), [0, math.pi, 0], atol=1e-12)
-    inside = _look_at(p0, math.cos(math.radians(20)) * a + math.sin(math.radians(20)) * e1)
-    pull = look.angular_velocity(5.0, inside) - [0, math.pi, 0]
-    np.testing.assert_allclose(pull, 2.0 * math.radians(10) * np.array([0, 0, -1.0]), atol=1e-12)
+    s30, c30 = math.sin(cone), math.cos(cone)
+    np.testing.assert_allclose(look.angular_velocity(5.0, on_cone), [-math.pi * s30 * c30, math.pi * s30**2, 0],
+                               atol=1e-12)
+    s20, c20 = math.sin(math.radians(20)), math.cos(math.radians(20))
+    inside = _look_at(p0, c20 * a + s20 * e1)
+    expected = [-math.pi * s20 * c20, math.pi * s20**2, -2.0 * math.radians(10)]
+    np.testing.assert_allclose(look.angular_velocity(5.0, inside), expected, atol=1e-12)
     np.testing.assert_allclose(look.direction(5.0), on_cone[:3, 2], atol=1e-12)
+
+
+def test_the_sweep_never_rolls_the_camera_about_its_optical_axis():
+    """w . z_c = 0 for any camera orientation and time: the sweep only turns z_c. Catches the
+    review's finding on the first version: its feed-forward (2 pi / T) a rolled the camera about
+    z_c; the QP's 5-D camera task ignored that, but the pseudo-inverse mapper followed it (293 deg
+    of roll over one sweep, 4.5 rad/s of joint speed at the start)."""
+    rng = np.random.default_rng(3)
+    p0, roi = np.array([0.3, 0.5, 1.1]), np.array([0.6, 0.1, 1.0])
+    look = LookAround()
+    look.start(0.0, _look_at(p0, roi - p0), roi)
+    for _ in range(200):
+        T = _look_at(p0, rng.normal(size=3))
+        w = look.angular_velocity(rng.uniform(0.0, look.period), T)
+        assert abs(w @ T[:3, 2]) < 1e-12 * max(1.0, np.linalg.norm(w))
 
 
 def test_bad_input_is_refused():
@@ -113,3 +133,8 @@ def test_bad_input_is_refused():
         look.start(0.0, np.eye(4), [0.0, 0.0, 0.0])
     with pytest.raises(InvalidInputError, match="finite"):
         look.start(float("nan"), np.eye(4), [1.0, 0.0, 0.0])
+    look.start(0.0, np.eye(4), [1.0, 0.0, 0.0])
+    with pytest.raises(InvalidInputError, match="finite"):
+        look.angular_velocity(float("nan"), np.eye(4))
+    with pytest.raises(InvalidInputError, match="finite"):
+        look.done(float("nan"))
