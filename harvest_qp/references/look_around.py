@@ -22,10 +22,12 @@ up to ~45 deg off a. The obstacle map keeps what the sweep saw, so the collision
 leaves later in the approach (on the scene above: 35 cells within 5 cm of the leaf after 6 s,
 none without the sweep; the map held 4,065 cells against 2,919).
 
-Measured on 20 development scenes (median time to pre-cut 13.77 s without a sweep): this one
-+0.6 s; the same cone with the camera held in place +2.2 s (the arm cannot turn the camera about
-its own centre at the start pose; it lost its place by 27-32 cm anyway); a circle of the two wrist
-joints added to V_c +2.2 s, and the leaf above still touched (``docs/references.md`` deviation 9).
+Opt-in (``look_around.enabled``): on 200 never-run sweep scenes it lost 4 to the camera arm's wrist
+singularity (the sweep takes wrist 2 to -2.84 rad) and gave one new contact elsewhere
+(``docs/references.md`` deviation 9). Measured on 20 development scenes (median time to pre-cut
+13.77 s without a sweep): this one +0.6 s; the same cone with the camera held in place +2.2 s (the
+arm cannot turn the camera about its own centre at the start pose; it lost its place by 27-32 cm
+anyway); a circle of the two wrist joints added to V_c +2.2 s, and the leaf above still touched.
 """
 
 from __future__ import annotations

@@ -28,9 +28,7 @@ OCCLUDER = {"occluder_distance": 0.32, "occluder_coverage": 1.0}
 # (within 1.05 r of the ROI centre, at rest) at ~8.6 s; without it the cutter enters the
 # leaf at ~2.2 s.
 DURATION = {True: 14.0, False: 3.0}
-# The paper's approach (look_around off): with the look-around (default) the camera meets this
-# leaf, which hides the whole stem, head-on and stays against it (docs/limitations.md).
-APPROACH = ["--no-figures", "--set", "camera.downsample=6", "--set", "look_around.enabled=false",
+APPROACH = ["--no-figures", "--set", "camera.downsample=6",
             "--set", "perception.min_stem_points=6",
             "--set", "scene.params={occluder_distance: 0.32, occluder_coverage: 1.0}"]
 CELL = re.compile(r"cell\[(-?\d+),(-?\d+),(-?\d+)\]")
