@@ -564,8 +564,8 @@ class HarvestController:
             phases.watch_stem(t, st.last_stem_time)
 
     def looking_around(self, t: float) -> bool:
-        """Whether the camera arm sweeps its surroundings at ``t`` [s] (:class:`~harvest_qp.references.LookAround`,
-        before the approach; the switch waits for its end)."""
+        """Whether the camera sweeps its surroundings at ``t`` [s] (:class:`~harvest_qp.references.LookAround`,
+        opt-in, the first seconds of the approach; the switch waits for its end)."""
         look = self.look_around
         return look is not None and self.phases.phase == Phase.APPROACH and not look.done(t)
 
@@ -573,7 +573,8 @@ class HarvestController:
         """The tick's task references (advances the laws' filters and the grasp's phase tests).
 
         Camera: V_c = V_cr (``eq:control_signal_rr_world``) + the keep-out term + V_cu (``eq:v_c2``,
-        low-passed), plus in the bimanual phase the feed-forward of ``eq:final_vc``; roll: the
+        low-passed), its angular part replaced by the look-around's sweep while it runs (opt-in), plus
+        in the bimanual phase the feed-forward of ``eq:final_vc``; roll: the
         cutter across the stem. Gripper: the hold of the crop in the approach, then V_g
         (``eq:superimp_g``) on the wrist force (tared at the switch; zero on the switch tick).
         """
