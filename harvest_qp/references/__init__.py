@@ -8,7 +8,7 @@
 * :mod:`.keep_out` -- an outward speed near the ROI centre (beyond the paper).
 * :mod:`.roll` -- the camera's roll that turns the cutter across the stem (beyond the paper).
 * :mod:`.hold` -- the grasping arm's hold of the crop during the approach (beyond the paper).
-* :mod:`.look_around` -- the camera's sweep of its surroundings before the approach (beyond the paper).
+* :mod:`.look_around` -- the camera's opt-in sweep of its surroundings at the start of the approach (beyond the paper).
 
 All vectors are world-frame float64; twists are [v (m/s); w (rad/s)]; poses (4, 4).
 The ray/obstacle geometry (``eq:nearest``) stays in :mod:`harvest_qp.perception.unveiling`.

@@ -14,25 +14,11 @@ import pytest
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.references import LookAround
-
-
-def _rotation(w: np.ndarray, dt: float) -> np.ndarray:
-    angle = np.linalg.norm(w) * dt
-    if angle == 0.0:
-        return np.eye(3)
-    k = w / np.linalg.norm(w)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+from tests.references.flying_camera import look_at_pose, rotation_increment
 
 
 def _look_at(position, direction) -> np.ndarray:
-    z = np.asarray(direction, float) / np.linalg.norm(direction)
-    x = np.cross([0.0, 0.0, 1.0], z)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    T[:3, 3] = position
-    return T
+    return look_at_pose(position, np.asarray(position, float) + np.asarray(direction, float))
 
 
 def _sweep(look: LookAround, T: np.ndarray, roi: np.ndarray, *, dt=0.002):
@@ -42,7 +28,7 @@ def _sweep(look: LookAround, T: np.ndarray, roi: np.ndarray, *, dt=0.002):
     while t < look.period - 1e-12:
         w = look.angular_velocity(t, T)
         T = T.copy()
-        T[:3, :3] = _rotation(w, dt) @ T[:3, :3]
+        T[:3, :3] = rotation_increment(w, dt) @ T[:3, :3]
         axes.append(T[:3, 2].copy())
         t += dt
     return np.array(axes)
