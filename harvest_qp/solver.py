@@ -12,7 +12,8 @@ so that a lower level only optimises within the optimal set of the levels above
 it: a cascade of QPs (strict priorities). With a single soft level it is one QP.
 Each task enters only through its public ``compute_rows(configuration, dt)`` (``J``, ``v``;
 ``J`` None for joint-space tasks) and ``weight``; each limit through ``fill_box`` (box
-limits) or ``compute`` (rows ``G``, ``h``). The equality rows of earlier levels are
+limits) or ``compute`` (rows ``G``, ``h``). Their shapes are checked here, before the
+compiled kernels (which do not check bounds) see them. The equality rows of earlier levels are
 compressed to an orthonormal basis (a Householder QR with column pivoting), so redundant
 rows never make the solver see dependent equalities.
 
@@ -61,7 +62,7 @@ from harvest_qp.backends import (
 )
 from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
-from harvest_qp.limits.limit import Limit, check_limits
+from harvest_qp.limits.limit import Limit, check_limit_output, check_limits
 from harvest_qp.qp_kernels import (
     accumulate_diagonal,
     accumulate_task,
@@ -74,7 +75,7 @@ from harvest_qp.qp_kernels import (
     weighted_rows,
 )
 from harvest_qp.tasks.task import HARD, Task, check_tasks
-from harvest_qp.validation import as_positive_scalar, as_vector
+from harvest_qp.validation import as_positive_scalar, as_vector, check_task_rows
 
 #: Box limits from this priority on (acceleration limits) yield to infeasibility.
 RELAXABLE_PRIORITY = 2
@@ -339,6 +340,7 @@ class Solver:
         G_rows, h_rows, separating = [], [], []  # separating: (row count, asks for separation) per limit
         for limit, separates in row_limits:
             rows = limit.compute(configuration, dt, previous_qdot)
+            check_limit_output(limit, rows, n)  # user code; the kernels below do not check bounds
             if rows.lower is not None:
                 raise InvalidInputError(
                     f"{type(limit).__name__}.compute returned a box: set has_box = True on the class "
@@ -359,6 +361,7 @@ class Solver:
         by_level: dict[int, list] = {}
         for task in tasks:
             J, v = task.compute_rows(configuration, dt)
+            check_task_rows(task, J, v, n)  # user code; the kernels below do not check bounds
             by_level.setdefault(task.level, []).append((task, J, v))
         hard = by_level.pop(HARD, None)
         A, b = self._hard_equalities(hard, n) if hard else (np.zeros((0, n)), np.zeros(0))

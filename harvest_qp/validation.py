@@ -265,17 +265,18 @@ def check_task_rows(task: Any, J: np.ndarray | None, v: np.ndarray, nv: int) -> 
     """
     rows = task.weight.shape[0]
     if J is None:
-        ok = rows == nv and type(v) is np.ndarray and v.shape == (nv,)
+        if rows == nv and type(v) is np.ndarray and v.shape == (nv,):
+            return
         expected = f"J = None (identity) needs weight and v of shape ({nv},)"
     else:
-        ok = type(J) is np.ndarray and J.shape == (rows, nv) and type(v) is np.ndarray and v.shape == (rows,)
+        if type(J) is np.ndarray and J.shape == (rows, nv) and type(v) is np.ndarray and v.shape == (rows,):
+            return
         expected = f"J must have shape ({rows}, {nv}) and v shape ({rows},)"
-    if not ok:
-        got_J = "None" if J is None else f"J {getattr(J, 'shape', type(J).__name__)}"
-        raise DimensionError(
-            f"{task!r} rows do not fit the model (nv = {nv}): {expected}, got {got_J}, "
-            f"v {getattr(v, 'shape', type(v).__name__)}, weight ({rows},)"
-        )
+    got_J = "None" if J is None else f"J {getattr(J, 'shape', type(J).__name__)}"
+    raise DimensionError(
+        f"{task!r} rows do not fit the model (nv = {nv}): {expected}, got {got_J}, "
+        f"v {getattr(v, 'shape', type(v).__name__)}, weight ({rows},)"
+    )
 
 
 def check_limit_rows(limit: Any, G: np.ndarray | None, h: np.ndarray | None, nv: int) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -14,33 +13,22 @@ from harvest_qp.configuration import Configuration, as_configuration
 from harvest_qp.exceptions import DimensionError
 from harvest_qp.validation import as_instances, as_positive_scalar, check_limit_rows
 
-#: Limits defined in this package: their rows' sizes come from the checked model.
 
+def check_limit_output(limit: Limit, rows: LimitRows, nv: int) -> None:
+    """Raise :class:`DimensionError` unless ``limit.compute``'s ``rows`` fit a model of ``nv`` joints.
 
-def _checked_compute(compute):
-    """Wrap a user ``compute`` so its rows are size-checked before the solver's kernels see them."""
-
-    @functools.wraps(compute)
-    def checked(
-        self: Limit, configuration: Configuration, dt: float, previous_qdot: np.ndarray | None = None
-    ) -> LimitRows:
-        rows = compute(self, configuration, dt, previous_qdot)
-        if not isinstance(rows, LimitRows):
-            raise DimensionError(f"{type(self).__name__}.compute must return LimitRows, got {type(rows).__name__}")
-        if not isinstance(configuration, Configuration):  # the message is built only for an error
-            as_configuration(configuration, f"{type(self).__name__} configuration")
-        nv = configuration.nv
-        check_limit_rows(self, rows.G, rows.h, nv)
-        for side, value in (("lower", rows.lower), ("upper", rows.upper)):
-            if value is not None and getattr(value, "shape", None) != (nv,):
-                raise DimensionError(
-                    f"{type(self).__name__}.compute returned a box {side} of shape "
-                    f"{getattr(value, 'shape', type(value).__name__)}, expected ({nv},) (one entry per joint)"
-                )
-        return rows
-
-    checked._size_checked = True
-    return checked
+    The solver calls it on every row limit's output (user code) before its compiled kernels,
+    which index ``G`` by ``nv`` without bounds checks, see the rows.
+    """
+    if not isinstance(rows, LimitRows):
+        raise DimensionError(f"{type(limit).__name__}.compute must return LimitRows, got {type(rows).__name__}")
+    check_limit_rows(limit, rows.G, rows.h, nv)
+    for side, value in (("lower", rows.lower), ("upper", rows.upper)):
+        if value is not None and getattr(value, "shape", None) != (nv,):
+            raise DimensionError(
+                f"{type(limit).__name__}.compute returned a box {side} of shape "
+                f"{getattr(value, 'shape', type(value).__name__)}, expected ({nv},) (one entry per joint)"
+            )
 
 
 @dataclass
@@ -74,15 +62,6 @@ class Limit(ABC):
     has_box: bool = False
     #: The pinocchio model this limit was last checked against (None: not yet).
     _model: pin.Model | None = None
-
-    def __init_subclass__(cls, **kwargs) -> None:
-        super().__init_subclass__(**kwargs)
-        # The solver's compiled kernels index G by the model's nv without bounds checks: every
-        # limit's rows are checked as they are computed (a new limit inside the package too: an
-        # exemption for built-in limits let a wrong width through silently, found by a newcomer).
-        own = cls.__dict__.get("compute")
-        if own is not None and not hasattr(own, "_size_checked"):
-            cls.compute = _checked_compute(own)
 
     def check_configuration(self, configuration: Configuration) -> None:
         """Raise unless this limit can run on ``configuration``'s model.
@@ -126,12 +105,10 @@ class Limit(ABC):
         """
         rows = self.compute(configuration, dt, previous_qdot)
         n = lower.shape[0]
+        check_limit_output(self, rows, n)
         for side, value in (("lower", rows.lower), ("upper", rows.upper)):
-            if getattr(value, "shape", None) != (n,):
-                raise DimensionError(
-                    f"{type(self).__name__}.compute returned a box {side} of shape "
-                    f"{getattr(value, 'shape', type(value).__name__)}, expected ({n},) (one entry per joint)"
-                )
+            if value is None:
+                raise DimensionError(f"{type(self).__name__}.compute returned no box {side}: a box limit needs both")
         lower[:] = rows.lower
         upper[:] = rows.upper
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
 
@@ -17,26 +16,10 @@ from harvest_qp.validation import (
     as_nonnegative_vector,
     as_positive_scalar,
     as_vector,
-    check_task_rows,
 )
 
 #: Level of hard tasks: they become equality constraints of every QP in the stack.
 HARD = 0
-
-
-def _checked_compute_rows(compute_rows):
-    """Wrap a user override of ``compute_rows`` so its rows are size-checked before the solver's kernels."""
-
-    @functools.wraps(compute_rows)
-    def checked(self: Task, configuration: Configuration, dt: float) -> tuple[np.ndarray | None, np.ndarray]:
-        J, v = compute_rows(self, configuration, dt)
-        if not isinstance(configuration, Configuration):  # the message is built only for an error
-            as_configuration(configuration, f"{self._label()} configuration")
-        check_task_rows(self, J, v, configuration.nv)
-        return J, v
-
-    checked._size_checked = True
-    return checked
 
 
 class Task(ABC):
@@ -53,8 +36,9 @@ class Task(ABC):
 
     A task is checked against the robot model the first time it is computed on it
     (and again whenever it meets another model): :meth:`check_configuration` raises
-    :class:`~harvest_qp.exceptions.DimensionError` for a size that does not fit, before
-    the solver's compiled kernels (which do not check bounds) ever see the rows.
+    :class:`~harvest_qp.exceptions.DimensionError` for a size that does not fit. The solver
+    also checks the shapes of the rows every task hands it, before its compiled kernels
+    (which do not check bounds) see them.
 
     Args:
         dim: number of task rows (an integer >= 1).
@@ -62,14 +46,6 @@ class Task(ABC):
         level: priority level, 0 (hard), 1 (highest soft), 2, ...
         gain: feedback gain [1/s] of tasks that correct an error.
     """
-
-    def __init_subclass__(cls, **kwargs) -> None:
-        super().__init_subclass__(**kwargs)
-        # The solver's compiled kernels index by the rows' sizes without bounds checks: every
-        # subclass that overrides compute_rows gets its rows checked (built-in ones too).
-        own = cls.__dict__.get("compute_rows")
-        if own is not None and not hasattr(own, "_size_checked"):
-            cls.compute_rows = _checked_compute_rows(own)
 
     def __init__(self, dim: int, *, weight: float | np.ndarray = 1.0, level: int = 1, gain: float = 1.0) -> None:
         self._dim = as_integer(dim, f"{type(self).__name__} dim", minimum=1)
@@ -146,14 +122,11 @@ class Task(ABC):
     def compute_rows(self, configuration: Configuration, dt: float) -> tuple[np.ndarray | None, np.ndarray]:
         """Like :meth:`compute`, but ``J`` may be ``None`` meaning the identity (joint-space tasks).
 
-        The solver calls this one so that joint-space tasks skip a dense ``I`` product.
-        The default checks the shapes :meth:`compute` returns (a subclass's ``compute``
-        is user code) so that a wrong shape raises here, not inside a kernel.
+        The solver calls this one so that joint-space tasks skip a dense ``I`` product (it
+        checks the shapes it gets, :func:`~harvest_qp.validation.check_task_rows`).
         """
         self._ensure_bound(configuration)
-        J, v = self.compute(configuration, dt)
-        check_task_rows(self, J, v, configuration.nv)
-        return J, v
+        return self.compute(configuration, dt)
 
     def residual(self, configuration: Configuration, qdot: np.ndarray, dt: float) -> np.ndarray:
         """Weighted residual ``diag(sqrt(w)) (J qdot - v)`` of a solution ``qdot`` [rad/s]."""
