@@ -183,8 +183,11 @@ def dry_run_report(robot, calibration: Calibration | None, calibration_path: Pat
 
 def open_real_robot(settings: EpisodeConfig, cell: CellConfig, calibration: Calibration | None, *, camera_arm: str,
                     grasp_arm: str, camera: str | None = "realsense", serial: str | None = None,
-                    rtde: Any = None, camera_source: Any = None, clock: Callable[[], float] | None = None):
-    """Connect both arms (and start the camera); the caller must ``close()`` the robot."""
+                    rtde: Any = None, camera_source: Any = None, clock: Callable[[], float] | None = None,
+                    read_only: bool = False):
+    """Connect both arms (and start the camera); the caller must ``close()`` the robot.
+
+    ``read_only`` (the dry run): only the arms' receive interfaces, no control script started."""
     from harvest_qp.real.ur_rtde_robot import DualUR5eRobot
 
     source = camera_source
@@ -198,7 +201,7 @@ def open_real_robot(settings: EpisodeConfig, cell: CellConfig, calibration: Cali
     try:
         return DualUR5eRobot(camera_arm, grasp_arm, cell=cell,
                              hand_eye=None if calibration is None else calibration.hand_eye, camera=source,
-                             rtde=rtde, **kwargs)
+                             rtde=rtde, read_only=read_only, **kwargs)
     except BaseException:
         if source is not None:
             source.close()
@@ -261,7 +264,8 @@ def run_real(config: Path, *, camera_arm: str, grasp_arm: str, camera: str | Non
     robot = None
     try:
         robot = open_real_robot(settings, cell, calibration, camera_arm=camera_arm, grasp_arm=grasp_arm,
-                                camera=camera, serial=serial, rtde=rtde, camera_source=camera_source, clock=clock)
+                                camera=camera, serial=serial, rtde=rtde, camera_source=camera_source, clock=clock,
+                                read_only=dry_run)
         if dry_run:
             return dry_run_report(robot, calibration, cell.calibration)
         out = out if out is not None else Path("runs") / f"real-{Path(config).stem}-{time.strftime('%Y%m%d-%H%M%S')}"

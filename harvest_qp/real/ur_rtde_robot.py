@@ -131,12 +131,13 @@ class _Arm:
     """One UR5e's RTDE control and receive interfaces."""
 
     def __init__(self, role: str, prefix: str, joints: slice, host: str, rtde: Any, frequency: float,
-                 connect_timeout: float = 10.0) -> None:
+                 connect_timeout: float = 10.0, *, control: bool = True) -> None:
         self.role, self.prefix, self.joints, self.host = role, prefix, joints, host
         self.receive = self.control = None
         try:
             self.receive = _within(connect_timeout, rtde.RTDEReceiveInterface, host, frequency)
-            self.control = _within(connect_timeout, rtde.RTDEControlInterface, host, frequency)
+            if control:  # RTDEControlInterface uploads and starts its control script: it takes the arm over
+                self.control = _within(connect_timeout, rtde.RTDEControlInterface, host, frequency)
         except _NoAnswer:
             self.close(stop_acceleration=None)
             raise RobotConnectionError(
@@ -186,6 +187,9 @@ class DualUR5eRobot(RobotInterface):
         probe_timeout: seconds to wait for the RTDE port before connecting (None: no probe).
         connect_timeout: seconds each ur-rtde interface may take to connect (an address that accepts
             the connection and never answers is then a one-line error naming it, not a hang).
+        read_only: open only the arms' receive interfaces (``--dry-run``): no control script is
+            started on the robots (the pendant's program keeps running, local mode is fine) and
+            :meth:`step` raises :class:`RobotConnectionError`.
 
     Raises:
         CalibrationError: ``hand_eye`` not a rigid 4x4 transform within 0.5 m of the flange.
@@ -196,8 +200,9 @@ class DualUR5eRobot(RobotInterface):
     def __init__(self, camera_arm: str, grasp_arm: str, *, cell: CellConfig | None = None,
                  hand_eye: ArrayLike | None = None, camera: CloudSource | None = None, rtde: Any = None,
                  clock: Callable[[], float] = time.perf_counter, probe_timeout: float | None = 2.0,
-                 connect_timeout: float = 10.0) -> None:
+                 connect_timeout: float = 10.0, read_only: bool = False) -> None:
         self.cell = cell if cell is not None else CellConfig()
+        self.read_only = bool(read_only)
         self.control_period = float(self.cell.control_period)
         self.hosts = {"camera arm": str(camera_arm), "grasping arm": str(grasp_arm)}
         if self.hosts["camera arm"].strip() == self.hosts["grasping arm"].strip():
@@ -222,7 +227,8 @@ class DualUR5eRobot(RobotInterface):
         frequency = 1.0 / self.control_period
         try:
             for role, prefix, joints in _ARMS:
-                self._arms.append(_Arm(role, prefix, joints, self.hosts[role], rtde, frequency, connect_timeout))
+                self._arms.append(_Arm(role, prefix, joints, self.hosts[role], rtde, frequency, connect_timeout,
+                                       control=not read_only))
         except BaseException:  # the first arm connected, the second failed (or Ctrl-C): stop the first
             self.close()
             raise
@@ -252,7 +258,7 @@ class DualUR5eRobot(RobotInterface):
         self._t0 = self._stamp
         self._history.clear()
         self._remember()
-        self._cycle_start = self._clock_arm.control.initPeriod()
+        self._cycle_start = None if self.read_only else self._clock_arm.control.initPeriod()
         self._cycle_clock = self.clock()
         if camera is not None:
             camera.attach(self)
@@ -279,7 +285,7 @@ class DualUR5eRobot(RobotInterface):
 
     def tare_force(self) -> None:
         self._tare = self._force.copy()
-        if self.cell.force.zero_on_tare:
+        if self.cell.force.zero_on_tare and not self.read_only:
             grasp = self._arms[1]
             R_frame, R_sensor = self._rotations()
             # From now on the sensor reports minus this (in its own frame): keep it, so the world
@@ -314,6 +320,9 @@ class DualUR5eRobot(RobotInterface):
         """Check, send the held command to both arms, wait for the period's end, read both arms."""
         if self._closed:
             raise RobotConnectionError("the robot connection is closed")
+        if self.read_only:
+            raise RobotConnectionError("a read-only connection (a dry run) sends no command: connect with "
+                                       "read_only=False to move the arms")
         if self.tripped is not None:
             raise WatchdogError(f"stopped earlier: {self.tripped}")
         if self._camera_error is not None:
@@ -489,7 +498,7 @@ class DualUR5eRobot(RobotInterface):
             if arm.prefix == CAMERA_ARM:
                 self._stamp = stamp
             reason = self.watchdog.fresh(f"{arm.role} at {arm.host}", stamp, ok) or self.watchdog.robot_state(
-                f"{arm.role} at {arm.host}", safety, status)
+                f"{arm.role} at {arm.host}", safety, status, script=not self.read_only)
             if reason is not None:
                 return reason
         self._update_force()

@@ -118,13 +118,14 @@ class Watchdog:
             return f"stale data from the {arm}: {what} for {count} cycles"
         return None
 
-    def robot_state(self, arm: str, safety_mode: int, robot_status: int) -> str | None:
-        """The robot's own safety mode and status bits."""
+    def robot_state(self, arm: str, safety_mode: int, robot_status: int, *, script: bool = True) -> str | None:
+        """The robot's own safety mode and status bits (``script``: our control script must be running;
+        False for a read-only connection, which starts none)."""
         if safety_mode not in _MOVING_ALLOWED:
             name = SAFETY_MODES.get(int(safety_mode), "UNKNOWN")
             kind = "emergency stop" if "EMERGENCY" in name else "protective stop" if "PROTECTIVE" in name else "stop"
             return f"{kind} reported by the {arm}: safety mode {int(safety_mode)} ({name})"
-        if not robot_status & ROBOT_STATUS_PROGRAM_RUNNING or not robot_status & ROBOT_STATUS_POWER_ON:
+        if (script and not robot_status & ROBOT_STATUS_PROGRAM_RUNNING) or not robot_status & ROBOT_STATUS_POWER_ON:
             return (f"the {arm}'s control script is not running (robot status bits {int(robot_status):#06b}: "
                     "power on = bit 0, program running = bit 1)")
         return None

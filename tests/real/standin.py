@@ -64,6 +64,7 @@ class LabCell:
             def __init__(self, hostname: str, frequency: float = -1.0, flags: int = 1, ur_cap_port: int = 50002,
                          rt_priority: int = 0) -> None:
                 self.host = hostname
+                cell.calls.append((hostname, "control", "__init__", ()))  # the control script starts here
                 self.arm = cell._connect(hostname, "control")
                 cell.script[self.arm] = True
 

@@ -59,9 +59,11 @@ def test_dry_run_reads_and_moves_nothing(scene_lab, capsys, tmp_path):
     out = capsys.readouterr().out
     assert "nothing moved" in out and "camera arm joints [rad]" in out and "wrist force, world, untared [N]" in out
     assert "tasks/real/calibration_example.yaml" in out and "stem" in out and "points of 80x142" in out
-    assert "speedJ" not in cell.methods_called()
     np.testing.assert_array_equal(scene_lab.joint_positions(), q0)
-    assert _closed_both(cell)
+    # A dry run only reads: RTDEControlInterface (which uploads and starts the control script, taking the
+    # arm over from the pendant) is never opened on either arm (it was, before: found by an audit).
+    assert cell.methods_called(kind="control") == [], cell.methods_called(kind="control")
+    assert set(cell.methods_called(kind="receive")) >= {"getActualQ", "disconnect"}
 
 
 def test_paper_episode_through_the_adapter_reaches_precut_like_the_lab(scene_lab, tmp_path):

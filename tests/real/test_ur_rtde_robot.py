@@ -146,6 +146,29 @@ def test_stop_and_close_on_both_arms(connect, lab):
         robot.step()
 
 
+def test_read_only_connection_reads_and_starts_no_control_script(lab):
+    """A read-only robot (the dry run) reads the joints and force but never opens RTDEControlInterface, whose
+    constructor uploads and starts the control script on the arm; step() refuses with the package's error."""
+    from harvest_qp.real.cell import CellConfig
+    from tests.real.standin import LabCell
+
+    lab.reset()
+    cell = LabCell(lab, (CAMERA_HOST, GRASP_HOST))
+    robot = DualUR5eRobot(CAMERA_HOST, GRASP_HOST, cell=CellConfig(), rtde=cell, clock=cell.clock, read_only=True)
+    q0 = lab.joint_positions()
+    np.testing.assert_array_equal(robot.joint_positions(), q0)
+    assert np.all(np.isfinite(robot.wrist_force()))
+    robot.tare_force()  # software tare only: zeroFtSensor is a control call
+    robot.send_joint_velocities(np.full(12, 0.1))
+    with pytest.raises(RobotConnectionError, match="read-only"):
+        robot.step()
+    robot.stop()
+    robot.close()
+    assert cell.methods_called(kind="control") == []
+    assert cell.script == [False, False]
+    np.testing.assert_array_equal(lab.joint_positions(), q0)  # the lab never advanced: nothing was sent
+
+
 def test_unreachable_robot_is_one_line_naming_the_address():
     """Nothing listens on 127.0.0.1's RTDE port here: refused at once, by the probe and by ur-rtde itself."""
     t0 = time.monotonic()
