@@ -11,7 +11,11 @@ import math
 
 Vec3 = tuple[float, float, float]
 
-__all__ = ["Vec3", "add", "cross", "dot", "norm", "scale", "sub"]
+__all__ = ["Vec3", "add", "cross", "dot", "norm", "rotation_between", "scale", "sub"]
+
+# Below this |z x e| / |e| (sin theta ~ 1e-12) the axis k of eq:ktheta_world is undefined;
+# theta is then 0 (V_cr's angular part is 0) or pi (any axis normal to z works).
+_PARALLEL_SINE = 1e-12
 
 
 def add(a: Vec3, b: Vec3) -> Vec3:
@@ -36,3 +40,20 @@ def cross(a: Vec3, b: Vec3) -> Vec3:
 
 def norm(a: Vec3) -> float:
     return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+
+def rotation_between(z: Vec3, e: Vec3) -> tuple[float, Vec3]:
+    """The least rotation (angle [rad], unit axis) taking direction ``z`` onto ``e``
+    (:func:`harvest_qp.references.reaching.minimum_rotation` on Python floats)."""
+    normal = cross(z, e)
+    sine = norm(normal)
+    norm_e = norm(e)
+    if norm_e == 0.0:
+        return 0.0, (0.0, 0.0, 0.0)
+    cosine = dot(z, e)
+    if sine > _PARALLEL_SINE * norm_e:
+        return math.atan2(sine, cosine), scale(1.0 / sine, normal)
+    if cosine > 0.0:
+        return 0.0, (0.0, 0.0, 0.0)
+    axis = cross(z, (1.0, 0.0, 0.0) if abs(z[0]) < 0.9 else (0.0, 1.0, 0.0))
+    return math.pi, scale(1.0 / norm(axis), axis)

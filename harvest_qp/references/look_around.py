@@ -39,8 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar
-from harvest_qp.references._vec3 import Vec3, add, cross, dot, norm, scale, sub
-from harvest_qp.references.reaching import _minimum_rotation
+from harvest_qp.references._vec3 import Vec3, add, cross, dot, norm, rotation_between, scale, sub
 
 __all__ = ["LookAround"]
 
@@ -114,7 +113,7 @@ class LookAround:
         pose = as_pose(camera_pose, "camera_pose")
         z = tuple(pose[:3, 2].tolist())
         d = self._direction(time - t0, a, e1, e2, phi0)
-        theta, axis = _minimum_rotation(z, d)
+        theta, axis = rotation_between(z, d)
         rate = 2.0 * math.pi / self.period if time >= t0 else 0.0
         feed_forward = scale(rate, sub(a, scale(dot(a, z), z)))  # no roll about z_c
         return np.array(add(feed_forward, scale(self.gain * theta, axis)))

@@ -19,14 +19,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.references._checks import as_pose, as_position, as_positive_scalar, as_time_step
-from harvest_qp.references._vec3 import Vec3, add, cross, dot, norm, scale, sub
+from harvest_qp.references._vec3 import add, dot, rotation_between, scale, sub
 
 __all__ = ["ReachingCentering", "minimum_rotation"]
-
-# Below this |z_c x e_pc| / |e_pc| (sin theta ~ 1e-12) the axis k of eq:ktheta_world is
-# undefined; theta is then 0 (V_cr's angular part is 0) or pi (any axis normal to z_c works).
-_PARALLEL_SINE = 1e-12
-
 
 def minimum_rotation(z_axis: ArrayLike, direction: ArrayLike) -> tuple[float, NDArray[np.float64]]:
     """theta [rad] and unit axis k of ``eq:ktheta_world``: the minimum rotation taking ``z_axis``
@@ -41,24 +36,8 @@ def minimum_rotation(z_axis: ArrayLike, direction: ArrayLike) -> tuple[float, ND
     """
     z = as_position(z_axis, "z_axis").tolist()
     e = as_position(direction, "direction").tolist()
-    theta, axis = _minimum_rotation(z, e)
+    theta, axis = rotation_between(z, e)
     return theta, np.array(axis)
-
-
-def _minimum_rotation(z: Vec3, e: Vec3) -> tuple[float, Vec3]:
-    """:func:`minimum_rotation` on Python floats."""
-    normal = cross(z, e)
-    sine = norm(normal)
-    norm_e = norm(e)
-    if norm_e == 0.0:
-        return 0.0, (0.0, 0.0, 0.0)
-    cosine = dot(z, e)
-    if sine > _PARALLEL_SINE * norm_e:
-        return math.atan2(sine, cosine), scale(1.0 / sine, normal)
-    if cosine > 0.0:
-        return 0.0, (0.0, 0.0, 0.0)
-    axis = cross(z, (1.0, 0.0, 0.0) if abs(z[0]) < 0.9 else (0.0, 1.0, 0.0))
-    return math.pi, scale(1.0 / norm(axis), axis)
 
 
 class ReachingCentering:
@@ -142,6 +121,6 @@ class ReachingCentering:
         e_pc = sub(p_r.tolist(), (c0, c1, c2))
         squared = dot(e_pc, e_pc)
         self.distance = math.sqrt(squared)
-        self.theta, axis = _minimum_rotation((z0, z1, z2), e_pc)
+        self.theta, axis = rotation_between((z0, z1, z2), e_pc)
         linear = scale(self.k_cp * max(0.0, squared - self.radius**2), e_pc)
         return np.array((*linear, *scale(self.k_co * self.theta, axis)))
