@@ -8,8 +8,14 @@ from numba import njit
 
 @njit(cache=True)
 def accumulate_task(H, f, J, w, v):
-    """``H += J^T diag(w) J`` and ``f -= J^T diag(w) v`` for one task."""
+    """``H += J^T diag(w) J`` and ``f -= J^T diag(w) v`` for one task.
+
+    Returns False, writing nothing, when the sizes do not fit (``J`` m x n with ``H`` n x n,
+    ``f``, ``w`` and ``v`` of m): the loops below index without bounds checks.
+    """
     m, n = J.shape
+    if H.shape[0] != n or H.shape[1] != n or f.shape[0] != n or w.shape[0] != m or v.shape[0] != m:
+        return False
     for r in range(m):
         wr = w[r]
         if wr == 0.0:
@@ -22,16 +28,24 @@ def accumulate_task(H, f, J, w, v):
             f[i] -= J[r, i] * wv
             for k in range(n):
                 H[i, k] += wji * J[r, k]
+    return True
 
 
 @njit(cache=True)
 def accumulate_diagonal(H, f, w, v, floor):
     """``H += diag(w)``, ``f -= w * v`` and ``floor += w`` for a joint-space task (``J = I``);
-    ``floor`` sums the diagonal weight joint-space tasks put on each joint."""
-    for i in range(w.shape[0]):
+    ``floor`` sums the diagonal weight joint-space tasks put on each joint.
+
+    Returns False, writing nothing, unless ``w`` and ``v`` have one entry per row of ``H`` (n x n).
+    """
+    n = H.shape[0]
+    if H.shape[1] != n or f.shape[0] != n or floor.shape[0] != n or w.shape[0] != n or v.shape[0] != n:
+        return False
+    for i in range(n):
         H[i, i] += w[i]
         f[i] -= w[i] * v[i]
         floor[i] += w[i]
+    return True
 
 
 @njit(cache=True)

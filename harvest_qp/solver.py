@@ -12,10 +12,11 @@ so that a lower level only optimises within the optimal set of the levels above
 it: a cascade of QPs (strict priorities). With a single soft level it is one QP.
 Each task enters only through its public ``compute_rows(configuration, dt)`` (``J``, ``v``;
 ``J`` None for joint-space tasks) and ``weight``; each limit through ``fill_box`` (box
-limits) or ``compute`` (rows ``G``, ``h``). Their shapes are checked here, before the
-compiled kernels (which do not check bounds) see them. The equality rows of earlier levels are
-compressed to an orthonormal basis (a Householder QR with column pivoting), so redundant
-rows never make the solver see dependent equalities.
+limits) or ``compute`` (rows ``G``, ``h``). The sizes of those rows are checked before the
+compiled kernels index them without bounds checks: the task rows by the assembly kernels
+themselves (a mismatch raises :class:`~harvest_qp.exceptions.DimensionError`), the limit rows
+here. The equality rows of earlier levels are compressed to an orthonormal basis (a Householder
+QR with column pivoting), so redundant rows never make the solver see dependent equalities.
 
 ``E`` is a diagonal regularization that only tops the Hessian's diagonal up to
 ``regularization`` where joint-space tasks (damping, posture) do not already put
@@ -238,12 +239,21 @@ def assemble_level(entries, n: int, regularization: float) -> tuple[np.ndarray, 
     """
     H, f, floor = np.zeros((n, n)), np.zeros(n), np.zeros(n)
     for task, J, v in entries:
-        if J is None:  # joint-space task: J = I
-            accumulate_diagonal(H, f, task.weight, v, floor)
-        else:
-            accumulate_task(H, f, J, task.weight, v)
+        try:  # the kernels check the sizes themselves (they index without bounds checks)
+            fits = (accumulate_diagonal(H, f, task.weight, v, floor) if J is None  # joint-space task: J = I
+                    else accumulate_task(H, f, J, task.weight, v))
+        except Exception as err:  # noqa: BLE001 - numba refuses rows that are not arrays of numbers
+            check_task_rows(task, J, v, n)
+            raise InvalidInputError(f"{task!r} computed rows the solver cannot use (J {_describe_rows(J)}, "
+                                    f"v {_describe_rows(v)}): {type(err).__name__}") from None
+        if not fits:
+            check_task_rows(task, J, v, n)  # raises DimensionError naming the task and the shapes
     top_up_diagonal(H, floor, regularization if entries else max(regularization, 1e-12))
     return H, f
+
+
+def _describe_rows(rows) -> str:
+    return f"{rows.dtype} {rows.shape}" if isinstance(rows, np.ndarray) else type(rows).__name__
 
 
 def _is_separating(limit: Limit) -> bool:
@@ -361,7 +371,6 @@ class Solver:
         by_level: dict[int, list] = {}
         for task in tasks:
             J, v = task.compute_rows(configuration, dt)
-            check_task_rows(task, J, v, n)  # user code; the kernels below do not check bounds
             by_level.setdefault(task.level, []).append((task, J, v))
         hard = by_level.pop(HARD, None)
         A, b = self._hard_equalities(hard, n) if hard else (np.zeros((0, n)), np.zeros(0))

@@ -15,7 +15,6 @@ be computed (no valid measurement) it decelerates the previous command joint by 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -34,29 +33,52 @@ OK = "ok"
 FALLBACK = "fallback"
 
 
-@dataclass
 class ControlStep:
-    """Output of one control tick."""
+    """Output of one control tick.
 
-    qdot: np.ndarray
-    """Joint velocity command [rad/s]."""
-    status: str
-    """``"ok"``; ``"ok: relaxed JointAccelerationLimit to <a> rad/s^2"`` when a joint had
-    to change speed faster than the acceleration limit to keep a position limit or a
-    collision row (by the least amount needed, ``a`` the largest commanded
-    acceleration); ``"ok: separation asked lowered by ..."`` when a pair inside the safety
-    distance separates more slowly than its row asked, to stay within the acceleration limit;
-    ``"ok: retried ..."`` when a second backend solved the QP; or
-    ``"fallback: <reason>"`` when the arms are being brought to rest."""
-    conflicts: list = field(default_factory=list)
-    """Joints whose limit boxes conflicted this tick (the higher-priority limit won)."""
-    acceleration: np.ndarray | None = None
-    """Commanded acceleration ``(qdot - previous qdot) / dt`` [rad/s^2] of this tick."""
-    active_pairs: list[tuple[str, str, float]] = field(default_factory=list)
-    """Collision pairs that were rows of the QP this tick: both bodies' names and the
-    surface distance [m] (from every :class:`CollisionAvoidance` among the limits).
-    Built on first access from a snapshot taken at the step (the names and distances
-    of that tick), so a loop that never reads it does not pay for it."""
+    ``acceleration`` and ``active_pairs`` are computed on first access from what the step kept
+    (the previous command; a snapshot of the collision rows), so a loop that never reads them
+    does not pay for them.
+
+    Attributes:
+        qdot: joint velocity command [rad/s].
+        status: ``"ok"``; ``"ok: relaxed JointAccelerationLimit to <a> rad/s^2"`` when a joint had
+            to change speed faster than the acceleration limit to keep a position limit or a
+            collision row (by the least amount needed, ``a`` the largest commanded acceleration);
+            ``"ok: separation asked lowered by ..."`` when a pair inside the safety distance separates
+            more slowly than its row asked, to stay within the acceleration limit; ``"ok: retried ..."``
+            when a second backend solved the QP; or ``"fallback: <reason>"`` when the arms are being
+            brought to rest.
+        conflicts: joints whose limit boxes conflicted this tick (the higher-priority limit won).
+    """
+
+    def __init__(self, qdot: np.ndarray, status: str, conflicts: list | None = None,
+                 acceleration: np.ndarray | None = None, *, previous_qdot: np.ndarray | None = None,
+                 dt: float | None = None, pair_snapshots: list | None = None) -> None:
+        self.qdot = qdot
+        self.status = status
+        self.conflicts = [] if conflicts is None else conflicts
+        self._acceleration = acceleration
+        self._previous, self._dt = previous_qdot, dt  # for the lazy acceleration
+        self._pair_snapshots = pair_snapshots
+        self._active_pairs: list[tuple[str, str, float]] | None = None
+
+    @property
+    def acceleration(self) -> np.ndarray | None:
+        """Commanded acceleration ``(qdot - previous qdot) / dt`` [rad/s^2] of this tick (None: unknown)."""
+        if self._acceleration is None and self._previous is not None:
+            self._acceleration = (self.qdot - self._previous) / self._dt
+        return self._acceleration
+
+    @property
+    def active_pairs(self) -> list[tuple[str, str, float]]:
+        """Collision pairs that were rows of the QP this tick: both bodies' names and the surface
+        distance [m] (from every :class:`CollisionAvoidance` among the limits), from the snapshot
+        taken at the step."""
+        if self._active_pairs is None:
+            snapshots = self._pair_snapshots or []
+            self._active_pairs = [pair for snapshot in snapshots for pair in pairs_from_snapshot(snapshot)]
+        return self._active_pairs
 
     @property
     def ok(self) -> bool:
@@ -66,30 +88,11 @@ class ControlStep:
     @property
     def max_acceleration(self) -> float:
         """Largest commanded joint acceleration of this tick [rad/s^2] (0 when unknown)."""
-        return 0.0 if self.acceleration is None else float(np.max(np.abs(self.acceleration), initial=0.0))
+        acceleration = self.acceleration
+        return 0.0 if acceleration is None else float(np.max(np.abs(acceleration), initial=0.0))
 
-
-def _get_active_pairs(step: ControlStep) -> list[tuple[str, str, float]]:
-    state = step.__dict__
-    snapshots = state.pop("_pair_snapshots", None)
-    if snapshots is not None:
-        state["_active_pairs"] = [pair for snapshot in snapshots for pair in pairs_from_snapshot(snapshot)]
-    return state["_active_pairs"]
-
-
-def _set_active_pairs(step: ControlStep, value: list[tuple[str, str, float]]) -> None:
-    step.__dict__.pop("_pair_snapshots", None)
-    step.__dict__["_active_pairs"] = value
-
-
-# A property in place of the dataclass field (the constructor, repr and comparison still see
-# ``active_pairs``): the list is built lazily from the step's snapshot (``_pair_snapshots``).
-ControlStep.active_pairs = property(
-    _get_active_pairs,
-    _set_active_pairs,
-    doc="Collision pairs that were rows of the QP this tick: both bodies' names and the surface "
-    "distance [m] (from every CollisionAvoidance among the limits); built on first access.",
-)
+    def __repr__(self) -> str:
+        return f"ControlStep(qdot={self.qdot!r}, status={self.status!r}, conflicts={self.conflicts!r})"
 
 
 class _BrakeTask(Task):
@@ -179,17 +182,15 @@ class TaskController:
             measured = True
             previous = self.previous_qdot
             solution = self.solver.solve(self.configuration, self.tasks, self.limits, self.dt, previous_qdot=previous)
-            accel = (solution.qdot - previous) / self.dt
             self.solver_solution = solution
-            status = OK
+            result = ControlStep(solution.qdot, OK, solution.conflicts, previous_qdot=previous, dt=self.dt)
             if solution.relaxed:
-                peak = float(np.max(np.abs(accel)))
-                status = f"{OK}: relaxed {', '.join(solution.relaxed)} to {peak:.4g} rad/s^2"
+                result.status = (f"{OK}: relaxed {', '.join(solution.relaxed)} to {result.max_acceleration:.4g} "
+                                 "rad/s^2")
             elif solution.row_relaxation is not None and np.any(solution.row_relaxation > 0):
-                status = f"{OK}: separation asked lowered by up to {np.max(solution.row_relaxation):.3g} m/s"
+                result.status = f"{OK}: separation asked lowered by up to {np.max(solution.row_relaxation):.3g} m/s"
             elif solution.retries:
-                status = f"{OK}: retried after {'; '.join(solution.retries)}"
-            result = ControlStep(qdot=solution.qdot, status=status, conflicts=solution.conflicts, acceleration=accel)
+                result.status = f"{OK}: retried after {'; '.join(solution.retries)}"
         except Exception as err:  # the loop must keep commanding the robot: stop it safely
             self.last_error = err
             qdot, how = self._safe_stop_command(measured)
@@ -199,7 +200,7 @@ class TaskController:
                 acceleration=(qdot - np.nan_to_num(self.previous_qdot)) / self.dt,
             )
         if measured and self._collisions:
-            result.__dict__["_pair_snapshots"] = [limit.active_pair_snapshot() for limit in self._collisions]
+            result._pair_snapshots = [limit.active_pair_snapshot() for limit in self._collisions]
         self.previous_qdot = result.qdot
         return result
 

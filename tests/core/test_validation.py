@@ -228,24 +228,34 @@ def test_valid_inputs_still_pass(dual):
 
 
 # ----------------------------------------------------------------------------- sizes against the model
-def _spy_on_solver_kernels(monkeypatch) -> list[str]:
-    """Replace every compiled (numba) kernel the solver module calls with a recording spy."""
-    calls: list[str] = []
+def _spy_on_solver_kernels(monkeypatch) -> list[tuple[str, object, bool]]:
+    """Replace every compiled (numba) kernel the solver module calls with a recording spy:
+    ``(name, returned, whether it changed its first argument)`` per call."""
+    calls: list[tuple[str, object, bool]] = []
     for name, obj in vars(solver_module).items():
         if type(obj).__name__ == "CPUDispatcher":
 
             def spy(*args, _name=name, _kernel=obj):
-                calls.append(_name)
-                return _kernel(*args)
+                before = args[0].copy() if isinstance(args[0], np.ndarray) else None
+                returned = _kernel(*args)
+                changed = before is not None and not np.array_equal(before, args[0])
+                calls.append((_name, returned, changed))
+                return returned
 
             monkeypatch.setattr(solver_module, name, spy)
     assert any(type(obj).__name__ == "function" and obj.__name__ == "spy" for obj in vars(solver_module).values())
     return calls
 
 
-def _assembly(calls: list[str]) -> list[str]:
-    """The Hessian-assembly kernels among ``calls`` (one per task)."""
-    return [name for name in calls if name.startswith("accumulate_")]
+def _assembly(calls) -> list[tuple[str, object, bool]]:
+    """The Hessian-assembly kernel calls among ``calls`` (one per task)."""
+    return [call for call in calls if call[0].startswith("accumulate_")]
+
+
+def _refused_untouched(call) -> bool:
+    """An assembly call that refused its rows (returned False) and wrote nothing into the Hessian."""
+    _name, returned, changed = call
+    return returned is False and not changed
 
 
 @pytest.mark.parametrize(
@@ -258,29 +268,35 @@ def _assembly(calls: list[str]) -> list[str]:
     ],
     ids=["damping13", "damping11", "posture11", "posture13"],
 )
-def test_joint_space_task_of_wrong_size_raises_before_any_kernel(dual, monkeypatch, task, fragments):
+def test_joint_space_task_of_wrong_size_raises_without_writing(dual, monkeypatch, task, fragments):
     """Catches DampingTask(13) writing past the 12x12 Hessian in a numba kernel and
-    DampingTask(11)/PostureTask(11) silently acting on 11 of 12 joints."""
+    DampingTask(11)/PostureTask(11) silently acting on 11 of 12 joints: the assembly kernel
+    refuses the rows (writes nothing) and the solver raises DimensionError naming them."""
     calls = _spy_on_solver_kernels(monkeypatch)
     with pytest.raises(DimensionError) as info:
         Solver().solve(dual, [FrameTwistTask("camera"), task])
     for fragment in fragments:
         assert fragment in str(info.value)
-    assert not _assembly(calls), calls
+    # The task may be stopped by its own model check before any kernel; if a kernel saw its rows,
+    # it refused them. Only the camera task's rows (which fit) were ever written.
+    assembly = _assembly(calls)
+    assert [call[1] for call in assembly if not _refused_untouched(call)] in ([], [True]), calls
+    assert len(assembly) <= 2, calls
     # The same mistake is caught up front when the task list is checked against the model.
     with pytest.raises(DimensionError):
         check_tasks([task], dual)
 
 
 def test_right_size_reaches_the_kernels(dual, monkeypatch):
-    """The spy does see the kernels when the sizes are right (so the test above can fail)."""
+    """The spy does see the kernels accept and write when the sizes are right (so the tests around can fail)."""
     calls = _spy_on_solver_kernels(monkeypatch)
     Solver().solve(dual, [FrameTwistTask("camera"), DampingTask(12), PostureTask(dual.q)])
-    assert _assembly(calls), calls
+    assembly = _assembly(calls)
+    assert len(assembly) == 3 and all(returned is True and changed for _, returned, changed in assembly), calls
 
 
 def test_user_task_returning_wrong_shape_raises_dimension_error(dual, monkeypatch):
-    """Catches a user ``compute`` with the wrong column count reaching ``accumulate_task``."""
+    """Catches a user ``compute`` with the wrong column count written past the Hessian by ``accumulate_task``."""
 
     class Wide(Task):
         def compute(self, configuration, dt):
@@ -289,7 +305,7 @@ def test_user_task_returning_wrong_shape_raises_dimension_error(dual, monkeypatc
     calls = _spy_on_solver_kernels(monkeypatch)
     with pytest.raises(DimensionError, match=r"\(2, 12\).*\(2, 13\)"):
         Solver().solve(dual, [Wide(2)])
-    assert not _assembly(calls), calls
+    assert [_refused_untouched(call) for call in _assembly(calls)] == [True], calls
 
 
 def test_user_task_overriding_compute_rows_is_checked_too(dual, monkeypatch):
@@ -306,8 +322,49 @@ def test_user_task_overriding_compute_rows_is_checked_too(dual, monkeypatch):
     calls = _spy_on_solver_kernels(monkeypatch)
     with pytest.raises(DimensionError, match=r"J = None \(identity\) needs weight and v of shape \(12,\)"):
         Solver().solve(dual, [Joints(13)])
-    assert not _assembly(calls), calls
+    assert [_refused_untouched(call) for call in _assembly(calls)] == [True], calls
     assert Solver().solve(dual, [Joints(12)]).qdot.shape == (12,)
+
+
+def test_user_task_rows_that_are_not_arrays_raise_the_package_error(dual):
+    """Rows the compiled kernels cannot take at all (a list, complex numbers) end in the package's own
+    error naming the task, not in numba's typing error."""
+
+    class Listed(Task):
+        def compute(self, configuration, dt):
+            return [[1.0] * 12], np.zeros(1)
+
+    class Complex(Task):
+        def compute(self, configuration, dt):
+            return np.ones((1, 12), dtype=complex), np.zeros(1, dtype=complex)
+
+    with pytest.raises(DimensionError, match=r"Listed.*J list"):
+        Solver().solve(dual, [Listed(1)])
+    with pytest.raises(InvalidInputError, match=r"Complex.*complex128"):
+        Solver().solve(dual, [Complex(1)])
+
+
+def test_assembly_kernels_refuse_sizes_that_do_not_fit():
+    """The kernels index without bounds checks: each size mismatch is refused before any write; fitting rows
+    give ``J^T W J`` and ``-J^T W v`` (numpy as the oracle)."""
+    from harvest_qp.qp_kernels import accumulate_diagonal, accumulate_task
+
+    rng = np.random.default_rng(3)
+    J, w, v = rng.normal(size=(4, 6)), rng.uniform(0.5, 2.0, 4), rng.normal(size=4)
+    H, f = np.zeros((6, 6)), np.zeros(6)
+    assert accumulate_task(H, f, J, w, v) is True
+    np.testing.assert_allclose(H, J.T @ np.diag(w) @ J, atol=1e-12)
+    np.testing.assert_allclose(f, -J.T @ (w * v), atol=1e-12)
+    for args in ((np.ones((4, 7)), w, v), (J, w[:3], v), (J, w, v[:3]), (J, np.ones(5), np.ones(5))):
+        H0, f0 = H.copy(), f.copy()
+        assert accumulate_task(H, f, *args) is False
+        assert np.array_equal(H, H0) and np.array_equal(f, f0)
+    floor = np.zeros(6)
+    assert accumulate_diagonal(H, f, np.ones(6), np.ones(6), floor) is True
+    for w_, v_ in ((np.ones(7), np.ones(7)), (np.ones(5), np.ones(5)), (np.ones(6), np.ones(5))):
+        H0, f0, floor0 = H.copy(), f.copy(), floor.copy()
+        assert accumulate_diagonal(H, f, w_, v_, floor) is False
+        assert np.array_equal(H, H0) and np.array_equal(f, f0) and np.array_equal(floor, floor0)
 
 
 def test_user_limit_rows_of_wrong_width_raise(dual):
