@@ -336,9 +336,9 @@ class Solver:
         """
         tasks, box_limits, row_limits = self._checked(tasks, limits)
         dt = as_positive_scalar(dt, "dt")
-        if previous_qdot is not None:
-            previous_qdot = as_vector(previous_qdot, configuration.nv, "previous_qdot")
         n = configuration.nv
+        if previous_qdot is not None:  # only read here: checked, not copied
+            previous_qdot = as_vector(previous_qdot, n, "previous_qdot", copy=False)
 
         # Boxes, in priority order (velocity, position, acceleration, ...).
         lowers, uppers = np.empty((len(box_limits), n)), np.empty((len(box_limits), n))
