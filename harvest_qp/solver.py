@@ -337,8 +337,8 @@ class Solver:
         tasks, box_limits, row_limits = self._checked(tasks, limits)
         dt = as_positive_scalar(dt, "dt")
         n = configuration.nv
-        if previous_qdot is not None:  # only read here: checked, not copied
-            previous_qdot = as_vector(previous_qdot, n, "previous_qdot", copy=False)
+        if previous_qdot is not None:  # a private copy: the limits (user code too) get it
+            previous_qdot = as_vector(previous_qdot, n, "previous_qdot")
 
         # Boxes, in priority order (velocity, position, acceleration, ...).
         lowers, uppers = np.empty((len(box_limits), n)), np.empty((len(box_limits), n))
@@ -463,6 +463,11 @@ class Solver:
     def _hard_equalities(self, hard, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Orthonormal equality rows of the hard tasks' ``(task, J, v)`` (``J`` None: ``I``)."""
         for task, J, v in hard:
+            # These rows reach the backends' kernels without the assembly kernels' size check.
+            check_task_rows(task, J, v, n)
+            if not (np.isrealobj(v) and (J is None or np.isrealobj(J))):
+                raise InvalidInputError(f"hard task {task!r} (level 0) computed rows that are not real numbers "
+                                        f"(J {_describe_rows(J)}, v {_describe_rows(v)})")
             # A hard task must be met exactly: a non-finite target is an error, not a
             # problem daqp refuses and a retry quietly drops (an audit found the latter).
             if not (np.all(np.isfinite(v)) and (J is None or np.all(np.isfinite(J)))):

@@ -53,19 +53,24 @@ class ControlStep:
     """
 
     def __init__(self, qdot: np.ndarray, status: str, conflicts: list | None = None,
-                 acceleration: np.ndarray | None = None, *, previous_qdot: np.ndarray | None = None,
-                 dt: float | None = None, pair_snapshots: list | None = None) -> None:
+                 acceleration: np.ndarray | None = None, active_pairs: list | None = None, *,
+                 previous_qdot: np.ndarray | None = None, dt: float | None = None,
+                 pair_snapshots: list | None = None) -> None:
         self.qdot = qdot
         self.status = status
         self.conflicts = [] if conflicts is None else conflicts
         self._acceleration = acceleration
-        self._previous, self._dt = previous_qdot, dt  # for the lazy acceleration
+        # For the lazy acceleration: a copy, so that editing the previous step's command in place later
+        # (a speed override, controller.previous_qdot[:] = ...) does not change this step's figure.
+        self._previous = None if previous_qdot is None else previous_qdot.copy()
+        self._dt = dt
         self._pair_snapshots = pair_snapshots
-        self._active_pairs: list[tuple[str, str, float]] | None = None
+        self._active_pairs: list[tuple[str, str, float]] | None = active_pairs
 
     @property
     def acceleration(self) -> np.ndarray | None:
-        """Commanded acceleration ``(qdot - previous qdot) / dt`` [rad/s^2] of this tick (None: unknown)."""
+        """Commanded acceleration ``(qdot - previous qdot) / dt`` [rad/s^2] of this tick (None: unknown), from
+        this step's ``qdot`` and a copy of the previous command taken at the step."""
         if self._acceleration is None and self._previous is not None:
             self._acceleration = (self.qdot - self._previous) / self._dt
         return self._acceleration
@@ -79,6 +84,10 @@ class ControlStep:
             snapshots = self._pair_snapshots or []
             self._active_pairs = [pair for snapshot in snapshots for pair in pairs_from_snapshot(snapshot)]
         return self._active_pairs
+
+    @active_pairs.setter
+    def active_pairs(self, value: list[tuple[str, str, float]]) -> None:
+        self._active_pairs = value
 
     @property
     def ok(self) -> bool:

@@ -58,14 +58,13 @@ def _non_finite_message(name: str, arr: np.ndarray) -> str:
     )
 
 
-def as_vector(value: np.ndarray | Sequence[float] | float, size: int, name: str, *, copy: bool = True) -> np.ndarray:
-    """``value`` as a finite float vector of length ``size`` (a scalar is broadcast); a copy
-    (``copy=False``: a float64 array of the right shape is checked and returned as it is)."""
+def as_vector(value: np.ndarray | Sequence[float] | float, size: int, name: str) -> np.ndarray:
+    """``value`` as a finite float vector of length ``size`` (a scalar is broadcast); a copy."""
     if type(value) is np.ndarray and value.dtype is _FLOAT64 and value.shape == (size,):
         # Fast path for the control loop: already the right kind of array.
         if not all_finite(value):
             raise InvalidInputError(_non_finite_message(name, value))
-        return value.copy() if copy else value
+        return value.copy()
     arr = _numeric_array(value, name, f"a number or a vector of shape ({size},)")
     if arr.ndim == 0:
         arr = np.full(size, float(arr))

@@ -202,7 +202,7 @@ class DualUR5eRobot(RobotInterface):
                  clock: Callable[[], float] = time.perf_counter, probe_timeout: float | None = 2.0,
                  connect_timeout: float = 10.0, read_only: bool = False) -> None:
         self.cell = cell if cell is not None else CellConfig()
-        self.read_only = bool(read_only)
+        self._read_only = bool(read_only)
         self.control_period = float(self.cell.control_period)
         self.hosts = {"camera arm": str(camera_arm), "grasping arm": str(grasp_arm)}
         if self.hosts["camera arm"].strip() == self.hosts["grasping arm"].strip():
@@ -258,10 +258,15 @@ class DualUR5eRobot(RobotInterface):
         self._t0 = self._stamp
         self._history.clear()
         self._remember()
-        self._cycle_start = None if self.read_only else self._clock_arm.control.initPeriod()
+        self._cycle_start = None if self._read_only else self._clock_arm.control.initPeriod()
         self._cycle_clock = self.clock()
         if camera is not None:
             camera.attach(self)
+
+    @property
+    def read_only(self) -> bool:
+        """True for a read-only connection (no control interface: it cannot command the arms)."""
+        return self._read_only
 
     # ------------------------------------------------------------------ RobotInterface
 
@@ -285,7 +290,7 @@ class DualUR5eRobot(RobotInterface):
 
     def tare_force(self) -> None:
         self._tare = self._force.copy()
-        if self.cell.force.zero_on_tare and not self.read_only:
+        if self.cell.force.zero_on_tare and not self._read_only:
             grasp = self._arms[1]
             R_frame, R_sensor = self._rotations()
             # From now on the sensor reports minus this (in its own frame): keep it, so the world
@@ -320,7 +325,7 @@ class DualUR5eRobot(RobotInterface):
         """Check, send the held command to both arms, wait for the period's end, read both arms."""
         if self._closed:
             raise RobotConnectionError("the robot connection is closed")
-        if self.read_only:
+        if self._read_only:
             raise RobotConnectionError("a read-only connection (a dry run) sends no command: connect with "
                                        "read_only=False to move the arms")
         if self.tripped is not None:
@@ -498,7 +503,7 @@ class DualUR5eRobot(RobotInterface):
             if arm.prefix == CAMERA_ARM:
                 self._stamp = stamp
             reason = self.watchdog.fresh(f"{arm.role} at {arm.host}", stamp, ok) or self.watchdog.robot_state(
-                f"{arm.role} at {arm.host}", safety, status, script=not self.read_only)
+                f"{arm.role} at {arm.host}", safety, status, script=not self._read_only)
             if reason is not None:
                 return reason
         self._update_force()

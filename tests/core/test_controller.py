@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from harvest_qp import TaskController
+from harvest_qp import Configuration, TaskController
 from harvest_qp.limits import CollisionAvoidance, JointVelocityLimit
 from harvest_qp.robot.description import HOME_Q
 from harvest_qp.tasks import HARD, DampingTask, FramePoseTask, FrameTwistTask, PostureTask
@@ -115,7 +115,6 @@ def test_previous_qdot_set_to_none_means_at_rest_and_step_never_raises():
     Oracle: a fresh controller (previous command zero): the same command and acceleration;
     a bad ``q`` with ``previous_qdot = None`` takes the safe stop (zeros from rest).
     """
-    from harvest_qp import Configuration
     from harvest_qp.limits import JointAccelerationLimit, JointPositionLimit
 
     def make():
@@ -135,3 +134,18 @@ def test_previous_qdot_set_to_none_means_at_rest_and_step_never_raises():
     bad[0] = np.nan
     stopped = forgetful.step(bad)
     assert stopped.status.startswith("fallback") and np.array_equal(stopped.qdot, np.zeros(12))
+
+
+def test_step_acceleration_is_the_command_change_at_the_step_despite_later_edits():
+    """ControlStep.acceleration is computed when read: catches it following an in-place edit of the
+    previous command made after the step (a speed override; found by an independent review)."""
+    config = Configuration.dual_ur5e()
+    camera = FrameTwistTask("camera")
+    camera.set_reference(np.full(6, 0.1))
+    controller = TaskController(config, [camera, DampingTask(12, level=2)])
+    first = controller.step(HOME_Q)
+    second = controller.step(HOME_Q)
+    expected = (second.qdot - first.qdot) / controller.dt  # hand oracle, taken before any edit
+    first.qdot *= 0.0  # the previous command edited in place after the step
+    np.testing.assert_array_equal(second.acceleration, expected)
+    assert second.max_acceleration == pytest.approx(np.max(np.abs(expected)))

@@ -344,6 +344,30 @@ def test_user_task_rows_that_are_not_arrays_raise_the_package_error(dual):
         Solver().solve(dual, [Complex(1)])
 
 
+@pytest.mark.parametrize("width", [11, 13])
+def test_hard_task_rows_of_wrong_width_raise(dual, width):
+    """Catches hard (level 0) rows skipping the size check: they bypass the assembly kernels and went
+    straight to the backend's row loader (11 columns: read past the array's end; 13: the last column
+    silently dropped). Found by an independent review of the kernels' own size check."""
+
+    class Hard(Task):
+        def __init__(self):
+            super().__init__(1, level=0)
+
+        def compute(self, configuration, dt):
+            return np.arange(1.0, width + 1.0)[None], np.ones(1)
+
+    with pytest.raises(DimensionError, match=rf"\(1, 12\).*\(1, {width}\)"):
+        Solver().solve(dual, [Hard(), DampingTask(12)])
+    with pytest.raises(InvalidInputError, match="not real numbers"):
+
+        class ComplexHard(Hard):
+            def compute(self, configuration, dt):
+                return np.ones((1, 12), dtype=complex), np.ones(1)
+
+        Solver().solve(dual, [ComplexHard(), DampingTask(12)])
+
+
 def test_assembly_kernels_refuse_sizes_that_do_not_fit():
     """The kernels index without bounds checks: each size mismatch is refused before any write; fitting rows
     give ``J^T W J`` and ``-J^T W v`` (numpy as the oracle)."""

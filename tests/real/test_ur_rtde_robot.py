@@ -167,6 +167,18 @@ def test_read_only_connection_reads_and_starts_no_control_script(lab):
     assert cell.methods_called(kind="control") == []
     assert cell.script == [False, False]
     np.testing.assert_array_equal(lab.joint_positions(), q0)  # the lab never advanced: nothing was sent
+    with pytest.raises(AttributeError):
+        robot.read_only = False  # cannot be turned into a commanding connection
+
+
+def test_read_only_connection_to_a_powered_off_arm_says_power():
+    """The watchdog's state check for a read-only connection needs power, not our (never started) script."""
+    from harvest_qp.real.watchdog import Watchdog, WatchdogConfig
+
+    dog = Watchdog(WatchdogConfig(), 0.002, -np.ones(12), np.ones(12), [f"j{i}" for i in range(12)])
+    assert dog.robot_state("camera arm", 1, 0b01, script=False) is None  # powered, no program: fine read-only
+    assert "not powered on" in dog.robot_state("camera arm", 1, 0b00, script=False)
+    assert "control script is not running" in dog.robot_state("camera arm", 1, 0b01)
 
 
 def test_unreachable_robot_is_one_line_naming_the_address():
