@@ -10,7 +10,7 @@ import numpy as np
 import pinocchio as pin
 
 from harvest_qp.configuration import Configuration, as_configuration
-from harvest_qp.exceptions import DimensionError
+from harvest_qp.exceptions import DimensionError, InvalidInputError
 from harvest_qp.validation import as_instances, as_positive_scalar, check_limit_rows
 
 
@@ -23,6 +23,14 @@ def check_limit_output(limit: Limit, rows: LimitRows, nv: int) -> None:
     if not isinstance(rows, LimitRows):
         raise DimensionError(f"{type(limit).__name__}.compute must return LimitRows, got {type(rows).__name__}")
     check_limit_rows(limit, rows.G, rows.h, nv)
+    if rows.G is not None:
+        # A NaN row would never be active in the backends: the constraint would be dropped silently.
+        if rows.G.dtype.kind not in "fiu" or rows.h.dtype.kind not in "fiu":
+            raise InvalidInputError(f"{type(limit).__name__}.compute returned rows of dtype G {rows.G.dtype}, "
+                                    f"h {rows.h.dtype}; expected real numbers")
+        if np.isnan(rows.G).any() or np.isnan(rows.h).any():
+            raise InvalidInputError(f"{type(limit).__name__}.compute returned NaN in its rows G qdot <= h: "
+                                    "the constraint cannot be kept")
     for side, value in (("lower", rows.lower), ("upper", rows.upper)):
         if value is not None and getattr(value, "shape", None) != (nv,):
             raise DimensionError(

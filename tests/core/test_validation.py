@@ -391,6 +391,23 @@ def test_assembly_kernels_refuse_sizes_that_do_not_fit():
         assert np.array_equal(H, H0) and np.array_equal(f, f0) and np.array_equal(floor, floor0)
 
 
+def test_user_limit_rows_with_nan_are_refused_not_dropped(dual):
+    """Catches a NaN row G qdot <= h reaching the backends, where it is never active: the constraint was
+    dropped without a word (found by an independent review). The controller stops the arms instead."""
+    from harvest_qp import TaskController
+
+    class Broken(Limit):
+        def compute(self, configuration, dt, previous_qdot=None):
+            G = np.zeros((1, 12))
+            G[0, 0] = 1.0
+            return LimitRows(G=G, h=np.array([np.nan]))
+
+    with pytest.raises(InvalidInputError, match="Broken.*NaN"):
+        Solver().solve(dual, [DampingTask(12)], [Broken()])
+    step = TaskController(dual, [DampingTask(12)], [Broken()]).step(dual.q)
+    assert step.status.startswith("fallback") and np.all(np.isfinite(step.qdot))
+
+
 def test_user_limit_rows_of_wrong_width_raise(dual):
     """Catches user inequality rows with 11 columns reaching the feasibility kernel,
     which reads ``G[r, i]`` for every ``i < nv`` without bounds checks."""
