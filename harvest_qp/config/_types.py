@@ -61,6 +61,10 @@ Weights6 = expect(
     Union[_NonNegFloat, Annotated[list[_NonNegFloat], Field(min_length=6, max_length=6)]],
     "a number >= 0 or a list of 6 numbers >= 0",
 )
+Weights6OrNull = expect(
+    Union[_NonNegFloat, Annotated[list[_NonNegFloat], Field(min_length=6, max_length=6)], None],
+    "a number >= 0, a list of 6 numbers >= 0 or null",
+)
 Weights = expect(
     Union[_NonNegFloat, Annotated[list[_NonNegFloat], Field(min_length=1)]],
     "a number >= 0 or a list of numbers >= 0 (one per task row)",

@@ -27,6 +27,7 @@ from harvest_qp.config._types import (
     Text,
     Weight,
     Weights6,
+    Weights6OrNull,
     expect,
     suggest,
 )
@@ -296,6 +297,9 @@ class QPSection(Section):
         "proxsuite", "re-solves a tick the main backend failed (null: none)")
     camera_task: TwistTaskSlot = _f(TwistTaskSlot(level=1, weight=[1.0, 1.0, 1.0, 1.0, 1.0, 0.0]),
                                     "camera twist task (local axes; 5-D: roll about z_c free)")
+    camera_bimanual_weight: Weights6OrNull = _f(
+        None, "[1/(m/s)^2, 1/(rad/s)^2] the camera task's weights from the switch on, when the camera only has "
+              "to stay in the ROI and centred (null: camera_task.weight)")
     gripper_task: TwistTaskSlot = _f(TwistTaskSlot(level=1, weight=1.0),
                                      "gripper twist task (its translation only while alignment_task is set)")
     alignment_task: TaskSlot | None = _f(

@@ -361,6 +361,7 @@ class HarvestController:
             self.qp_backup.dt = self.dt
             self.qp_backup.reset(q0)
         self.posture_task.set_target(q0)
+        self.camera_task.weight = self.settings.qp.camera_task.weight  # the approach's (see the switch)
         self.configuration.update(q0)
         gripper = self.configuration.frame_pose("gripper").homogeneous
         self.state = _State(hold=HoldPose(gripper, k_hold=self.settings.grasping.k_hold))
@@ -560,6 +561,9 @@ class HarvestController:
                                     roi_distance=math.dist(self.reaching.roi_centre.tolist(), T_c[:3, 3].tolist()))
             if ready and not self.looking_around(t) and self._try_switch(t, obs, T_g):
                 phases.switch(t)
+                if self.settings.qp.camera_bimanual_weight is not None:
+                    # From here the camera only has to stay in the ROI and centred (see the setting).
+                    self.camera_task.weight = self.settings.qp.camera_bimanual_weight
         elif phases.bimanual:
             phases.watch_stem(t, st.last_stem_time)
 
