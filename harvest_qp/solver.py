@@ -306,10 +306,10 @@ class Solver:
 
     def _backend(self, name: str, level: int) -> Backend:
         """The backend ``name`` for priority ``level`` (one workspace per level, kept between steps)."""
-        key = (name, level)
-        if key not in self._backends:
-            self._backends[key] = self._make(name, level)
-        return self._backends[key]
+        backend = self._backends.get((name, level))
+        if backend is None:
+            backend = self._backends[name, level] = self._make(name, level)
+        return backend
 
     # ------------------------------------------------------------------ public
     def solve(
