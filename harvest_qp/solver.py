@@ -62,7 +62,13 @@ from harvest_qp.backends import (
     make_backend,
 )
 from harvest_qp.configuration import Configuration
-from harvest_qp.exceptions import InfeasibleProblemError, InvalidInputError, SolverError, SolverNotAvailableError
+from harvest_qp.exceptions import (
+    DimensionError,
+    InfeasibleProblemError,
+    InvalidInputError,
+    SolverError,
+    SolverNotAvailableError,
+)
 from harvest_qp.limits.limit import Limit, check_limit_output, check_limits
 from harvest_qp.qp_kernels import (
     accumulate_diagonal,
@@ -343,7 +349,11 @@ class Solver:
         # Boxes, in priority order (velocity, position, acceleration, ...).
         lowers, uppers = np.empty((len(box_limits), n)), np.empty((len(box_limits), n))
         for limit, lower_row, upper_row in zip(box_limits, lowers, uppers):
-            limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+            try:
+                limit.fill_box(configuration, dt, previous_qdot, lower_row, upper_row)
+            except (ValueError, IndexError) as err:  # numpy's words for a box of the wrong size
+                raise DimensionError(f"{type(limit).__name__}.fill_box failed ({err}): it must write {n} entries "
+                                     "[rad/s] into lower and upper") from err
         lower, upper, conflicts = combine_boxes(box_limits, lowers, uppers, n)
 
         # Inequality rows G x <= h, and which of them ask for separation (relaxable).
@@ -370,7 +380,12 @@ class Solver:
         # The tasks' rows, grouped by level.
         by_level: dict[int, list] = {}
         for task in tasks:
-            J, v = task.compute_rows(configuration, dt)
+            try:
+                J, v = task.compute_rows(configuration, dt)
+            except (TypeError, ValueError) as err:
+                if "unpack" not in str(err):
+                    raise
+                raise InvalidInputError(f"{task!r}.compute_rows must return the pair (J, v): {err}") from err
             by_level.setdefault(task.level, []).append((task, J, v))
         hard = by_level.pop(HARD, None)
         A, b = self._hard_equalities(hard, n) if hard else (np.zeros((0, n)), np.zeros(0))

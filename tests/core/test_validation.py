@@ -408,6 +408,34 @@ def test_user_limit_rows_with_nan_are_refused_not_dropped(dual):
     assert step.status.startswith("fallback") and np.all(np.isfinite(step.qdot))
 
 
+def test_user_fill_box_and_compute_rows_mistakes_raise_the_package_errors(dual):
+    """A fill_box override writing 11 entries and a compute_rows returning three values ended in numpy's and
+    Python's own ValueError (independent review): now DimensionError / InvalidInputError naming the culprit."""
+
+    class ShortBox(Limit):
+        has_box = True
+        priority = 3
+
+        def compute(self, configuration, dt, previous_qdot=None):
+            return LimitRows(lower=-np.ones(12), upper=np.ones(12))
+
+        def fill_box(self, configuration, dt, previous_qdot, lower, upper):
+            lower[:] = -np.ones(11)
+            upper[:] = np.ones(11)
+
+    class Triple(Task):
+        def compute(self, configuration, dt):
+            return np.eye(12), np.zeros(12)
+
+        def compute_rows(self, configuration, dt):
+            return None, np.zeros(12), "extra"
+
+    with pytest.raises(DimensionError, match=r"ShortBox.fill_box.*12 entries"):
+        Solver().solve(dual, [DampingTask(12)], [ShortBox()])
+    with pytest.raises(InvalidInputError, match=r"Triple.*compute_rows must return the pair"):
+        Solver().solve(dual, [Triple(12)])
+
+
 def test_user_limit_rows_of_wrong_width_raise(dual):
     """Catches user inequality rows with 11 columns reaching the feasibility kernel,
     which reads ``G[r, i]`` for every ``i < nv`` without bounds checks."""
