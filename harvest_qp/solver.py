@@ -254,6 +254,8 @@ def assemble_level(entries, n: int, regularization: float) -> tuple[np.ndarray, 
                                     f"v {_describe_rows(v)}): {type(err).__name__}") from None
         if not fits:
             check_task_rows(task, J, v, n)  # raises DimensionError naming the task and the shapes
+            raise DimensionError(f"{task!r} rows do not fit the model (nv = {n}): J {_describe_rows(J)}, "
+                                 f"v {_describe_rows(v)}")  # the kernel refused what the check let through
     top_up_diagonal(H, floor, regularization if entries else max(regularization, 1e-12))
     return H, f
 
@@ -380,12 +382,11 @@ class Solver:
         # The tasks' rows, grouped by level.
         by_level: dict[int, list] = {}
         for task in tasks:
+            rows = task.compute_rows(configuration, dt)
             try:
-                J, v = task.compute_rows(configuration, dt)
+                J, v = rows
             except (TypeError, ValueError) as err:
-                if "unpack" not in str(err):
-                    raise
-                raise InvalidInputError(f"{task!r}.compute_rows must return the pair (J, v): {err}") from err
+                raise InvalidInputError(f"{task!r}.compute_rows must return the pair (J, v): {err}") from None
             by_level.setdefault(task.level, []).append((task, J, v))
         hard = by_level.pop(HARD, None)
         A, b = self._hard_equalities(hard, n) if hard else (np.zeros((0, n)), np.zeros(0))

@@ -54,8 +54,7 @@ class ControlStep:
 
     def __init__(self, qdot: np.ndarray, status: str, conflicts: list | None = None,
                  acceleration: np.ndarray | None = None, active_pairs: list | None = None, *,
-                 previous_qdot: np.ndarray | None = None, dt: float | None = None,
-                 pair_snapshots: list | None = None) -> None:
+                 previous_qdot: np.ndarray | None = None, dt: float | None = None) -> None:
         self.qdot = qdot
         self.status = status
         self.conflicts = [] if conflicts is None else conflicts
@@ -64,7 +63,7 @@ class ControlStep:
         # (a speed override, controller.previous_qdot[:] = ...) does not change this step's figure.
         self._previous = None if previous_qdot is None else previous_qdot.copy()
         self._dt = dt
-        self._pair_snapshots = pair_snapshots
+        self._pair_snapshots: list | None = None  # set by TaskController.step (see active_pairs)
         self._active_pairs: list[tuple[str, str, float]] | None = active_pairs
 
     @property

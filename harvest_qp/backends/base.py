@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from harvest_qp.exceptions import SolverError
-from harvest_qp.qp_kernels import max_scaled_violation
 
 if TYPE_CHECKING:
     from harvest_qp.solver import QPProblem
@@ -56,7 +55,7 @@ def checked(x, problem: QPProblem, backend: str) -> np.ndarray:
     if x is None:
         raise SolverError(f"{backend} returned no solution", problem=problem, backend=backend)
     x = np.asarray(x, dtype=float)
-    violation = max_scaled_violation(x, problem.lower, problem.upper, problem.A, problem.b, problem.G, problem.h)
+    violation = problem.scaled_violation(x)
     if violation == np.inf:
         raise SolverError(f"{backend} returned a non-finite solution", problem=problem, backend=backend)
     if violation > FEASIBILITY_TOLERANCE:

@@ -125,12 +125,13 @@ class Watchdog:
             name = SAFETY_MODES.get(int(safety_mode), "UNKNOWN")
             kind = "emergency stop" if "EMERGENCY" in name else "protective stop" if "PROTECTIVE" in name else "stop"
             return f"{kind} reported by the {arm}: safety mode {int(safety_mode)} ({name})"
-        if not script and not robot_status & ROBOT_STATUS_POWER_ON:
-            return (f"the {arm} is not powered on (robot status bits {int(robot_status):#06b}: power on = bit 0); "
-                    "power it on from the pendant")
-        if (script and not robot_status & ROBOT_STATUS_PROGRAM_RUNNING) or not robot_status & ROBOT_STATUS_POWER_ON:
+        powered = bool(robot_status & ROBOT_STATUS_POWER_ON)
+        if script and not (powered and robot_status & ROBOT_STATUS_PROGRAM_RUNNING):
             return (f"the {arm}'s control script is not running (robot status bits {int(robot_status):#06b}: "
                     "power on = bit 0, program running = bit 1)")
+        if not powered:
+            return (f"the {arm} is not powered on (robot status bits {int(robot_status):#06b}: power on = bit 0); "
+                    "power it on from the pendant")
         return None
 
     def cycle(self, elapsed: float) -> str | None:
