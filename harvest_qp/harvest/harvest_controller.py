@@ -276,6 +276,8 @@ class HarvestController:
         m = self.settings.obstacle_map
         self.obstacle_map = None
         self.map_feed = None
+        #: The map's prior on partly seen canes and wires (``obstacle_map.line_prior`` > 0).
+        self.line_prior = None
         self._swing_capsules = []
         self._arm_swing_capsules = []
         if not m.enabled or self.collision is None or self.mapper_kind != "qp":
@@ -313,6 +315,12 @@ class HarvestController:
             # during the approach and pre-stretched the stem before the tare (seed 1:
             # true tension 5.6 N at the end, the wrist reading 3.0 N).
             self.collision.set_approach_only([c.name for c in capsules if c.name.startswith("grasp_")])
+            if m.line_prior > 0.0:
+                from harvest_qp.perception.line_prior import LinePrior
+
+                self.line_prior = LinePrior(m.line_prior_direction, extend=m.line_prior,
+                                            min_length=m.line_prior_min_length,
+                                            max_tilt_deg=m.line_prior_max_tilt_deg)
         except HarvestQPError as err:
             raise ConfigError(f"obstacle_map: {err}") from None
 
@@ -377,6 +385,8 @@ class HarvestController:
         self.last_swing_clearance = None
         if self.obstacle_map is not None:
             self.obstacle_map.clear()
+        if self.line_prior is not None:
+            self.line_prior.reset()
             self.map_feed.update(q0)
 
     # ------------------------------------------------------------------ perception
@@ -538,6 +548,10 @@ class HarvestController:
                 # the crop turned, the branch cells next to the gripper, whose rows then vanished
                 # (the gripper rested on the branch for ~28 s on a held-out scene).
                 self.obstacle_map.erase((stem,))
+                if self.line_prior is not None and self.line_prior.due(t):
+                    # Never next to the stem base, where the grasping arm must go.
+                    self.line_prior.update(self.obstacle_map, t=t,
+                                           keep_clear=() if self.state.p_sb is None else (self.state.p_sb,))
             if timing is not None:
                 timing.setdefault("perception", []).append(clock() - t0)
         t_references = clock()

@@ -10,7 +10,8 @@ Modules, one per concern: :mod:`.fibonacci` (sphere lattice and its inverse mapp
 eq:nearest), :mod:`.pipeline` (:func:`process_cloud`), :mod:`.cloud_split` (one labelled frame
 split into S, W - S and the obstacle points), :mod:`.grasp_target` (p_gd within the swing bound,
 map-aware), :mod:`.obstacle_map` and :mod:`.map_feed` (the persistent obstacle map and its feed
-to the collision limit) and :mod:`.synthetic` (test scenes).
+to the collision limit), :mod:`.line_prior` (the map's opt-in prior on a cane seen in part) and
+:mod:`.synthetic` (test scenes).
 
 Perception never imports the reference laws (:mod:`harvest_qp.references`): the data flows
 from the cloud to the laws. The unveiling velocity V_cu of the pairs is
@@ -22,6 +23,7 @@ from harvest_qp.perception.cloud_split import LabelledFrame, obstacle_sphere_cen
 from harvest_qp.perception.fibonacci import fibonacci_sphere, nearest_fibonacci_index
 from harvest_qp.perception.free_space import FreeSpace, ObstaclePlane, compute_free_space, fit_obstacle_plane
 from harvest_qp.perception.grasp_target import GraspTarget, SwingCheck, choose_grasp_target
+from harvest_qp.perception.line_prior import LinePrior, LineStructure, find_lines
 from harvest_qp.perception.pipeline import PerceptionResult, process_cloud
 from harvest_qp.perception.stem import LineSegment, StemModel, StemQuality, fit_stem
 from harvest_qp.perception.unveiling import (
@@ -39,6 +41,8 @@ __all__ = [
     "FreeSpace",
     "GraspTarget",
     "LabelledFrame",
+    "LinePrior",
+    "LineStructure",
     "LineSegment",
     "ObstaclePlane",
     "PerceptionResult",
@@ -50,6 +54,7 @@ __all__ = [
     "choose_grasp_target",
     "compute_free_space",
     "fibonacci_sphere",
+    "find_lines",
     "fit_obstacle_plane",
     "fit_stem",
     "nearest_fibonacci_index",

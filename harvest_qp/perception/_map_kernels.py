@@ -530,6 +530,36 @@ def erase_regions(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_l
 
 
 @njit(cache=True)
+def replace_prior(points, value, clamp_min, old, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_list, n_dirty, out):
+    """Replace the prior cells ``old`` by the unknown cells holding ``points`` (indices to ``out``); returns how many.
+
+    The old prior's ``value`` is taken out of its cells (what frames added since stays; exactly
+    0 when none did); then an unknown cell (0) holding one of ``points`` gets ``value``.
+    """
+    for j in range(old.shape[0]):
+        idx = old[j]
+        x = log_odds[idx]
+        log_odds[idx] = 0.0 if x == value else max(x - value, clamp_min)
+        _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+    n = 0
+    for j in range(points.shape[0]):
+        px, py, pz = points[j, 0], points[j, 1], points[j, 2]
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            continue
+        ix = int(np.floor(px / res)) - lo_key[0]
+        iy = int(np.floor(py / res)) - lo_key[1]
+        iz = int(np.floor(pz / res)) - lo_key[2]
+        if 0 <= ix < dims[0] and 0 <= iy < dims[1] and 0 <= iz < dims[2]:
+            idx = cell_index(ix, iy, iz, nby, nbz)
+            if log_odds[idx] == 0.0:
+                log_odds[idx] = value
+                _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+                out[n] = idx
+                n += 1
+    return n
+
+
+@njit(cache=True)
 def rebuild_blocks(dirty_list, n_dirty, dirty, log_odds, block_cells, block_count, block_stamp, version):
     """Refresh the list of occupied cells (log-odds > 0) of every dirty block, stamp it with
     ``version`` (the map's version after this change), then clear the flags."""

@@ -49,6 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.perception import _map_kernels as K
+from harvest_qp.perception._validation import as_finite_points
 from harvest_qp.runtime.interface import PointCloud
 from harvest_qp.validation import as_positive_scalar
 
@@ -421,6 +422,9 @@ class ObstacleMap:
         self._block_stamp = np.zeros(nb, dtype=np.int64)
         self._frame = 0
         self.frames = 0
+        # Linear indices of the cells a prior marked occupied (set_prior); they hold exactly
+        # one hit's log-odds until a frame updates them.
+        self._prior = np.zeros(0, dtype=np.int64)
         #: Radius [m] of the sphere that covers a cell.
         self.cell_radius = 0.5 * math.sqrt(3.0) * res
 
@@ -451,14 +455,18 @@ class ObstacleMap:
         self._n_dirty[0] = 0
         self._frame = 0
         self.frames = 0
+        self._prior = np.zeros(0, dtype=np.int64)
 
     def keys(self, points: ArrayLike) -> NDArray[np.int64]:
         """Integer cell keys ``floor(p / resolution)`` of ``(n, 3)`` points [m]."""
         return np.floor(np.asarray(points, dtype=float) * (1.0 / self.resolution)).astype(np.int64)
 
-    def occupied_centres(self) -> NDArray[np.float64]:
-        """``(n, 3)`` centres [m] of all occupied cells."""
+    def occupied_centres(self, *, observed_only: bool = False) -> NDArray[np.float64]:
+        """``(n, 3)`` centres [m] of all occupied cells; with ``observed_only``, without the
+        cells that only a prior (:meth:`set_prior`) marks."""
         idx = self._occupied_indices()
+        if observed_only and self._prior.shape[0]:
+            idx = idx[~np.isin(idx, self._live_prior())]
         out = np.empty((idx.shape[0], 3))
         K.cell_centres(idx, self.resolution, self.lo_key, self._nby, self._nbz, out)
         return out
@@ -466,6 +474,45 @@ class ObstacleMap:
     def occupied_keys(self) -> NDArray[np.int64]:
         """``(n, 3)`` integer keys of all occupied cells."""
         return self.keys(self.occupied_centres())
+
+    def prior_centres(self) -> NDArray[np.float64]:
+        """``(n, 3)`` centres [m] of the cells occupied by the prior alone (no hit since it was set)."""
+        idx = self._live_prior()
+        out = np.empty((idx.shape[0], 3))
+        K.cell_centres(idx, self.resolution, self.lo_key, self._nby, self._nbz, out)
+        return out
+
+    def _live_prior(self) -> NDArray[np.int64]:
+        # Occupied only because of the prior: no hit since it was set (a miss lowers it).
+        lo = self.log_odds[self._prior]
+        return self._prior[(lo > 0.0) & (lo <= self.hit)]
+
+    def set_prior(self, points: ArrayLike) -> int:
+        """Believe the never-seen cells holding ``(n, 3)`` points [m] occupied, replacing the last prior.
+
+        Each such cell gets one hit's log-odds, as if a frame had seen a point there once: it
+        becomes a collision row like any seen cell, and the frames that later see the space
+        free clear it (three misses) as they clear a seen one. Cells a frame has updated (seen
+        free or occupied) get no prior. The previous prior's belief is taken out of its cells
+        first: what frames added since stays (a cell never updated becomes unknown again).
+        Returns the number of cells marked.
+
+        Raises:
+            InvalidInputError: ``points`` is not ``(n, 3)`` finite [m].
+        """
+        pts = np.ascontiguousarray(as_finite_points("points", points))
+        if pts.shape[0] and np.abs(pts).max() > 1e6:  # keeps the keys far from integer overflow
+            raise InvalidInputError(
+                f"points must lie within 1000 km of the origin [m], got a coordinate {np.abs(pts).max()}"
+            )
+        out = np.empty(pts.shape[0], dtype=np.int64)
+        n = K.replace_prior(
+            pts, self.hit, self.clamp_min, self._prior, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
+            self._dirty, self._dirty_list, self._n_dirty, out,
+        )  # fmt: skip
+        self._prior = out[:n].copy()
+        self._finish_update()
+        return int(n)
 
     def _occupied_indices(self) -> NDArray[np.int64]:
         out = np.empty(self.num_occupied, dtype=np.int64)
