@@ -530,7 +530,8 @@ def erase_regions(regions, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_l
 
 
 @njit(cache=True)
-def replace_prior(points, value, clamp_min, old, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_list, n_dirty, out):
+def replace_prior(points, value, clamp_min, old, res, lo_key, dims, nby, nbz, log_odds, dirty, dirty_list, n_dirty,
+                  out):  # fmt: skip
     """Replace the prior cells ``old`` by the unknown cells holding ``points`` (indices to ``out``); returns how many.
 
     The old prior's ``value`` is taken out of its cells (what frames added since stays; exactly

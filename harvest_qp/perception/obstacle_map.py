@@ -507,8 +507,8 @@ class ObstacleMap:
             )
         out = np.empty(pts.shape[0], dtype=np.int64)
         n = K.replace_prior(
-            pts, self.hit, self.clamp_min, self._prior, self.resolution, self.lo_key, self.dims, self._nby, self._nbz, self.log_odds,
-            self._dirty, self._dirty_list, self._n_dirty, out,
+            pts, self.hit, self.clamp_min, self._prior, self.resolution, self.lo_key, self.dims, self._nby,
+            self._nbz, self.log_odds, self._dirty, self._dirty_list, self._n_dirty, out,
         )  # fmt: skip
         self._prior = out[:n].copy()
         self._finish_update()
