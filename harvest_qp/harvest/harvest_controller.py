@@ -383,10 +383,10 @@ class HarvestController:
         self.switch_snapshot = None
         self.target_choice = None
         self.last_swing_clearance = None
-        if self.obstacle_map is not None:
-            self.obstacle_map.clear()
         if self.line_prior is not None:
             self.line_prior.reset()
+        if self.obstacle_map is not None:
+            self.obstacle_map.clear()
             self.map_feed.update(q0)
 
     # ------------------------------------------------------------------ perception

@@ -535,13 +535,14 @@ def replace_prior(points, value, clamp_min, old, res, lo_key, dims, nby, nbz, lo
     """Replace the prior cells ``old`` by the unknown cells holding ``points`` (indices to ``out``); returns how many.
 
     The old prior's ``value`` is taken out of its cells (what frames added since stays; exactly
-    0 when none did); then an unknown cell (0) holding one of ``points`` gets ``value``.
+    0 when none did; an erased cell stays 0); then an unknown cell (0) holding a point gets ``value``.
     """
     for j in range(old.shape[0]):
         idx = old[j]
         x = log_odds[idx]
-        log_odds[idx] = 0.0 if x == value else max(x - value, clamp_min)
-        _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+        if x != 0.0:  # 0: erased since (a region or a stem point made it unknown)
+            log_odds[idx] = 0.0 if x == value else max(x - value, clamp_min)
+            _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
     n = 0
     for j in range(points.shape[0]):
         px, py, pz = points[j, 0], points[j, 1], points[j, 2]

@@ -70,6 +70,42 @@ def _longest_run(t: NDArray[np.float64], max_gap: float) -> tuple[int, int]:
     return int(starts[k]), int(ends[k])
 
 
+def _longest_tube_run(
+    pts: NDArray[np.float64], along: NDArray[np.float64], cross: NDArray[np.float64], bin_size: float, max_gap: float
+) -> tuple[NDArray[np.int64], float]:
+    """Cells of the longest run (then the one with more cells) over all tubes, and its span [m].
+
+    A tube is an occupied cross bin with its eight neighbours; a cell is in the tubes of the
+    occupied bins around its own. All tubes at once: (tube, along) pairs sorted, runs split
+    where the tube changes or the gap along exceeds ``max_gap``.
+    """
+    keys = np.floor(cross / bin_size).astype(np.int64)
+    keys -= keys.min(axis=0) - 1  # >= 1, so the neighbours' keys are >= 0
+    width = int(keys[:, 1].max()) + 2
+    codes = keys[:, 0] * width + keys[:, 1]
+    bins = np.unique(codes)
+    tube_of, cell_of = [], []
+    for d0 in (-1, 0, 1):
+        for d1 in (-1, 0, 1):
+            neighbour = codes + d0 * width + d1
+            at = np.searchsorted(bins, neighbour)
+            found = (at < bins.shape[0]) & (bins[np.minimum(at, bins.shape[0] - 1)] == neighbour)
+            tube_of.append(at[found])
+            cell_of.append(np.flatnonzero(found))
+    tube = np.concatenate(tube_of)
+    cell = np.concatenate(cell_of)
+    order = np.lexsort((along[cell], tube))
+    tube, cell = tube[order], cell[order]
+    t = along[cell]
+    new_run = np.ones(t.shape[0], dtype=bool)
+    new_run[1:] = (tube[1:] != tube[:-1]) | (np.diff(t) > max_gap)
+    starts = np.flatnonzero(new_run)
+    ends = np.append(starts[1:], t.shape[0])
+    spans = np.round(t[ends - 1] - t[starts], 9)
+    best = np.lexsort((-(ends - starts), -spans))[0]  # longest, then most cells
+    return cell[starts[best] : ends[best]], float(spans[best])
+
+
 def find_lines(
     cells: ArrayLike,
     direction: ArrayLike = (0.0, 1.0, 0.0),
@@ -84,14 +120,20 @@ def find_lines(
 
     The cells are binned across ``direction`` (square bins of ``bin_size`` [m]); each bin with
     its eight neighbours is a tube along the row, and its cells' longest run with no gap over
-    ``max_gap`` [m] along the row is a candidate seen part. The longest one (the one with
-    more cells among equally long ones), at least ``min_length`` [m], is refitted to its cells
-    (their principal axis, then the cells near that axis, twice) and kept when that
-    axis lies within ``max_tilt_deg`` [deg] of ``direction``; its cells are removed and the
-    search repeats, up to ``max_lines`` lines. Deterministic. A leaf (10-15 cm across) is
-    never a line at the default ``min_length``.
+    ``max_gap`` [m] along the row is a candidate seen part. The longest one (the one with more
+    cells among equally long ones) is refitted: the principal axis of its cells, then the cells
+    within 1.5 bins of that axis and a gap of the run's ends, until the run stops growing (a
+    tube along the row clips a structure a little off the row). It is kept when, refitted, it
+    is at least ``min_length`` [m] long and its axis lies within ``max_tilt_deg`` [deg] of
+    ``direction``; its cells are removed and the search repeats, up to ``max_lines`` lines.
+    Deterministic. A single leaf (10-15 cm across) is never a line at the default
+    ``min_length``; leaves in a row with gaps under ``max_gap`` can be (docs/obstacle_map.md).
     """
     pts = as_finite_points("cells", cells)
+    if pts.shape[0] and np.abs(pts).max() > 1e6:  # keeps the bin keys far from integer overflow
+        raise InvalidInputError(
+            f"cells must lie within 1000 km of the origin [m], got a coordinate {np.abs(pts).max()}"
+        )
     u = as_vector(direction, 3, "direction")
     norm = float(np.linalg.norm(u))
     if norm < 1e-9:
@@ -106,60 +148,41 @@ def find_lines(
     a /= np.linalg.norm(a)
     b = np.cross(u, a)
     cos_tilt = math.cos(math.radians(max_tilt_deg))
+    reach2 = (1.5 * bin_size) ** 2
     lines: list[LineStructure] = []
     while len(lines) < max_lines and pts.shape[0] >= 3:
-        along = pts @ u
-        keys = np.floor(np.column_stack((pts @ a, pts @ b)) / bin_size).astype(np.int64)
-        bins, inverse = np.unique(keys, axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        # The cells of each bin, grouped: by_bin[bounds[i]:bounds[i + 1]] are bin i's.
-        by_bin = np.argsort(inverse, kind="stable")
-        bounds = np.searchsorted(inverse[by_bin], np.arange(bins.shape[0] + 1))
-        index = {(int(k0), int(k1)): i for i, (k0, k1) in enumerate(bins)}
-        first, last = np.minimum.reduceat(along[by_bin], bounds[:-1]), np.maximum.reduceat(along[by_bin], bounds[:-1])
-        best, best_score = None, (0.0, 0)
-        for k0, k1 in bins:
-            near = [i for i in (index.get((int(k0) + d0, int(k1) + d1)) for d0 in (-1, 0, 1) for d1 in (-1, 0, 1))
-                    if i is not None]  # fmt: skip
-            if last[near].max() - first[near].min() < max(min_length, best_score[0]):
-                continue  # no run in this tube can be long enough
-            tube = np.concatenate([by_bin[bounds[i] : bounds[i + 1]] for i in near])
-            order = np.argsort(along[tube])
-            ts = along[tube][order]
-            lo, hi = _longest_run(ts, max_gap)
-            score = (round(float(ts[hi - 1] - ts[lo]), 6), hi - lo)  # span, then cells
-            if score > best_score:
-                best_score, best = score, tube[order[lo:hi]]
-        if best is None or best_score[0] < min_length:
+        best, span = _longest_tube_run(pts, pts @ u, np.column_stack((pts @ a, pts @ b)), bin_size, max_gap)
+        if span < min_length:
             break
-        # Refit to the structure's own axis: the principal axis of the run's cells, then the
-        # cells within 1.5 bins of that axis and a gap of the run's ends (a tube along the row
-        # clips a structure a little off the row), twice.
-        for _ in range(3):
+        for _ in range(20):
             run = pts[best]
             centre = run.mean(axis=0)
             _, _, vt = np.linalg.svd(run - centre, full_matrices=False)
             axis = vt[0] if vt[0] @ u >= 0 else -vt[0]
             rel = pts - centre
             t = rel @ axis
-            near = np.einsum("ij,ij->i", rel, rel) - t * t <= (1.5 * bin_size) ** 2
+            near = np.einsum("ij,ij->i", rel, rel) - t * t <= reach2
             near &= (t >= t[best].min() - max_gap) & (t <= t[best].max() + max_gap)
             candidates = np.flatnonzero(near)
-            order = np.argsort(t[candidates])
+            order = np.argsort(t[candidates], kind="stable")
             lo, hi = _longest_run(t[candidates][order], max_gap)
-            if hi - lo < 3:
+            grown = np.sort(candidates[order[lo:hi]])
+            if hi - lo < 3 or np.array_equal(grown, np.sort(best)):
                 break
-            best = candidates[order[lo:hi]]
+            best = grown
         run = pts[best]
         centre = run.mean(axis=0)
-        if axis @ u < cos_tilt:
-            break
         t = (run - centre) @ axis
         perp = run - centre - np.outer(t, axis)
-        lines.append(LineStructure(
-            start=centre + t.min() * axis, end=centre + t.max() * axis,
-            radius=float(np.median(np.linalg.norm(perp, axis=1))), support=int(best.shape[0]),
-        ))  # fmt: skip
+        line = LineStructure(
+            start=centre + t.min() * axis,
+            end=centre + t.max() * axis,
+            radius=float(np.median(np.linalg.norm(perp, axis=1))),
+            support=int(best.shape[0]),
+        )
+        if axis @ u < cos_tilt or line.length < min_length:
+            break
+        lines.append(line)
         keep = np.ones(pts.shape[0], dtype=bool)
         keep[best] = False
         pts = pts[keep]
@@ -180,8 +203,8 @@ class LinePrior:
         keep_clear: no prior cell within this distance [m] of the ``keep_clear`` points of
             :meth:`update` (the stem base, where the grasping arm must go).
         max_lines: lines extended at most (the longest first).
-        voxel: the search runs on one cell per ``voxel`` [m] cube (the first), a quarter of
-            the map's cells at most.
+        voxel: the search runs on one cell per ``voxel`` [m] cube (the first): a surface's
+            cells to about a quarter.
         period: shortest time [s] between two searches (:meth:`due`).
     """
 
@@ -230,13 +253,16 @@ class LinePrior:
 
         Args:
             obstacle_map: an :class:`~harvest_qp.perception.obstacle_map.ObstacleMap`.
-            keep_clear: points [m] (e.g. p_sb) near which no prior cell is set.
+            keep_clear: ``(n, 3)`` points [m] (e.g. p_sb), or one point: no prior cell (the sphere
+                covering it) reaches within ``keep_clear`` [m] of them.
             t: time [s] of this search, for :meth:`due`.
 
         Returns:
             the number of cells the prior marks.
         """
         if t is not None:
+            if not math.isfinite(t):
+                raise InvalidInputError(f"t must be a finite time [s], got {t!r}")
             self._last = float(t)
         cells = obstacle_map.occupied_centres(observed_only=True)
         _, first = np.unique(np.floor(cells / self.voxel).astype(np.int64), axis=0, return_index=True)
@@ -250,10 +276,17 @@ class LinePrior:
         )
         points = [self.continuation(line, obstacle_map.resolution) for line in self.lines]
         pts = np.concatenate(points) if points else np.zeros((0, 3))
-        clear = as_finite_points("keep_clear", [np.asarray(p, float).reshape(3) for p in keep_clear])
+        try:
+            clear = np.asarray(keep_clear, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"keep_clear must be (n, 3) points or one point [m], got {keep_clear!r}") from None
+        clear = as_finite_points("keep_clear", clear.reshape(1, 3) if clear.shape == (3,) else clear)
         if pts.shape[0] and clear.shape[0] and self.keep_clear > 0.0:
-            d2 = ((pts[:, None, :] - clear[None, :, :]) ** 2).sum(axis=2).min(axis=1)
-            pts = pts[d2 > self.keep_clear**2]
+            # On the cells the points fall in: no cell reaches into the sphere.
+            res = obstacle_map.resolution
+            centres = (np.floor(pts / res) + 0.5) * res
+            d2 = ((centres[:, None, :] - clear[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+            pts = pts[d2 > (self.keep_clear + obstacle_map.cell_radius) ** 2]
         return obstacle_map.set_prior(pts)
 
     def continuation(self, line: LineStructure, resolution: float) -> NDArray[np.float64]:

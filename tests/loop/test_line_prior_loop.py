@@ -70,3 +70,36 @@ def test_the_camera_arm_keeps_off_the_unseen_part_of_the_cane(extend):
         assert contact_ticks == 0
     else:
         assert contact_ticks * robot.control_period > 0.05
+
+
+class _Robot:
+    """Just what ``HarvestController.reset`` reads: the joints [rad] and the control period [s]."""
+
+    control_period = 0.002
+
+    def __init__(self, q: np.ndarray) -> None:
+        self.q = q
+
+    def joint_positions(self) -> np.ndarray:
+        return self.q
+
+
+@pytest.mark.parametrize("extend", [0.3, 0.0])
+def test_reset_leaves_no_cell_of_the_last_episode_in_the_collision_rows(extend):
+    """Cells (here a prior) around the gripper fed to the limit, then ``reset`` for a new episode:
+    the map is empty and the limit holds no map cell, with the prior on or off. Catches: the feed's
+    refresh at reset moved under the prior's branch (the last episode's cells stayed in the limit
+    until the first QP step when the prior was off)."""
+    from harvest_qp.robot.description import HOME_Q
+
+    settings = load_settings(tasks_dir() / "paper.yaml", [f"obstacle_map.line_prior={extend}"])
+    controller = HarvestController(settings)
+    q = np.array(HOME_Q, float)
+    controller.reset(_Robot(q))
+    gripper = controller.configuration.frame_position("gripper")
+    controller.obstacle_map.set_prior(gripper + np.random.default_rng(0).uniform(-0.05, 0.05, size=(200, 3)))
+    assert controller.map_feed.update(q) > 0
+    assert any(b.startswith("cell[") for _, b in controller.collision.pair_names())
+    controller.reset(_Robot(q))
+    assert controller.obstacle_map.num_occupied == 0
+    assert not any(b.startswith("cell[") for _, b in controller.collision.pair_names())
