@@ -238,7 +238,7 @@ class ObstacleMap(Section):
     cluster_start: Real = _f(0.04, "[m] its axis starts this far below the gripper point (along y_g)")
     stem_radius: NonNegative = _f(0.02, "[m] a capsule around the stem (top of the crop to p_sb) is never mapped")
     stem_length: Positive = _f(0.08, "[m] the stem's length along -y_g before a stem base is found")
-    line_prior: NonNegative = _f(0.0, "[m] a long structure along the row seen in part (a cane, a wire) is "
+    line_prior: NonNegative = _f(0.3, "[m] a long structure along the row seen in part (a cane, a wire) is "
                                       "believed to go on this far past each seen end (0: off; "
                                       "perception.line_prior)")
     line_prior_direction: Vector3 = _f([0.0, 1.0, 0.0], "the row's direction in the world frame (the platform "

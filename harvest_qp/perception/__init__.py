@@ -10,7 +10,7 @@ Modules, one per concern: :mod:`.fibonacci` (sphere lattice and its inverse mapp
 eq:nearest), :mod:`.pipeline` (:func:`process_cloud`), :mod:`.cloud_split` (one labelled frame
 split into S, W - S and the obstacle points), :mod:`.grasp_target` (p_gd within the swing bound,
 map-aware), :mod:`.obstacle_map` and :mod:`.map_feed` (the persistent obstacle map and its feed
-to the collision limit), :mod:`.line_prior` (the map's opt-in prior on a cane seen in part) and
+to the collision limit), :mod:`.line_prior` (the map's prior on a cane seen in part) and
 :mod:`.synthetic` (test scenes).
 
 Perception never imports the reference laws (:mod:`harvest_qp.references`): the data flows

@@ -1,7 +1,7 @@
 """The map's line prior keeps the camera arm off the part of a cane its camera never saw (issue 20:
 contacts with the vine outside the field of view).
 
-The prior is opt-in (``obstacle_map.line_prior``; docs/robustness.md has its sweep). Scene: sweep seed
+The prior is on by default (``obstacle_map.line_prior: 0.3``; docs/robustness.md has its sweep). Scene: sweep seed
 16148 of ``tasks/paper.yaml`` (development range). On main without the prior the camera arm's wrist-2
 link rests on the cane from 13.5 s for 20 s: the contact point lies 5.5 cm past the last cell the
 camera had mapped on the cane. Oracles: the lab's cane (MuJoCo's capsule) and the lab's contact count,
