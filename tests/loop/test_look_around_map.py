@@ -48,7 +48,7 @@ class _MapAt:
 
     def step(self, obs):
         if self.cells is None and obs.time >= self.time:
-            self.cells = self.controller.obstacle_map.occupied_centres()
+            self.cells = self.controller.obstacle_map.occupied_centres(observed_only=True)  # what the camera saw
         return self.controller.step(obs)
 
 
