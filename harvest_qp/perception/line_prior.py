@@ -58,6 +58,14 @@ class LineStructure:
         return (self.end - self.start) / max(self.length, 1e-12)
 
 
+def _unit_direction(direction: ArrayLike) -> NDArray[np.float64]:
+    u = as_vector(direction, 3, "direction")
+    norm = float(np.linalg.norm(u))
+    if norm < 1e-9:
+        raise InvalidInputError(f"direction must be a non-zero vector, got {direction!r}")
+    return u / norm
+
+
 def _longest_run(t: NDArray[np.float64], max_gap: float) -> tuple[int, int]:
     """Indices ``[i, j)`` into sorted ``t`` of the longest run whose consecutive gaps are <= max_gap."""
     if t.shape[0] == 0:
@@ -134,11 +142,7 @@ def find_lines(
         raise InvalidInputError(
             f"cells must lie within 1000 km of the origin [m], got a coordinate {np.abs(pts).max()}"
         )
-    u = as_vector(direction, 3, "direction")
-    norm = float(np.linalg.norm(u))
-    if norm < 1e-9:
-        raise InvalidInputError(f"direction must be a non-zero vector, got {direction!r}")
-    u = u / norm
+    u = _unit_direction(direction)
     bin_size = as_positive_scalar(bin_size, "bin_size")
     min_length = as_positive_scalar(min_length, "min_length")
     max_gap = as_positive_scalar(max_gap, "max_gap")
@@ -221,10 +225,7 @@ class LinePrior:
         voxel: float = 0.02,
         period: float = 0.5,
     ) -> None:
-        u = as_vector(direction, 3, "direction")
-        if float(np.linalg.norm(u)) < 1e-9:
-            raise InvalidInputError(f"direction must be a non-zero vector, got {direction!r}")
-        self.direction = u / np.linalg.norm(u)
+        self.direction = _unit_direction(direction)
         self.extend = as_positive_scalar(extend, "extend")
         self.min_length = as_positive_scalar(min_length, "min_length")
         self.bin_size = as_positive_scalar(bin_size, "bin_size")
