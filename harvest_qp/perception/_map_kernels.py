@@ -545,19 +545,12 @@ def replace_prior(points, value, clamp_min, old, res, lo_key, dims, nby, nbz, lo
             _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
     n = 0
     for j in range(points.shape[0]):
-        px, py, pz = points[j, 0], points[j, 1], points[j, 2]
-        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
-            continue
-        ix = int(np.floor(px / res)) - lo_key[0]
-        iy = int(np.floor(py / res)) - lo_key[1]
-        iz = int(np.floor(pz / res)) - lo_key[2]
-        if 0 <= ix < dims[0] and 0 <= iy < dims[1] and 0 <= iz < dims[2]:
-            idx = cell_index(ix, iy, iz, nby, nbz)
-            if log_odds[idx] == 0.0:
-                log_odds[idx] = value
-                _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
-                out[n] = idx
-                n += 1
+        idx = point_cell(points, j, res, lo_key, dims, nby, nbz)
+        if idx >= 0 and log_odds[idx] == 0.0:
+            log_odds[idx] = value
+            _mark_dirty(idx >> 9, dirty, dirty_list, n_dirty)
+            out[n] = idx
+            n += 1
     return n
 
 
@@ -733,19 +726,26 @@ def cell_centres(indices, res, lo_key, nby, nbz, out):
         out[j, 2] = (iz + lo_key[2] + 0.5) * res
 
 
+@njit(cache=True, inline="always")
+def point_cell(points, j, res, lo_key, dims, nby, nbz):
+    """Linear index of the cell holding ``points[j]``; -1 outside the grid or for a non-finite point."""
+    px, py, pz = points[j, 0], points[j, 1], points[j, 2]
+    if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+        return -1
+    ix = int(np.floor(px / res)) - lo_key[0]
+    iy = int(np.floor(py / res)) - lo_key[1]
+    iz = int(np.floor(pz / res)) - lo_key[2]
+    if 0 <= ix < dims[0] and 0 <= iy < dims[1] and 0 <= iz < dims[2]:
+        return cell_index(ix, iy, iz, nby, nbz)
+    return -1
+
+
 @njit(cache=True)
 def log_odds_at(points, res, lo_key, dims, nby, nbz, log_odds, out):
     """Log-odds of the cells holding ``points`` (0 = unknown for points outside the grid or non-finite)."""
     for j in range(points.shape[0]):
-        out[j] = 0.0
-        px, py, pz = points[j, 0], points[j, 1], points[j, 2]
-        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
-            continue
-        ix = int(np.floor(px / res)) - lo_key[0]
-        iy = int(np.floor(py / res)) - lo_key[1]
-        iz = int(np.floor(pz / res)) - lo_key[2]
-        if 0 <= ix < dims[0] and 0 <= iy < dims[1] and 0 <= iz < dims[2]:
-            out[j] = log_odds[cell_index(ix, iy, iz, nby, nbz)]
+        idx = point_cell(points, j, res, lo_key, dims, nby, nbz)
+        out[j] = log_odds[idx] if idx >= 0 else 0.0
 
 
 @njit(cache=True)

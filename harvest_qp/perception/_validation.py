@@ -43,6 +43,16 @@ def as_finite_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
     return points
 
 
+def as_grid_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
+    """Finite ``(n, 3)`` points within 1000 km of the origin [m] (cell keys stay far from integer overflow)."""
+    points = as_finite_points(name, value)
+    if points.shape[0] and np.abs(points).max() > 1e6:
+        raise InvalidInputError(
+            f"{name} must lie within 1000 km of the origin [m], got a coordinate {np.abs(points).max()}"
+        )
+    return points
+
+
 def as_point(name: str, value: ArrayLike) -> NDArray[np.float64]:
     """``value`` as a finite ``(3,)`` float64 vector; unlike :func:`as_vector`, a scalar is an
     error here (a position is never the same number on all axes by intent)."""

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.perception._validation import as_finite_points, positive_int
+from harvest_qp.perception._validation import as_finite_points, as_grid_points, positive_int
 from harvest_qp.validation import as_positive_scalar, as_vector
 
 __all__ = ["LinePrior", "LineStructure", "find_lines"]
@@ -64,6 +64,13 @@ def _unit_direction(direction: ArrayLike) -> NDArray[np.float64]:
     if norm < 1e-9:
         raise InvalidInputError(f"direction must be a non-zero vector, got {direction!r}")
     return u / norm
+
+
+def _across(u: NDArray[np.float64], hint, fallback) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit vectors ``a = u x hint`` (``u x fallback`` when ``u`` lies near ``hint``) and ``b = u x a``."""
+    a = np.cross(u, hint if abs(u @ hint) < 0.9 else fallback)
+    a /= np.linalg.norm(a)
+    return a, np.cross(u, a)
 
 
 def _longest_run(t: NDArray[np.float64], max_gap: float) -> tuple[int, int]:
@@ -137,20 +144,14 @@ def find_lines(
     Deterministic. A single leaf (10-15 cm across) is never a line at the default
     ``min_length``; leaves in a row with gaps under ``max_gap`` can be (docs/obstacle_map.md).
     """
-    pts = as_finite_points("cells", cells)
-    if pts.shape[0] and np.abs(pts).max() > 1e6:  # keeps the bin keys far from integer overflow
-        raise InvalidInputError(
-            f"cells must lie within 1000 km of the origin [m], got a coordinate {np.abs(pts).max()}"
-        )
+    pts = as_grid_points("cells", cells)
     u = _unit_direction(direction)
     bin_size = as_positive_scalar(bin_size, "bin_size")
     min_length = as_positive_scalar(min_length, "min_length")
     max_gap = as_positive_scalar(max_gap, "max_gap")
     max_tilt_deg = as_positive_scalar(max_tilt_deg, "max_tilt_deg")
     max_lines = positive_int("max_lines", max_lines, minimum=0)
-    a = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 0.0, 1.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(u, a)
+    a, b = _across(u, (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
     cos_tilt = math.cos(math.radians(max_tilt_deg))
     reach2 = (1.5 * bin_size) ** 2
     lines: list[LineStructure] = []
@@ -285,7 +286,7 @@ class LinePrior:
         if pts.shape[0] and clear.shape[0] and self.keep_clear > 0.0:
             # On the cells the points fall in: no cell reaches into the sphere.
             res = obstacle_map.resolution
-            centres = (np.floor(pts / res) + 0.5) * res
+            centres = (np.floor(pts / res) + 0.5) * res  # as the map's kernels key a point
             d2 = ((centres[:, None, :] - clear[None, :, :]) ** 2).sum(axis=2).min(axis=1)
             pts = pts[d2 > (self.keep_clear + obstacle_map.cell_radius) ** 2]
         return obstacle_map.set_prior(pts)
@@ -294,9 +295,7 @@ class LinePrior:
         """Points [m] past both ends of ``line`` over ``extend``: on its axis and at its radius
         on four sides, every half cell along it."""
         u = line.direction
-        a = np.cross(u, [0.0, 0.0, 1.0] if abs(u[2]) < 0.9 else [1.0, 0.0, 0.0])
-        a /= np.linalg.norm(a)
-        b = np.cross(u, a)
+        a, b = _across(u, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0))
         r = line.radius
         offsets = np.array([[0.0, 0.0, 0.0], r * a, -r * a, r * b, -r * b])
         s = np.arange(0.5 * resolution, self.extend + 1e-12, 0.5 * resolution)

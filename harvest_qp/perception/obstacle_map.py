@@ -49,7 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.perception import _map_kernels as K
-from harvest_qp.perception._validation import as_finite_points
+from harvest_qp.perception._validation import as_grid_points
 from harvest_qp.runtime.interface import PointCloud
 from harvest_qp.validation import as_positive_scalar
 
@@ -422,8 +422,8 @@ class ObstacleMap:
         self._block_stamp = np.zeros(nb, dtype=np.int64)
         self._frame = 0
         self.frames = 0
-        # Linear indices of the cells a prior marked occupied (set_prior); they hold exactly
-        # one hit's log-odds until a frame updates them.
+        # Linear indices of the cells the last prior marked occupied (set_prior): one hit's
+        # log-odds each, plus what frames added since.
         self._prior = np.zeros(0, dtype=np.int64)
         #: Radius [m] of the sphere that covers a cell.
         self.cell_radius = 0.5 * math.sqrt(3.0) * res
@@ -467,9 +467,7 @@ class ObstacleMap:
         idx = self._occupied_indices()
         if observed_only and self._prior.shape[0]:
             idx = idx[~np.isin(idx, self._live_prior())]
-        out = np.empty((idx.shape[0], 3))
-        K.cell_centres(idx, self.resolution, self.lo_key, self._nby, self._nbz, out)
-        return out
+        return self._centres(idx)
 
     def occupied_keys(self) -> NDArray[np.int64]:
         """``(n, 3)`` integer keys of all occupied cells."""
@@ -477,7 +475,9 @@ class ObstacleMap:
 
     def prior_centres(self) -> NDArray[np.float64]:
         """``(n, 3)`` centres [m] of the cells occupied by the prior alone (no hit since it was set)."""
-        idx = self._live_prior()
+        return self._centres(self._live_prior())
+
+    def _centres(self, idx: NDArray[np.int64]) -> NDArray[np.float64]:
         out = np.empty((idx.shape[0], 3))
         K.cell_centres(idx, self.resolution, self.lo_key, self._nby, self._nbz, out)
         return out
@@ -500,11 +500,7 @@ class ObstacleMap:
         Raises:
             InvalidInputError: ``points`` is not ``(n, 3)`` finite [m].
         """
-        pts = np.ascontiguousarray(as_finite_points("points", points))
-        if pts.shape[0] and np.abs(pts).max() > 1e6:  # keeps the keys far from integer overflow
-            raise InvalidInputError(
-                f"points must lie within 1000 km of the origin [m], got a coordinate {np.abs(pts).max()}"
-            )
+        pts = np.ascontiguousarray(as_grid_points("points", points))
         out = np.empty(pts.shape[0], dtype=np.int64)
         n = K.replace_prior(
             pts, self.hit, self.clamp_min, self._prior, self.resolution, self.lo_key, self.dims, self._nby,
