@@ -198,8 +198,7 @@ def main(argv: list[str] | None = None) -> int:
 
     out["feed_update_us"], out["feed_update_cpu_us"] = timed(feed.update)
     out["query_us_15_capsules"], out["query_cpu_us_15_capsules"] = timed(
-        lambda: m._query(w0, w1, feed.radii, 0.11, 0.03, feed._scratch_i, feed._scratch_d, feed._index, feed._dist,
-                         feed._count)  # fmt: skip
+        lambda: m.closest_cells(w0, w1, feed.radii, max_distance=0.11, per_capsule=4, min_separation=0.03)
     )
     print(f"query, 15 capsules: {out['query_us_15_capsules']} us ({out['query_cpu_us_15_capsules']} us CPU); "
           f"MapCollisionFeed.update: {out['feed_update_us']} us ({out['feed_update_cpu_us']} us CPU)"
