@@ -197,6 +197,10 @@ class Perception(Section):
     min_stem_points: PositiveInt = _f(10, "stem points needed to fit the stem")
     max_base_distance: Positive = _f(0.2, "[m] a stem base p_sb further than this from the gripper is rejected")
     grasp_offset: NonNegative = _f(0.015, "[m] from the gripper point up (-y_g) to where the stem enters the crop")
+    stem_memory: bool = _f(True, "beyond the paper: p_sb at the highest stem point seen from close range over the "
+                                 "approach, not only in the last frame (the branch came to hide the stem's top "
+                                 "as the camera rose; harvest_qp.perception.stem_memory)")
+    stem_memory_range: Positive = _f(0.45, "[m] only frames whose camera is this close to p_sb add to the memory")
 
 
 class Roll(Section):

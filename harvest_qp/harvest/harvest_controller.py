@@ -25,7 +25,10 @@ Where this differs from the paper (lab measurements):
   reaching filter), recomputed on the frame at the switch and then frozen. The paper
   identifies it "only once at the start"; the first fit there is 22-41 mm off (13-20
   points at 0.57 m), while refit-then-freeze gave 2.4-2.7 mm; refitting during the
-  bimanual phase drifted 49 mm.
+  bimanual phase drifted 49 mm. Each fit's p_sb is moved up its top axis to the highest stem
+  point seen from close range over the approach (``perception.stem_memory``,
+  :mod:`harvest_qp.perception.stem_memory`): as the camera rose, the branch came to hide the
+  stem's top, and the frozen p_sb lay 12-51 mm down the stem on six of 613 sweep scenes.
 * The ROI centre is the gripper point (the grasped crop, known from the kinematics) until a
   stem base is found.
 * The camera's free roll is used by a lower-priority task that turns the cutter (the
@@ -60,7 +63,7 @@ from harvest_qp.configuration import Configuration
 from harvest_qp.exceptions import ConfigError, HarvestQPError, InvalidInputError
 from harvest_qp.harvest.phases import Phase, PhaseMachine, PhaseRules
 from harvest_qp.limits import CollisionAvoidance, JointAccelerationLimit
-from harvest_qp.perception import compute_free_space, fit_stem, obstacles_near_stem_base
+from harvest_qp.perception import StemTopMemory, compute_free_space, fit_stem, obstacles_near_stem_base
 from harvest_qp.perception.cloud_split import LabelledFrame as _Frame  # _State.frame
 from harvest_qp.perception.cloud_split import obstacle_sphere_centres, outside_held_cluster
 from harvest_qp.perception.grasp_target import (
@@ -355,6 +358,9 @@ class HarvestController:
             yield_time_constant=g.yield_time_constant,
         )
         self.feed_forward = GraspFeedForward()
+        p = s.perception
+        #: The stem points seen from close range over the approach (``perception.stem_memory``).
+        self.stem_memory = StemTopMemory(max_range=p.stem_memory_range) if p.stem_memory else None
         look = s.look_around
         self.look_around = (LookAround(cone=math.radians(look.cone_deg), period=look.period, gain=look.gain)
                             if look.enabled else None)
@@ -385,6 +391,8 @@ class HarvestController:
         self.last_swing_clearance = None
         if self.line_prior is not None:
             self.line_prior.reset()
+        if self.stem_memory is not None:
+            self.stem_memory.reset()
         if self.obstacle_map is not None:
             self.obstacle_map.clear()
             self.map_feed.update(q0)
@@ -423,11 +431,21 @@ class HarvestController:
             fit = fit_stem(frame.stem, T_g[:3, 3])
             if fit.valid and np.linalg.norm(fit.base - T_g[:3, 3]) <= p.max_base_distance:
                 frame.fit = fit
-                st.p_sb = fit.base.copy()
-                st.stem_length = fit.length
+                if self.stem_memory is not None:
+                    self.stem_memory.add(frame.stem, camera_position=frame.camera_position, stem_base=fit.base)
+                st.p_sb, st.stem_length = self._stem_base(fit)
                 st.stem_direction = fit.top.direction.copy()
                 self.reaching.set_roi_centre(st.p_sb)
         st.frame = frame
+
+    def _stem_base(self, fit) -> tuple[np.ndarray, float]:
+        """p_sb [m] and the stem length l [m] of a frame's fit, moved up the top axis to the highest stem
+        point the approach has seen from close range (``perception.stem_memory``)."""
+        if self.stem_memory is None:
+            return fit.base.copy(), fit.length
+        direction = fit.top.direction
+        reach = self.stem_memory.extension(fit.base, direction)
+        return fit.base - reach * direction, fit.length + reach
 
     def _update_obstacle_spheres(self, points: np.ndarray, T_g: np.ndarray) -> None:
         """The vine seen in this frame as collision spheres for the QP (beyond the paper;
@@ -503,16 +521,16 @@ class HarvestController:
         if frame is None or frame.fit is None:
             return False
         fit = frame.fit
-        length = fit.length
+        base, length = self._stem_base(fit)
         r_o = length if g.r_o == "l" else float(g.r_o)
-        obstacles = obstacles_near_stem_base(self._grasp_obstacle_candidates(frame), fit.base, r_o)
-        free = compute_free_space(obstacles, fit.base, length, frame.camera_position, n_samples=g.n_samples)
+        obstacles = obstacles_near_stem_base(self._grasp_obstacle_candidates(frame), base, r_o)
+        free = compute_free_space(obstacles, base, length, frame.camera_position, n_samples=g.n_samples)
         if not free.valid or free.target is None:
             return False
-        target = self._target_within_swing(free, fit.base, T_g=T_g)
+        target = self._target_within_swing(free, base, T_g=T_g)
         if target is None:
             return False
-        st.p_sb, st.p_gd, st.stem_length = fit.base.copy(), target, length
+        st.p_sb, st.p_gd, st.stem_length = base, target, length
         self.switch_snapshot = SwitchSnapshot(
             t, frame.camera_pose, frame.stem, frame.non_stem, fit, obstacles, free, st.p_sb, st.p_gd
         )

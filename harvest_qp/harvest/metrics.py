@@ -42,6 +42,15 @@ SUCCESS_KEYS = (
 )
 
 
+def _stem_base_raised(controller: Any) -> float | None:
+    """How far [m] the frozen p_sb lies from the switch frame's own fit (``perception.stem_memory``); None
+    without a switch."""
+    switch = getattr(controller, "switch_snapshot", None)
+    if switch is None or getattr(switch.stem, "base", None) is None:
+        return None
+    return float(np.linalg.norm(np.asarray(switch.stem_base) - np.asarray(switch.stem.base)))
+
+
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     na, nb = np.linalg.norm(a), np.linalg.norm(b)
     if na < 1e-12 or nb < 1e-12:
@@ -154,6 +163,7 @@ def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper
         "abort_cause": phases.abort_cause,
         "end_reason": _end_reason(phases, reached, float(n * float(log["control_period"]))),
         "p_gd_choice": getattr(controller, "target_choice", None),
+        "stem_base_raised_at_switch": _stem_base_raised(controller),
         "estimated_stem_length": finite_or_none(st.stem_length),
         "realtime_factor": float(realtime_factor),
     }

@@ -6,11 +6,12 @@ space and grasp target p_gd) and the geometry of Section ``subsec:occlusion_cont
 
 Modules, one per concern: :mod:`.fibonacci` (sphere lattice and its inverse mapping),
 :mod:`.classify` (stem / obstacle sets), :mod:`.stem` (two-segment stem model),
-:mod:`.free_space` (free space and p_gd), :mod:`.unveiling` (the ray/obstacle pairs of
-eq:nearest), :mod:`.pipeline` (:func:`process_cloud`), :mod:`.cloud_split` (one labelled frame
-split into S, W - S and the obstacle points), :mod:`.grasp_target` (p_gd within the swing bound,
-map-aware), :mod:`.obstacle_map` and :mod:`.map_feed` (the persistent obstacle map and its feed
-to the collision limit), :mod:`.line_prior` (the map's prior on a cane seen in part) and
+:mod:`.stem_memory` (p_sb from the approach's close frames), :mod:`.free_space` (free space and
+p_gd), :mod:`.unveiling` (the ray/obstacle pairs of eq:nearest), :mod:`.pipeline`
+(:func:`process_cloud`), :mod:`.cloud_split` (one labelled frame split into S, W - S and the
+obstacle points), :mod:`.grasp_target` (p_gd within the swing bound, map-aware),
+:mod:`.obstacle_map` and :mod:`.map_feed` (the persistent obstacle map and its feed to the
+collision limit), :mod:`.line_prior` (the map's prior on a cane seen in part) and
 :mod:`.synthetic` (test scenes).
 
 Perception never imports the reference laws (:mod:`harvest_qp.references`): the data flows
@@ -26,6 +27,7 @@ from harvest_qp.perception.grasp_target import GraspTarget, SwingCheck, choose_g
 from harvest_qp.perception.line_prior import LinePrior, LineStructure, find_lines
 from harvest_qp.perception.pipeline import PerceptionResult, process_cloud
 from harvest_qp.perception.stem import LineSegment, StemModel, StemQuality, fit_stem
+from harvest_qp.perception.stem_memory import StemTopMemory
 from harvest_qp.perception.unveiling import (
     NEAREST_AT_CAMERA,
     NEAREST_AT_STEM_POINT,
@@ -50,6 +52,7 @@ __all__ = [
     "SceneSplit",
     "StemModel",
     "StemQuality",
+    "StemTopMemory",
     "SwingCheck",
     "choose_grasp_target",
     "compute_free_space",
