@@ -115,3 +115,48 @@ def test_the_extension_is_bounded():
 def test_bad_arguments_raise_the_package_error_naming_them(call, name):
     with pytest.raises(InvalidInputError, match=name):
         call(StemTopMemory())
+
+
+def _memory_with_heights(heights, **kwargs) -> StemTopMemory:
+    """A memory holding one point on the axis at each height [m] above TOP, plus the stem below it (0.1 mm
+    cells, so that every point keeps its own)."""
+    memory = StemTopMemory(voxel=1e-4, **kwargs)
+    points = np.vstack([TOP - np.asarray(heights, float)[:, None] * AXIS, _stem_frame(CAMERA_HIGH, 0.0)])
+    memory.add(points, camera_position=CAMERA_HIGH, stem_base=TOP)
+    return memory
+
+
+def test_rank_points_above_do_not_count_and_one_more_does():
+    """With ``rank`` = 2 the 3rd highest point counts: a run up to 4 mm with two more points at 5 mm reaches
+    4 mm, with three 5 mm (an off-by-one that wraps to the highest point would give 5 mm for two)."""
+    heights = [0.001, 0.002, 0.003, 0.004]  # a continuous run up to 4 mm, then the points at 5 mm
+    assert _memory_with_heights(heights + [0.005, 0.00505]).extension(TOP, AXIS) == pytest.approx(0.004, abs=6e-4)
+    three = _memory_with_heights(heights + [0.005, 0.0051, 0.0052])
+    assert three.extension(TOP, AXIS) == pytest.approx(0.005, abs=6e-4)
+    only_two = StemTopMemory(voxel=1e-4)  # nothing but two points, 2 and 4.5 mm up
+    only_two.add(TOP - np.array([[0.002], [0.0045]]) * AXIS, camera_position=CAMERA_HIGH, stem_base=TOP)
+    assert only_two.extension(TOP, AXIS) == 0.0
+
+
+def test_a_reach_under_min_extension_counts_as_none_and_the_axis_may_have_any_length():
+    """A top hidden by 2.5 mm gives 0 (under the 3 mm floor); 5 n_st gives what n_st gives."""
+    near = _memory_with_heights(np.arange(0.0005, 0.0026, 0.0005))
+    assert near.extension(TOP, AXIS) == 0.0
+    far = _memory_with_heights(np.arange(0.0005, 0.0101, 0.0005))
+    assert far.extension(TOP, 5.0 * AXIS) == far.extension(TOP, AXIS) == pytest.approx(0.009, abs=6e-4)
+
+
+def test_a_detached_patch_of_stem_labels_does_not_lift_p_sb():
+    """A segmenter's mistake kept from one frame: 13 stem-labelled points 15-17 mm up the axis, past a gap
+    of 12 mm, give no extension; the same patch joined to p_sb by stem points does (the review's case)."""
+    patch = np.linspace(0.015, 0.017, 13)
+    assert _memory_with_heights(patch).extension(TOP, AXIS) == 0.0
+    joined = np.concatenate([np.arange(0.0005, 0.015, 0.001), patch])
+    assert _memory_with_heights(joined).extension(TOP, AXIS) > 0.0165
+
+
+def test_inconsistent_bounds_are_refused():
+    with pytest.raises(InvalidInputError, match="min_extension"):
+        StemTopMemory(min_extension=0.05, max_extension=0.03)
+    with pytest.raises(InvalidInputError, match="voxel"):
+        StemTopMemory(voxel=1e-12)
