@@ -521,7 +521,8 @@ class HarvestController:
         if frame is None or frame.fit is None:
             return False
         fit = frame.fit
-        base, length = self._stem_base(fit)
+        # _perceive set p_sb and l from this very fit (moved up by the stem memory, which only it feeds).
+        base, length = st.p_sb.copy(), st.stem_length
         r_o = length if g.r_o == "l" else float(g.r_o)
         obstacles = obstacles_near_stem_base(self._grasp_obstacle_candidates(frame), base, r_o)
         free = compute_free_space(obstacles, base, length, frame.camera_position, n_samples=g.n_samples)

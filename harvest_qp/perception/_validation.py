@@ -61,6 +61,18 @@ def as_point(name: str, value: ArrayLike) -> NDArray[np.float64]:
     return as_vector(value, 3, name)
 
 
+def as_unit_vector(name: str, value: ArrayLike, *, min_norm: float = 1e-9) -> NDArray[np.float64]:
+    """``value``, a finite ``(3,)`` vector of norm at least ``min_norm``, scaled to unit length (by its
+    largest entry first, so that entries near the float range do not overflow the norm)."""
+    vector = as_vector(value, 3, name)
+    scale = float(np.abs(vector).max())
+    scaled = vector / scale if scale > 0.0 else vector
+    length = float(np.linalg.norm(scaled))
+    if scale * length < min_norm:
+        raise InvalidInputError(f"{name} must be a non-zero vector, got {value!r}")
+    return scaled / length
+
+
 def as_mask(name: str, value: ArrayLike, n: int) -> NDArray[np.bool_]:
     """``value`` as a boolean ``(n,)`` mask; integer 0/1 labels are accepted."""
     mask = np.asarray(value)

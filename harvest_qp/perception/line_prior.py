@@ -26,8 +26,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.perception._validation import as_finite_points, as_grid_points, positive_int
-from harvest_qp.validation import as_positive_scalar, as_vector
+from harvest_qp.perception._validation import as_finite_points, as_grid_points, as_unit_vector, positive_int
+from harvest_qp.validation import as_positive_scalar
 
 __all__ = ["LinePrior", "LineStructure", "find_lines"]
 
@@ -56,14 +56,6 @@ class LineStructure:
     def direction(self) -> NDArray[np.float64]:
         """Unit vector from ``start`` to ``end``."""
         return (self.end - self.start) / max(self.length, 1e-12)
-
-
-def _unit_direction(direction: ArrayLike) -> NDArray[np.float64]:
-    u = as_vector(direction, 3, "direction")
-    norm = float(np.linalg.norm(u))
-    if norm < 1e-9:
-        raise InvalidInputError(f"direction must be a non-zero vector, got {direction!r}")
-    return u / norm
 
 
 def _across(u: NDArray[np.float64], hint, fallback) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -145,7 +137,7 @@ def find_lines(
     ``min_length``; leaves in a row with gaps under ``max_gap`` can be (docs/obstacle_map.md).
     """
     pts = as_grid_points("cells", cells)
-    u = _unit_direction(direction)
+    u = as_unit_vector("direction", direction)
     bin_size = as_positive_scalar(bin_size, "bin_size")
     min_length = as_positive_scalar(min_length, "min_length")
     max_gap = as_positive_scalar(max_gap, "max_gap")
@@ -226,7 +218,7 @@ class LinePrior:
         voxel: float = 0.02,
         period: float = 0.5,
     ) -> None:
-        self.direction = _unit_direction(direction)
+        self.direction = as_unit_vector("direction", direction)
         self.extend = as_positive_scalar(extend, "extend")
         self.min_length = as_positive_scalar(min_length, "min_length")
         self.bin_size = as_positive_scalar(bin_size, "bin_size")

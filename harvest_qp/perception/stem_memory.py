@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
-from harvest_qp.perception._validation import as_grid_points, as_point, positive_int
+from harvest_qp.perception._validation import as_grid_points, as_point, as_unit_vector, positive_int
 from harvest_qp.validation import as_positive_scalar
 
 __all__ = ["StemTopMemory"]
@@ -132,12 +132,7 @@ class StemTopMemory:
             are no more than ``rank`` of them or that point lies less than ``min_extension`` above p_sb.
         """
         base = as_point("stem_base", stem_base)
-        axis = as_point("direction", direction)
-        axis = axis / np.abs(axis).max(initial=0.0) if np.abs(axis).max(initial=0.0) > 0.0 else axis
-        norm = float(np.linalg.norm(axis))
-        if norm < 1e-12:
-            raise InvalidInputError(f"direction must be a non-zero vector, got {np.asarray(direction).tolist()}")
-        axis = axis / norm
+        axis = as_unit_vector("direction", as_point("direction", direction), min_norm=1e-12)
         offsets = self.points - base
         along = offsets @ axis
         across = offsets - np.outer(along, axis)
