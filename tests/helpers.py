@@ -58,3 +58,15 @@ def assert_as_numpy(got, expected, *, exact_zeros: bool = False, rtol: float = 1
     if exact_zeros:
         zero = e == 0.0
         assert g[zero].view(np.int64).tolist() == e[zero].view(np.int64).tolist(), (g.tolist(), e.tolist())
+
+
+class ResetRobot:
+    """Just what ``HarvestController.reset`` reads of a robot: the joints [rad] and the control period [s]."""
+
+    control_period = 0.002
+
+    def __init__(self, q: np.ndarray) -> None:
+        self.q = np.asarray(q, float)
+
+    def joint_positions(self) -> np.ndarray:
+        return self.q.copy()

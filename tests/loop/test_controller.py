@@ -9,18 +9,7 @@ from harvest_qp.config.settings import DEFAULTS, check_settings
 from harvest_qp.harvest.harvest_controller import HarvestController, Phase
 from harvest_qp.robot.description import HOME_Q
 from harvest_qp.runtime.runner import Observation
-
-
-class _Robot:
-    """What HarvestController.reset reads of a robot."""
-
-    control_period = 0.002
-
-    def __init__(self, q: np.ndarray) -> None:
-        self.q = np.asarray(q, float)
-
-    def joint_positions(self) -> np.ndarray:
-        return self.q.copy()
+from tests.helpers import ResetRobot
 
 
 def test_without_a_stem_it_aborts_and_brakes_to_rest_within_the_acceleration_limit():
@@ -33,7 +22,7 @@ def test_without_a_stem_it_aborts_and_brakes_to_rest_within_the_acceleration_lim
     a_max = DEFAULTS.qp.limits[2].max_acceleration
     controller = HarvestController(settings)
     q = np.asarray(HOME_Q, float) + 0.05
-    controller.reset(_Robot(q))
+    controller.reset(ResetRobot(q))
     previous, t, done, speeds = np.zeros(12), 0.0, False, []
     while not done and t < 2.0:
         t += 0.002

@@ -18,6 +18,7 @@ from harvest_qp.harvest.harvest_controller import HarvestController
 from harvest_qp.robot.paths import tasks_dir
 from harvest_qp.runtime.runner import run_episode
 from harvest_qp.sim.paper_episode import build_robot, environment_capsules_for
+from tests.helpers import ResetRobot
 
 SEED = 16148
 DURATION = 15.0  # past the contact's start (13.5 s) by 1.5 s
@@ -72,18 +73,6 @@ def test_the_camera_arm_keeps_off_the_unseen_part_of_the_cane(extend):
         assert contact_ticks * robot.control_period > 0.05
 
 
-class _Robot:
-    """Just what ``HarvestController.reset`` reads: the joints [rad] and the control period [s]."""
-
-    control_period = 0.002
-
-    def __init__(self, q: np.ndarray) -> None:
-        self.q = q
-
-    def joint_positions(self) -> np.ndarray:
-        return self.q
-
-
 @pytest.mark.parametrize("extend", [0.3, 0.0])
 def test_reset_leaves_no_cell_of_the_last_episode_in_the_collision_rows(extend):
     """Cells (here a prior) around the gripper fed to the limit, then ``reset`` for a new episode:
@@ -95,11 +84,11 @@ def test_reset_leaves_no_cell_of_the_last_episode_in_the_collision_rows(extend):
     settings = load_settings(tasks_dir() / "paper.yaml", [f"obstacle_map.line_prior={extend}"])
     controller = HarvestController(settings)
     q = np.array(HOME_Q, float)
-    controller.reset(_Robot(q))
+    controller.reset(ResetRobot(q))
     gripper = controller.configuration.frame_position("gripper")
     controller.obstacle_map.set_prior(gripper + np.random.default_rng(0).uniform(-0.05, 0.05, size=(200, 3)))
     assert controller.map_feed.update(q) > 0
     assert any(b.startswith("cell[") for _, b in controller.collision.pair_names())
-    controller.reset(_Robot(q))
+    controller.reset(ResetRobot(q))
     assert controller.obstacle_map.num_occupied == 0
     assert not any(b.startswith("cell[") for _, b in controller.collision.pair_names())

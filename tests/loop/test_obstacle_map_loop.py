@@ -21,6 +21,7 @@ from harvest_qp.cli import main
 from harvest_qp.configuration import Configuration
 from harvest_qp.robot.paths import tasks_dir
 from harvest_qp.sim import SimRobot, VineSceneParams
+from tests.helpers import ResetRobot
 
 PAPER = tasks_dir() / "paper.yaml"
 OCCLUDER = {"occluder_distance": 0.32, "occluder_coverage": 1.0}
@@ -286,18 +287,9 @@ def test_the_held_cluster_region_never_erases_the_wood_next_to_the_tool():
     from harvest_qp.runtime.interface import OBSTACLE, PointCloud
     from harvest_qp.runtime.runner import Observation
 
-    class _Robot:  # what reset reads
-        control_period = 0.002
-
-        def __init__(self, q):
-            self.q = q
-
-        def joint_positions(self):
-            return self.q
-
     controller = HarvestController(check_settings({}))
     q = controller.configuration.q.copy()
-    controller.reset(_Robot(q))
+    controller.reset(ResetRobot(q))
     T_g = controller.configuration.frame_pose("gripper").homogeneous
     p_g, x_g, y_g = T_g[:3, 3], T_g[:3, 0], T_g[:3, 1]
     camera = p_g - 0.4 * T_g[:3, 2]

@@ -16,6 +16,7 @@ from harvest_qp.harvest.harvest_controller import HarvestController
 from harvest_qp.robot.paths import tasks_dir
 from harvest_qp.runtime.runner import run_episode
 from harvest_qp.sim.paper_episode import build_robot, environment_capsules_for
+from tests.helpers import ResetRobot
 
 SEED = 16291
 DURATION = 18.0  # past the switch (17.3 s) by 0.7 s
@@ -38,28 +39,16 @@ def test_the_switch_freezes_the_stem_base_the_approach_saw_not_the_last_frames()
     assert np.linalg.norm(controller.state.p_sb - true_base) < 0.008
 
 
-class _Robot:
-    """Just what ``HarvestController.reset`` reads: the joints [rad] and the control period [s]."""
-
-    control_period = 0.002
-
-    def __init__(self, q: np.ndarray) -> None:
-        self.q = q
-
-    def joint_positions(self) -> np.ndarray:
-        return self.q
-
-
 def test_a_new_episode_starts_with_an_empty_stem_memory():
     """Catches the memory kept across ``reset``: the last episode's stem would lift the next one's p_sb."""
     from harvest_qp.robot.description import HOME_Q
 
     controller = HarvestController(load_settings(tasks_dir() / "paper.yaml"))
     q = np.array(HOME_Q, float)
-    controller.reset(_Robot(q))
+    controller.reset(ResetRobot(q))
     stem = np.array([0.5, -0.1, 1.2]) + np.linspace(0.0, 0.05, 30)[:, None] * np.array([0.0, 0.0, -1.0])
     assert controller.stem_memory.add(stem, camera_position=stem[0] + [-0.3, 0.0, 0.0], stem_base=stem[0])
     assert controller.stem_memory.points.shape[0] > 0
-    controller.reset(_Robot(q))
+    controller.reset(ResetRobot(q))
     assert controller.stem_memory.points.shape == (0, 3)
     assert controller.stem_memory.extension(stem[-1], [0.0, 0.0, -1.0]) == 0.0
