@@ -307,8 +307,9 @@ class QPSection(Section):
     solver: Text = _f("daqp", "QP backend: daqp | proxsuite | qpsolvers:<name>")
     backup_solver: expect(str | None, "a string or null") = _f(
         "proxsuite", "re-solves a tick the main backend failed (null: none)")
-    camera_task: TwistTaskSlot = _f(TwistTaskSlot(level=1, weight=[1.0, 1.0, 1.0, 1.0, 1.0, 0.0]),
-                                    "camera twist task (local axes; 5-D: roll about z_c free)")
+    camera_task: TwistTaskSlot = _f(TwistTaskSlot(level=1, weight=[1.0, 1.0, 1.0, 0.3, 0.3, 0.0]),
+                                    "camera twist task (local axes; 5-D: roll about z_c free; the turn weighted "
+                                    "below the travel so that near the wrist singularity the camera keeps its place)")
     camera_bimanual_weight: Weights6OrNull = _f(
         None, "[1/(m/s)^2, 1/(rad/s)^2] the camera task's weights from the switch on, when the camera only has "
               "to stay in the ROI and centred (null: camera_task.weight)")

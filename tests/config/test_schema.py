@@ -271,7 +271,7 @@ def test_the_config_reference_documents_every_key_with_the_default_the_loop_uses
     description.
 
     Catches: a flattened section showing its model's own default instead of the enclosing
-    default (qp.camera_task.weight is [1, 1, 1, 1, 1, 0], not 1.0), or a key missing from the docs."""
+    default (qp.camera_task.weight is [1, 1, 1, 0.3, 0.3, 0], not 1.0), or a key missing from the docs."""
     rows = {}
     for line in config_reference_markdown().split("## QP task configuration")[0].splitlines():
         if line.startswith("| `"):
