@@ -29,9 +29,13 @@ OCCLUDER = {"occluder_distance": 0.32, "occluder_coverage": 1.0}
 # (within 1.05 r of the ROI centre, at rest) at ~8.6 s; without it the cutter enters the
 # leaf at ~2.2 s.
 DURATION = {True: 14.0, False: 3.0}
+# The camera task's turn weighted like its travel: on this scene that path goes round the leaf. With the
+# default's turn weight 0.3 the camera stays behind the leaf, the stem hidden, for 30 s (docs/limitations.md,
+# "A leaf across the approach"); what this file tests, the map's rows, is the same on both paths.
 APPROACH = ["--no-figures", "--set", "camera.downsample=6",
             "--set", "perception.min_stem_points=6",
-            "--set", "scene.params={occluder_distance: 0.32, occluder_coverage: 1.0}"]
+            "--set", "scene.params={occluder_distance: 0.32, occluder_coverage: 1.0}",
+            "--set", "qp.camera_task.weight=[1, 1, 1, 1, 1, 0]"]
 CELL = re.compile(r"cell\[(-?\d+),(-?\d+),(-?\d+)\]")
 
 
