@@ -132,7 +132,7 @@ class StemTopMemory:
             are no more than ``rank`` of them or that point lies less than ``min_extension`` above p_sb.
         """
         base = as_point("stem_base", stem_base)
-        axis = as_unit_vector("direction", as_point("direction", direction), min_norm=1e-12)
+        axis = as_unit_vector("direction", direction, min_norm=1e-12)
         offsets = self.points - base
         along = offsets @ axis
         across = offsets - np.outer(along, axis)

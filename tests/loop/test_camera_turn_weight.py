@@ -30,17 +30,14 @@ def _farthest_camera_after(overrides: list[str], start: float) -> tuple[float, H
     robot = build_robot(settings, SEED)
     base = np.asarray(robot.scene.stem_base, float)
     controller = HarvestController(settings, environment=environment_capsules_for(robot, settings.qp.environment))
-    farthest = [0.0]
 
     def truth() -> dict[str, float]:
-        distance = float(np.linalg.norm(robot.site_pose("camera")[:3, 3] - base))
-        if robot.time >= start:
-            farthest[0] = max(farthest[0], distance)
-        return {"camera_to_stem_base": distance}
+        return {"camera_to_stem_base": float(np.linalg.norm(robot.site_pose("camera")[:3, 3] - base))}
 
     result = run_episode(robot, controller, duration=DURATION, ground_truth=truth)
     assert result.ok, result.error
-    return farthest[0], controller
+    distance = result.log["truth/camera_to_stem_base"][result.log["t"] >= start]
+    return float(distance.max()), controller
 
 
 def test_the_camera_stays_by_the_stem_when_its_wrist_is_near_the_singularity():
