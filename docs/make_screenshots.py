@@ -68,6 +68,7 @@ class MomentRecorder:
         self.moments: dict[str, tuple[ViewerFrame, np.ndarray]] = {}
         self._cloud = None
         self._last = None
+        self._switch_seen = False
 
     def reset(self, robot) -> None:
         self.robot = robot
@@ -85,7 +86,11 @@ class MomentRecorder:
         if "approach" not in self.moments and obs.time >= self.approach_time:
             self.moments["approach"] = self._moment(obs, command, self._cloud)
         if "switch" not in self.moments and phase in (Phase.BIMANUAL, Phase.PRECUT):
-            self.moments["switch"] = self._moment(obs, command, self._cloud)
+            # One tick after the switch: the switch tick's wrist reading is the last one before the
+            # tare, the held crop's weight (~2.9 N), which the overlay would show as if the stem pulled.
+            if self._switch_seen:
+                self.moments["switch"] = self._moment(obs, command, self._cloud)
+            self._switch_seen = True
         return command
 
     def finish(self) -> None:
