@@ -349,6 +349,8 @@ def main(argv: list[str] | None = None) -> int:
                                 progress=args.progress)
             _print_summary(f"harvest_qp paper episode ({args.config.name}, seed {args.seed}, "
                            f"{metrics['mapper']})", {k: metrics.get(k) for k in _RUN_SUMMARY})
+            if metrics.get("episode_error"):
+                print(f"  the episode stopped early ({metrics['episode_status']}): {metrics['episode_error']}")
             if not metrics["success"]:
                 failed = [k for k, ok in metrics["criteria"].items() if not ok]
                 print(f"  failed criteria: {', '.join(failed)}")

@@ -71,6 +71,9 @@ Weights = expect(
 )
 Vector3 = expect(Annotated[list[float], Field(min_length=3, max_length=3)], "a list of 3 numbers")
 PositiveOrNull = expect(Union[Annotated[float, Field(gt=0)], None], "a number > 0 or null")
+#: An angle off a direction [deg] in (0, 90): 90 or more would admit its opposite side.
+AcuteAngle = expect(float, "an angle in (0, 90) [deg]", gt=0, lt=90)
+AcuteAngleOrNull = expect(Union[Annotated[float, Field(gt=0, lt=90)], None], "an angle in (0, 90) [deg] or null")
 PositiveOrL = expect(
     Union[Annotated[float, Field(gt=0)], Literal["l"]], "a number > 0 or 'l' (the estimated stem length)"
 )

@@ -14,6 +14,8 @@ from pydantic import Field, TypeAdapter, field_validator
 from pydantic_core import PydanticCustomError
 
 from harvest_qp.config._types import (
+    AcuteAngle,
+    AcuteAngleOrNull,
     Fraction,
     Level,
     NonNegative,
@@ -173,8 +175,10 @@ class Grasping(Section):
     n_samples: PositiveInt = _f(500, "Fibonacci samples of S(p_sb, l)")
     exclude_held_crop: bool = _f(False, "true: O for p_gd leaves out the robot's points and the held crop "
                                         "(beyond the paper)")
-    max_swing_deg: PositiveOrNull = _f(30.0, "[deg] beyond the paper: p_gd within this angle of the hanging stem "
-                                             "(null: the paper's whole hemisphere)")
+    max_swing_deg: AcuteAngleOrNull = _f(
+        30.0, "[deg] beyond the paper: p_gd within this angle of the hanging stem, below 90 (more puts the crop "
+              "behind p_sb along n_c); null: the paper's whole hemisphere without the map's swing check, the "
+              "crop's side of p_sb with it")
     swing_clearance: PositiveOrNull = _f(0.02, "[m] beyond the paper: map distance the gripper keeps along its "
                                                "swing to p_gd (null: not checked)")
     swing_stretch: NonNegative = _f(0.03, "[m] the swing check also moves the gripper this far out along n_c")
@@ -277,7 +281,7 @@ class Precut(Section):
     alignment_tolerance_deg: Positive = _f(5.0, "[deg] cutter-stem alignment")
     hold_time: NonNegative = _f(1.0, "[s] all tolerances held this long")
     force_time_constant: NonNegative = _f(0.2, "[s] low-pass on the force for this test (sensor noise)")
-    max_force_angle_deg: Positive = _f(20.0, "[deg] the wrist force within this angle of n_c")
+    max_force_angle_deg: AcuteAngle = _f(20.0, "[deg] the wrist force within this angle of n_c")
 
 
 class TaskSlot(Section):

@@ -17,7 +17,12 @@ contacts, tear, tension, capsule distances to the vine).
   force held by a branch contact is not a stretched stem);
 * alignment < 5 deg and projected position error < 5 mm at the end;
 * no contact (the arms with anything, the held crop with the wood; the held crop brushing a
-  leaf is counted in ``contacts_by_kind`` but fails nothing), no tear, no abort.
+  leaf is counted in ``contacts_by_kind`` but fails nothing), no tear, no abort;
+* pre-cut reached (``precut_reached``): the end state alone is not a harvest (an episode that ends
+  before the pre-cut test passed, e.g. one cut short by ``episode.duration``, scored every end
+  criterion true);
+* the episode ran to its end (``completed``: the runner's ``episode_status``; a controller that
+  raised mid-episode left no abort reason).
 """
 
 from __future__ import annotations
@@ -37,8 +42,8 @@ from harvest_qp.limits import CollisionAvoidance
 __all__ = ["compute_metrics", "controller_metrics", "finite_or_none", "min_capsule_distance", "SUCCESS_KEYS"]
 
 SUCCESS_KEYS = (
-    "inside_roi", "centred", "unveiled", "force_settled", "force_below_2fd", "true_tension_settled",
-    "true_tension_below_2fd", "aligned", "position_error_small", "no_contact", "no_tear", "no_abort",
+    "precut_reached", "inside_roi", "centred", "unveiled", "force_settled", "force_below_2fd", "true_tension_settled",
+    "true_tension_below_2fd", "aligned", "position_error_small", "no_contact", "no_tear", "no_abort", "completed",
 )
 
 
@@ -95,8 +100,9 @@ def _end_reason(phases, reached: Phase, duration: float) -> str | None:
 
 def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
                        realtime_factor: float) -> tuple[dict[str, Any], dict[str, bool]]:
-    """The metrics that need no ground truth, and their success checks (``unveiled``, the force, the
-    alignment, the position error, no abort): what the lab and the real cell both report.
+    """The metrics that need no ground truth, and their success checks (pre-cut reached, ``unveiled``, the
+    force, the alignment, the position error, no abort, the episode completed): what the lab and the real
+    cell both report.
 
     Raises:
         EpisodeError: the log holds no controller values (the episode failed before the first tick).
@@ -161,6 +167,8 @@ def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper
         "qp_backup_solves": int(phases.backup_solves),
         "abort_reason": phases.abort_reason,
         "abort_cause": phases.abort_cause,
+        # why the runner stopped before the end (a controller or robot error), its first line; None when completed
+        "episode_error": (str(log.get("error", "")).strip().splitlines() or [None])[0],
         "end_reason": _end_reason(phases, reached, float(n * float(log["control_period"]))),
         "p_gd_choice": getattr(controller, "target_choice", None),
         "stem_base_raised_at_switch": _stem_base_raised(controller),
@@ -168,12 +176,14 @@ def controller_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper
         "realtime_factor": float(realtime_factor),
     }
     checks = {
+        "precut_reached": phases.t_precut is not None,
         "unveiled": end >= 3 * max(start, 1),
         "force_settled": math.isfinite(force_mean) and abs(force_mean - f_d) <= 0.1 * f_d,
         "force_below_2fd": math.isfinite(force_max) and force_max <= 2.0 * f_d,
         "aligned": math.isfinite(alignment) and alignment < 5.0,
         "position_error_small": math.isfinite(position_error) and position_error < 0.005,
         "no_abort": phases.abort_reason is None,
+        "completed": metrics["episode_status"] == "completed",
     }
     return metrics, checks
 

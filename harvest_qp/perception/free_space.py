@@ -264,6 +264,9 @@ def compute_free_space(
     centre = as_point("stem_base", stem_base)
     radius = as_positive_scalar(stem_length, "stem_length")
     camera = as_point("camera_position", camera_position)
+    if np.linalg.norm(camera - centre) < 1e-6:
+        raise InvalidInputError(f"camera_position must differ from stem_base (the camera side of the plane needs a "
+                                f"direction), got both {centre.tolist()} [m]")
     n_samples = positive_int("n_samples", n_samples)
 
     samples = centre + radius * fibonacci_sphere(n_samples)

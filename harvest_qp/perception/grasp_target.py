@@ -31,8 +31,8 @@ from harvest_qp.perception.free_space import FreeSpace
 from harvest_qp.perception.obstacle_map import ObstacleMap
 from harvest_qp.validation import as_positive_scalar
 
-__all__ = ["ARM_SWING_CAPSULES", "SWING_CAPSULES", "SWING_FRACTIONS", "ArmCapsule", "GraspTarget", "SwingCheck",
-           "arm_capsule_motion", "choose_grasp_target", "rotations_between"]
+__all__ = ["ARM_SWING_CAPSULES", "MAX_SWING_LIMIT_DEG", "SWING_CAPSULES", "SWING_FRACTIONS", "ArmCapsule",
+           "GraspTarget", "SwingCheck", "arm_capsule_motion", "choose_grasp_target", "rotations_between"]
 
 #: Capsules of the grasping arm checked along the swing to p_gd: the gripper and the two wrist
 #: links next to it, which move (nearly) rigidly with the gripper while it swings the crop.
@@ -129,6 +129,31 @@ class SwingCheck:
     arm: Sequence[ArmCapsule] = ()
     map_bias: float = 0.0
 
+    def __post_init__(self) -> None:
+        """Check the inputs (:class:`~harvest_qp.exceptions.InvalidInputError` naming the value)."""
+        if not isinstance(self.obstacle_map, ObstacleMap):
+            raise InvalidInputError(f"SwingCheck.obstacle_map must be an ObstacleMap, got "
+                                    f"{type(self.obstacle_map).__name__}")
+        object.__setattr__(self, "gripper_position", as_point("SwingCheck.gripper_position", self.gripper_position))
+        if isinstance(self.capsules, (str, bytes)) or not hasattr(self.capsules, "__len__") or not len(self.capsules):
+            raise InvalidInputError(f"SwingCheck.capsules must be a non-empty list of (p0 [m], p1 [m], radius [m]) "
+                                    f"that move with the gripper, got {self.capsules!r}")
+        capsules = []
+        for i, capsule in enumerate(self.capsules):
+            if not isinstance(capsule, (tuple, list)) or len(capsule) != 3:
+                raise InvalidInputError(f"SwingCheck.capsules[{i}] must be (p0 [m], p1 [m], radius [m]), "
+                                        f"got {capsule!r}")
+            p0, p1, radius = capsule
+            capsules.append((as_point(f"SwingCheck.capsules[{i}] p0", p0), as_point(f"SwingCheck.capsules[{i}] p1", p1),
+                             as_positive_scalar(radius, f"SwingCheck.capsules[{i}] radius", allow_zero=True)))
+        object.__setattr__(self, "capsules", tuple(capsules))
+        for name in ("clearance", "stretch", "map_bias"):
+            object.__setattr__(self, name, as_positive_scalar(getattr(self, name), f"SwingCheck.{name} [m]",
+                                                              allow_zero=True))
+        for i, capsule in enumerate(self.arm):
+            if not isinstance(capsule, ArmCapsule):
+                raise InvalidInputError(f"SwingCheck.arm[{i}] must be an ArmCapsule, got {type(capsule).__name__}")
+
     @property
     def needed(self) -> float:
         """The clearance a swing must keep on the map [m]: ``clearance + map_bias``."""
@@ -219,6 +244,11 @@ CHOICE_CONE = "eq:attr_point over the free samples in the cone"
 CHOICE_CONE_CLEAR = "free, in the cone, swing clear (eq:attr_point among them)"
 CHOICE_ALONG_STEM = "along the stem: nothing in the cone is free and swing clear (no swing)"
 CHOICE_NO_TARGET = "no target: the crop hangs level with or above the stem base"
+CHOICE_NO_FREE = "no target: F has no free sample"
+
+#: The largest swing bound [deg], exclusive: a p_gd 90 deg or more off the stem now puts the crop where
+#: it hangs now level with or behind p_sb along n_c = (p_gd - p_sb)/|...|, where compression reads as stretch.
+MAX_SWING_LIMIT_DEG = 90.0
 
 
 def choose_grasp_target(
@@ -236,8 +266,9 @@ def choose_grasp_target(
         stem_base: p_sb [m].
         top_of_crop: where the stem meets the held crop now [m]; the stem now runs from p_sb
             to it.
-        max_swing_deg: the swing bound [deg]; ``None`` (and no ``swing``) keeps the paper's
-            choice ``free.target`` over the whole hemisphere.
+        max_swing_deg: the swing bound [deg], in (0, 90); ``None`` with a ``swing`` check: the cone is
+            the crop's side of p_sb (less than 90 deg off the stem now); ``None`` and no ``swing``
+            keeps the paper's choice ``free.target`` over the whole hemisphere.
         swing: the map check of the swing (``None``: none).
 
     Rules, in order (:attr:`GraspTarget.choice` says which chose):
@@ -254,20 +285,29 @@ def choose_grasp_target(
        not below p_sb: a target there would put the crop on the wrong side of the stem base,
        where compression reads as stretch along n_c.
 
-    With a swing bound or a map check, the target never leaves the swing bound and never lies
-    above the stem base; with neither, it is the paper's ``free.target`` as it is.
+    With a swing bound or a map check, the target never leaves the swing bound, never lies
+    above the stem base and never puts the crop behind it along n_c; with neither, it is the
+    paper's ``free.target`` as it is (``point`` None, :data:`CHOICE_NO_FREE`, when F has no free
+    sample).
 
     Raises:
-        InvalidInputError: a non-finite ``stem_base`` or ``top_of_crop``, a stem of no length
-            (``top_of_crop`` at ``stem_base``), or ``max_swing_deg`` not in (0, 180].
+        InvalidInputError: ``free`` not a :class:`~harvest_qp.perception.free_space.FreeSpace`, a
+            non-finite ``stem_base`` or ``top_of_crop``, a stem of no length (``top_of_crop`` at
+            ``stem_base``), or ``max_swing_deg`` not in (0, 90).
     """
+    if not isinstance(free, FreeSpace):
+        raise InvalidInputError(f"free must be a FreeSpace (compute_free_space's answer), got {type(free).__name__}")
     stem_base = as_point("stem_base", stem_base)
     top_of_crop = as_point("top_of_crop", top_of_crop)
     if max_swing_deg is not None:
         max_swing_deg = as_positive_scalar(max_swing_deg, "max_swing_deg")
-        if max_swing_deg > 180.0:
-            raise InvalidInputError(f"max_swing_deg must be in (0, 180] [deg] or None, got {max_swing_deg!r}")
+        if max_swing_deg >= MAX_SWING_LIMIT_DEG:
+            raise InvalidInputError(
+                f"max_swing_deg must be in (0, {MAX_SWING_LIMIT_DEG:g}) [deg] or None, got {max_swing_deg!r}: a "
+                "swing that large puts the crop level with or behind the stem base along n_c")
     if max_swing_deg is None and swing is None:
+        if free.target is None:
+            return GraspTarget(None, CHOICE_NO_FREE)
         return GraspTarget(free.target.copy(), CHOICE_PAPER)
     hanging = top_of_crop - stem_base
     length = float(np.linalg.norm(hanging))
@@ -280,7 +320,9 @@ def choose_grasp_target(
     samples = free.samples
     directions = (samples - stem_base) / np.linalg.norm(samples - stem_base, axis=1)[:, None]
     cos_swing = directions @ hanging
-    cone = cos_swing >= (np.cos(np.radians(max_swing_deg)) if max_swing_deg is not None else -1.0)
+    # With no bound the cone is the crop's side of p_sb: a sample 90 deg or more off the stem now would
+    # leave the crop level with or behind p_sb along n_c.
+    cone = (cos_swing >= np.cos(np.radians(max_swing_deg))) if max_swing_deg is not None else (cos_swing > 1e-9)
     candidates = free.free & cone & (directions[:, 2] < 0.0)
     choice, record = CHOICE_CONE, None
     if swing is not None and np.any(candidates):

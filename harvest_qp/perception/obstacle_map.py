@@ -51,7 +51,7 @@ from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.perception import _map_kernels as K
 from harvest_qp.perception._validation import as_grid_points
 from harvest_qp.runtime.interface import PointCloud
-from harvest_qp.validation import as_positive_scalar
+from harvest_qp.validation import as_matrix, as_positive_scalar, as_vector
 
 __all__ = [
     "DEFAULT_BOUNDS",
@@ -156,6 +156,9 @@ def held_crop_exclusions(
     labelled an obstacle, and it must never constrain the camera's approach to it nor the
     gripper that holds it.
     """
+    gripper_pose = as_matrix(gripper_pose, (4, 4), "gripper_pose")
+    if stem_base is not None:
+        stem_base = as_vector(stem_base, 3, "stem_base")
     p_g, y_g = gripper_pose[:3, 3], gripper_pose[:3, 1]
     cluster = ExclusionRegion(tuple(p_g + cluster_start * y_g), tuple(p_g + cluster_length * y_g), cluster_radius)
     top_of_crop = p_g - grasp_offset * y_g

@@ -44,21 +44,16 @@ def real_metrics(log: dict, controller, settings: EpisodeConfig, *, mapper: str,
     from harvest_qp.harvest.metrics import controller_metrics, finite_or_none, min_capsule_distance
 
     own, own_checks = controller_metrics(log, controller, settings, mapper=mapper, realtime_factor=realtime_factor)
-    error = str(log.get("error", "")).strip()
     metrics: dict[str, Any] = {
         "robot": "ur",
         **own,
-        "stop_reason": error.splitlines()[0] if error else None,
+        "stop_reason": own["episode_error"],
         "min_collision_distance": finite_or_none(min_capsule_distance(log["q"], [])),  # robot-robot and stand only
         "camera_frames": int(len(log["frame_time"])),
     }
-    checks = {
-        "precut_reached": controller.phases.t_precut is not None,
-        **own_checks,
-        "no_robot_stop": metrics["episode_status"] == "completed",
-    }
-    metrics["criteria"] = {k: bool(v) for k, v in checks.items()}
-    metrics["success"] = bool(all(checks.values()))
+    # pre-cut reached and the episode completed (no robot stop) are among the controller's own checks
+    metrics["criteria"] = {k: bool(v) for k, v in own_checks.items()}
+    metrics["success"] = bool(all(own_checks.values()))
     return metrics
 
 

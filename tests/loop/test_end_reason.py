@@ -51,3 +51,43 @@ def test_a_successful_or_aborted_episode_has_no_end_reason(tmp_path):
     settings = load_settings(tasks_dir() / "paper.yaml", OVERRIDES)
     m = run_paper_episode(settings, seed=0, duration=5.0, out_dir=tmp_path, figures=False).metrics
     assert m["phase_reached"] == "approach" and m["end_reason"] is None
+
+
+def test_an_episode_that_never_reached_precut_is_not_a_success(tmp_path):
+    """Every end criterion holds (camera, force, true tension, alignment, position, no contact) but the
+    pre-cut test never held for its ``hold_time``: not a harvest. Bug caught (an independent review):
+    ``success`` was the end state alone and read true with ``phase_reached`` "bimanual" and no
+    ``t_precut``. Planted back (the criterion left out): success is true here."""
+    settings = load_settings(tasks_dir() / "paper.yaml", [*OVERRIDES, "precut.hold_time=1000"])
+    m = run_paper_episode(settings, seed=0, duration=20.0, out_dir=tmp_path, figures=False).metrics
+    assert m["phase_reached"] == "bimanual" and m["t_precut"] is None
+    others = {k: ok for k, ok in m["criteria"].items() if k != "precut_reached"}
+    assert all(others.values()), others  # the end state alone would pass
+    assert m["success"] is False and m["criteria"].get("precut_reached") is False
+
+
+class _FailsAfter:
+    """A wrapper whose step raises once the robot's clock passes ``t`` [s]."""
+
+    def __init__(self, inner, t: float) -> None:
+        self.inner, self.t = inner, t
+
+    def reset(self, robot) -> None:
+        self.inner.reset(robot)
+
+    def step(self, obs):
+        if obs.time > self.t:
+            raise RuntimeError("the wrapper failed on purpose")
+        return self.inner.step(obs)
+
+
+def test_a_controller_that_fails_mid_episode_fails_the_episode_and_says_why(tmp_path):
+    """The runner stops the arms when the controller raises; the metrics then carry the error's first
+    line and the ``completed`` criterion fails (it read ``no_abort`` true and named no error)."""
+    settings = load_settings(tasks_dir() / "paper.yaml", OVERRIDES)
+    report = run_paper_episode(settings, seed=0, duration=0.5, out_dir=tmp_path, figures=False,
+                               wrap_controller=lambda robot, controller: _FailsAfter(controller, 0.2))
+    m = report.metrics
+    assert m["episode_status"] == "controller_error" and not m["success"]
+    assert m["criteria"]["completed"] is False
+    assert "the wrapper failed on purpose" in m["episode_error"]

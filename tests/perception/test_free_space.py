@@ -166,6 +166,8 @@ def test_collinear_obstacles_remove_no_half_space():
         ({"stem_length": 0.0}, "stem_length must be finite and > 0"),
         ({"stem_length": np.nan}, "stem_length must be finite and > 0"),
         ({"camera_position": [1.0, np.nan, 0.0]}, "camera_position must be finite"),
+        ({"camera_position": [0.0, 0.0, 0.0], "scene_points": np.ones((4, 3))},
+         "camera_position must differ from stem_base"),  # was a ZeroDivisionError in the scoring
         ({"n_samples": 0}, "n_samples must be an integer >= 1"),
         ({"scene_points": np.zeros((4, 2))}, r"scene_points must have shape \(n, 3\)"),
         ({"scene_points": np.ones((4, 3)), "up": [0.0, 0.0, 0.0]}, "up must be a non-zero direction"),

@@ -247,3 +247,73 @@ def test_bad_input_gets_the_package_error_naming_it(bad, match):
     args = dict(stem_base=P_SB, top_of_crop=P_SB + [0.0, 0.0, -L], max_swing_deg=30.0) | bad
     with pytest.raises(InvalidInputError, match=match):
         choose_grasp_target(free, args.pop("stem_base"), args.pop("top_of_crop"), **args)
+
+
+def _tilted_stem_free_on_the_far_side_only():
+    """A stem 60 deg off the vertical (towards +x); obstacle points fill the +x side of S(p_sb, l), so
+    the free samples lie on the far side, most of them 90 deg or more off the stem now (an independent
+    review's scene)."""
+    hanging = np.array([np.sin(np.radians(60.0)), 0.0, -np.cos(np.radians(60.0))])
+    obstacles = P_SB + np.array([[0.05, y, z] for y in np.linspace(-0.05, 0.05, 15)
+                                 for z in np.linspace(-0.08, 0.02, 15)])
+    free = compute_free_space(obstacles, P_SB, L, P_SB + [-0.3, 0.0, 0.1], n_samples=500)
+    top = P_SB + L * hanging
+    swing = SwingCheck(ObstacleMap(resolution=0.01), top.copy(), [(top + [0, 0, 0.01], top + [0, 0, 0.05], 0.01)],
+                       clearance=0.02)
+    return hanging, free, top, swing
+
+
+def test_without_a_bound_the_map_aware_target_keeps_the_crop_on_its_side_of_the_stem_base():
+    """``max_swing_deg=None`` with the map's swing check: p_gd less than 90 deg off the stem now, so the
+    crop where it hangs now lies ahead of p_sb along n_c = (p_gd - p_sb)/|...| (oracle: that
+    projection, computed here). Catches the unbounded cone (planted: ``cos_swing >= -1``): p_gd was
+    149.7 deg off the stem, the crop 69 mm behind p_sb along n_c, where compression reads as stretch."""
+    hanging, free, top, swing = _tilted_stem_free_on_the_far_side_only()
+    assert np.any(free.free & ((free.samples - P_SB) @ hanging < 0.0))  # free samples behind exist
+    target = choose_grasp_target(free, P_SB, top, max_swing_deg=None, swing=swing)
+    assert target.point is not None, target.choice
+    n_c = _unit(target.point - P_SB)
+    assert (top - P_SB) @ n_c > 0.0, (target.choice, _angle_deg(n_c, hanging))
+    assert _angle_deg(n_c, hanging) < 90.0 and target.point[2] < P_SB[2]
+
+
+@pytest.mark.parametrize("bound", [90.0, 150.0, 200.0])
+def test_a_swing_bound_of_90_deg_or_more_is_refused(bound):
+    """A bound that admits the crop's wrong side is an input error naming the value (the settings
+    refuse it too, before a run: a 200 deg bound once passed check-config and stopped the episode at
+    its switch with a controller error)."""
+    from harvest_qp import ConfigError, InvalidInputError
+    from harvest_qp.config.settings import check_settings
+
+    _, free, top, _ = _tilted_stem_free_on_the_far_side_only()
+    with pytest.raises(InvalidInputError, match=rf"max_swing_deg must be in \(0, 90\).*got {bound}"):
+        choose_grasp_target(free, P_SB, top, max_swing_deg=bound)
+    with pytest.raises(ConfigError, match=r"grasping.max_swing_deg.*an angle in \(0, 90\)"):
+        check_settings({"grasping": {"max_swing_deg": bound}})
+
+
+def test_the_papers_choice_with_no_free_sample_is_no_target():
+    """The paper's rule (no bound, no map check) on an F with no free sample: no target and the
+    choice says why (it raised AttributeError on ``None.copy()``)."""
+    from harvest_qp.perception.grasp_target import CHOICE_NO_FREE
+
+    free = compute_free_space(P_SB + [[0.0, 0.0, -L]], P_SB, L, P_SB + [0.3, 0.0, 0.0], n_samples=1)
+    assert not free.valid and free.target is None
+    target = choose_grasp_target(free, P_SB, P_SB + [0.0, 0.0, -L], max_swing_deg=None)
+    assert target.point is None and target.choice == CHOICE_NO_FREE
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"capsules": []}, r"SwingCheck.capsules must be a non-empty list"),
+    ({"clearance": -1.0}, r"SwingCheck.clearance \[m\] must be finite and >= 0, got -1.0"),
+    ({"gripper_position": [np.nan, 0.0, 1.0]}, r"SwingCheck.gripper_position must be finite"),
+    ({"capsules": [(P_SB, P_SB, -0.01)]}, r"SwingCheck.capsules\[0\] radius must be finite and >= 0, got -0.01"),
+    ({"obstacle_map": None}, r"SwingCheck.obstacle_map must be an ObstacleMap, got NoneType"),
+])
+def test_a_swing_check_built_from_bad_input_says_which(change, match):
+    from harvest_qp import InvalidInputError
+
+    kwargs = {"obstacle_map": ObstacleMap(resolution=0.01), "gripper_position": P_SB - [0.0, 0.0, L],
+              "capsules": [(P_SB, P_SB + [0.0, 0.0, 0.05], 0.01)], "clearance": 0.02, **change}
+    with pytest.raises(InvalidInputError, match=match):
+        SwingCheck(**kwargs)

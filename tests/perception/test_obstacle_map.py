@@ -14,7 +14,12 @@ import pytest
 
 from harvest_qp.exceptions import HarvestQPError, InvalidInputError
 from harvest_qp.perception.map_feed import MapCollisionFeed
-from harvest_qp.perception.obstacle_map import DEFAULT_CLEAR_RAYS, ExclusionRegion, ObstacleMap
+from harvest_qp.perception.obstacle_map import (
+    DEFAULT_CLEAR_RAYS,
+    ExclusionRegion,
+    ObstacleMap,
+    held_crop_exclusions,
+)
 from harvest_qp.runtime.interface import OBSTACLE, ROBOT, STEM, PointCloud
 
 RES = 0.01
@@ -369,6 +374,12 @@ def test_bad_arguments_raise_the_package_error_naming_them():
         m.closest_cells(np.zeros((1, 3)), np.zeros((1, 3)), 0.1, max_distance=0.1, per_capsule=0)
     with pytest.raises(HarvestQPError, match="finite"):
         m.closest_cells(np.full((1, 3), np.nan), np.zeros((1, 3)), 0.1, max_distance=0.1)
+    sizes = dict(grasp_offset=0.015, cluster_start=0.04, cluster_length=0.22, cluster_radius=0.08, stem_length=0.08,
+                 stem_radius=0.02)
+    with pytest.raises(InvalidInputError, match=r"gripper_pose must have shape \(4, 4\), got shape \(3, 3\)"):
+        held_crop_exclusions(np.eye(3), None, **sizes)  # was an IndexError
+    with pytest.raises(InvalidInputError, match="stem_base must be finite"):
+        held_crop_exclusions(np.eye(4), [np.nan, 0.0, 1.0], **sizes)
 
 
 # --------------------------------------------------------------------------- query
