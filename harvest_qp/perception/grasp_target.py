@@ -150,6 +150,9 @@ class SwingCheck:
         for name in ("clearance", "stretch", "map_bias"):
             object.__setattr__(self, name, as_positive_scalar(getattr(self, name), f"SwingCheck.{name} [m]",
                                                               allow_zero=True))
+        if isinstance(self.arm, (str, bytes)) or not isinstance(self.arm, (tuple, list)):
+            raise InvalidInputError(f"SwingCheck.arm must be a list of ArmCapsule, got {type(self.arm).__name__}")
+        object.__setattr__(self, "arm", tuple(self.arm))
         for i, capsule in enumerate(self.arm):
             if not isinstance(capsule, ArmCapsule):
                 raise InvalidInputError(f"SwingCheck.arm[{i}] must be an ArmCapsule, got {type(capsule).__name__}")

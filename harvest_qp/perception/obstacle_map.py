@@ -49,9 +49,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.perception import _map_kernels as K
-from harvest_qp.perception._validation import as_grid_points
+from harvest_qp.perception._validation import as_grid_points, as_point
 from harvest_qp.runtime.interface import PointCloud
-from harvest_qp.validation import as_matrix, as_positive_scalar, as_vector
+from harvest_qp.validation import as_matrix, as_positive_scalar, as_scalar
 
 __all__ = [
     "DEFAULT_BOUNDS",
@@ -158,7 +158,13 @@ def held_crop_exclusions(
     """
     gripper_pose = as_matrix(gripper_pose, (4, 4), "gripper_pose")
     if stem_base is not None:
-        stem_base = as_vector(stem_base, 3, "stem_base")
+        stem_base = as_point("stem_base", stem_base)
+    grasp_offset = as_scalar(grasp_offset, "grasp_offset")
+    cluster_start = as_scalar(cluster_start, "cluster_start")
+    cluster_length = as_scalar(cluster_length, "cluster_length")
+    cluster_radius = as_positive_scalar(cluster_radius, "cluster_radius", allow_zero=True)
+    stem_length = as_positive_scalar(stem_length, "stem_length", allow_zero=True)
+    stem_radius = as_positive_scalar(stem_radius, "stem_radius", allow_zero=True)
     p_g, y_g = gripper_pose[:3, 3], gripper_pose[:3, 1]
     cluster = ExclusionRegion(tuple(p_g + cluster_start * y_g), tuple(p_g + cluster_length * y_g), cluster_radius)
     top_of_crop = p_g - grasp_offset * y_g

@@ -50,7 +50,8 @@ _CAMERA_CRITERIA = frozenset({"centred", "inside_roi"})
 def failure_class(row: Mapping[str, Any]) -> str:
     """Why a row failed, in issue 20's classes.
 
-    * ``lab``: the episode did not run to its end (an exception, a dead or timed-out process);
+    * ``lab``: the episode did not run to its end (an exception, a dead or timed-out process, a
+      controller or robot error inside the episode: ``criteria.completed`` false);
     * ``safety``: a torn stem, a true tension above 2 f_d, more than 50 ms of contact, a force abort
       or a non-finite sensor reading;
     * ``target``: no grasp target (the crop level with or above the stem base; or the switch
@@ -65,7 +66,7 @@ def failure_class(row: Mapping[str, Any]) -> str:
 
     Aborts are classed by the episode's ``abort_cause``, never by the words of its reason.
     """
-    if row.get("status") != STATUS_OK:
+    if row.get("status") != STATUS_OK or row.get("criteria.completed") is False:
         return "lab"
     f_d = float(row.get("f_d") or 3.0)
     tension = row.get("true_tension_max")

@@ -79,7 +79,7 @@ def failure_reason(row: Mapping[str, Any]) -> str | None:
         return "worker died"
     if status == STATUS_TIMEOUT:
         return "timeout"
-    reason = row.get("abort_reason") or row.get("end_reason")
+    reason = row.get("abort_reason") or row.get("episode_error") or row.get("end_reason")
     if reason is None or reason == "":
         return "no abort_reason (success false)" if "success" in row else "no success metric"
     return str(reason)

@@ -309,6 +309,8 @@ def test_the_papers_choice_with_no_free_sample_is_no_target():
     ({"gripper_position": [np.nan, 0.0, 1.0]}, r"SwingCheck.gripper_position must be finite"),
     ({"capsules": [(P_SB, P_SB, -0.01)]}, r"SwingCheck.capsules\[0\] radius must be finite and >= 0, got -0.01"),
     ({"obstacle_map": None}, r"SwingCheck.obstacle_map must be an ObstacleMap, got NoneType"),
+    ({"arm": None}, r"SwingCheck.arm must be a list of ArmCapsule, got NoneType"),
+    ({"arm": (c for c in ())}, r"SwingCheck.arm must be a list of ArmCapsule, got generator"),
 ])
 def test_a_swing_check_built_from_bad_input_says_which(change, match):
     from harvest_qp import InvalidInputError

@@ -380,6 +380,10 @@ def test_bad_arguments_raise_the_package_error_naming_them():
         held_crop_exclusions(np.eye(3), None, **sizes)  # was an IndexError
     with pytest.raises(InvalidInputError, match="stem_base must be finite"):
         held_crop_exclusions(np.eye(4), [np.nan, 0.0, 1.0], **sizes)
+    with pytest.raises(InvalidInputError, match="stem_base"):
+        held_crop_exclusions(np.eye(4), 0.5, **sizes)  # a number is not a point (it was spread to (0.5, 0.5, 0.5))
+    with pytest.raises(InvalidInputError, match="grasp_offset must be a real number, got None"):
+        held_crop_exclusions(np.eye(4), None, **(sizes | {"grasp_offset": None}))
 
 
 # --------------------------------------------------------------------------- query

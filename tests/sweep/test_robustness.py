@@ -43,6 +43,9 @@ def row(seed, **kw):
     ({"success": False, "phase_reached": "bimanual", "target_angle_off_stem_deg": 164.0}, False, "target"),
     ({"success": False, "phase_reached": "bimanual", "target_above_stem_base": True}, False, "target"),
     ({"status": "error", "success": None}, False, "lab"),
+    # a controller that raised inside the episode: metrics were written, but it did not run to its end
+    ({"success": False, "phase_reached": "bimanual", "t_precut": None, "criteria.completed": False,
+      "episode_error": "controller.step failed: RuntimeError: planted"}, False, "lab"),
     # the phase timeouts: a pre-cut timeout names the force too, yet it is no force abort
     ({"success": False, "phase_reached": "abort", "abort_reason": "no pre-cut within 30.0 s of the switch: force "
       "along n_c 2.51 N (f_d 3.00 N +- 10 %), position error 7.2 mm (> 5.0 mm)",
@@ -93,3 +96,12 @@ def test_summary_counts_the_growers_success_and_its_interval():
     half = z / (1 + z * z / 10) * math.sqrt(0.8 * 0.2 / 10 + z * z / 400)
     assert s["grower_interval"] == pytest.approx((centre - half, centre + half))
     assert s["t_precut_median"] == 15.0 and s["t_precut_p90"] == pytest.approx(15.0 + 0.3 * 10.0)
+
+
+def test_the_reason_of_an_episode_stopped_by_an_error_is_its_error():
+    """A review found "no abort_reason (success false)" for an episode whose controller raised."""
+    from harvest_qp.sweep.stats import failure_reason
+
+    failed = row(1, success=False, phase_reached="bimanual", t_precut=None, **{"criteria.completed": False},
+                 episode_error="controller.step failed: RuntimeError: planted")
+    assert failure_reason(failed) == "controller.step failed: RuntimeError: planted"
