@@ -68,7 +68,6 @@ class MomentRecorder:
         self.moments: dict[str, tuple[ViewerFrame, np.ndarray]] = {}
         self._cloud = None
         self._last = None
-        self._switch_seen = False
 
     def reset(self, robot) -> None:
         self.robot = robot
@@ -82,15 +81,13 @@ class MomentRecorder:
         if obs.cloud is not None:
             self._cloud = obs.cloud
         self._last = (obs, command, self._cloud)
-        phase = Phase(int(command.values["phase"])) if "phase" in command.values else None
         if "approach" not in self.moments and obs.time >= self.approach_time:
             self.moments["approach"] = self._moment(obs, command, self._cloud)
-        if "switch" not in self.moments and phase in (Phase.BIMANUAL, Phase.PRECUT):
-            # One tick after the switch: the switch tick's wrist reading is the last one before the
-            # tare, the held crop's weight (~2.9 N), which the overlay would show as if the stem pulled.
-            if self._switch_seen:
-                self.moments["switch"] = self._moment(obs, command, self._cloud)
-            self._switch_seen = True
+        # One tick after the switch: the switch tick's wrist reading is the last one before the tare,
+        # the held crop's weight (~2.9 N), which the overlay would show as if the stem pulled.
+        t_switch = self.controller.phases.t_switch
+        if "switch" not in self.moments and t_switch is not None and obs.time > t_switch:
+            self.moments["switch"] = self._moment(obs, command, self._cloud)
         return command
 
     def finish(self) -> None:

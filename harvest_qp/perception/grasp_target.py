@@ -29,7 +29,7 @@ from harvest_qp.exceptions import InvalidInputError
 from harvest_qp.perception._validation import as_point
 from harvest_qp.perception.free_space import FreeSpace
 from harvest_qp.perception.obstacle_map import ObstacleMap
-from harvest_qp.validation import as_positive_scalar
+from harvest_qp.validation import as_instances, as_positive_scalar
 
 __all__ = ["ARM_SWING_CAPSULES", "MAX_SWING_LIMIT_DEG", "SWING_CAPSULES", "SWING_FRACTIONS", "ArmCapsule",
            "GraspTarget", "SwingCheck", "arm_capsule_motion", "choose_grasp_target", "rotations_between"]
@@ -150,12 +150,9 @@ class SwingCheck:
         for name in ("clearance", "stretch", "map_bias"):
             object.__setattr__(self, name, as_positive_scalar(getattr(self, name), f"SwingCheck.{name} [m]",
                                                               allow_zero=True))
-        if isinstance(self.arm, (str, bytes)) or not isinstance(self.arm, (tuple, list)):
+        if not isinstance(self.arm, (tuple, list)):  # a generator would be used up here and read as empty later
             raise InvalidInputError(f"SwingCheck.arm must be a list of ArmCapsule, got {type(self.arm).__name__}")
-        object.__setattr__(self, "arm", tuple(self.arm))
-        for i, capsule in enumerate(self.arm):
-            if not isinstance(capsule, ArmCapsule):
-                raise InvalidInputError(f"SwingCheck.arm[{i}] must be an ArmCapsule, got {type(capsule).__name__}")
+        object.__setattr__(self, "arm", tuple(as_instances(self.arm, ArmCapsule, "SwingCheck.arm")))
 
     @property
     def needed(self) -> float:

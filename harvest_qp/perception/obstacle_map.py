@@ -162,9 +162,8 @@ def held_crop_exclusions(
     grasp_offset = as_scalar(grasp_offset, "grasp_offset")
     cluster_start = as_scalar(cluster_start, "cluster_start")
     cluster_length = as_scalar(cluster_length, "cluster_length")
-    cluster_radius = as_positive_scalar(cluster_radius, "cluster_radius", allow_zero=True)
     stem_length = as_positive_scalar(stem_length, "stem_length", allow_zero=True)
-    stem_radius = as_positive_scalar(stem_radius, "stem_radius", allow_zero=True)
+    # the radii are checked by ExclusionRegion itself
     p_g, y_g = gripper_pose[:3, 3], gripper_pose[:3, 1]
     cluster = ExclusionRegion(tuple(p_g + cluster_start * y_g), tuple(p_g + cluster_length * y_g), cluster_radius)
     top_of_crop = p_g - grasp_offset * y_g
